@@ -1,0 +1,136 @@
+"""The pinhole + Brown-Conrady camera model, in OpenCV's conventions.
+
+Pixels: the centre of the top-left pixel is (0, 0), x to the right, y down. Camera frame: x right,
+y down, z forward (towards the scene). A point ``(X, Y, Z)`` in the camera frame has normalised
+coordinates ``x = X / Z, y = Y / Z``; with ``r^2 = x^2 + y^2``,
+
+    x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
+          + 2 p1 x y + p2 (r^2 + 2 x^2)
+    y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
+          + p1 (r^2 + 2 y^2) + 2 p2 x y
+    u = fx x_d + cx,   v = fy y_d + cy
+
+with the coefficients in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``. The paper's symbols:
+u0 = cx, v0 = cy, f/dx = fx, f/dy = fy, (a1, a2, a3) = (k1, k2, k3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Sensor", "CameraModel", "distort", "DEFAULT_SENSOR"]
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """An image sensor.
+
+    Attributes
+    ----------
+    width_px, height_px : int
+        Image size in pixels.
+    pixel_pitch_mm : float
+        Pixel pitch (square pixels), mm.
+    """
+
+    width_px: int = 1280
+    height_px: int = 960
+    pixel_pitch_mm: float = 0.00645
+
+    @property
+    def centre_px(self) -> np.ndarray:
+        """(2,) the geometric centre of the pixel grid, OpenCV convention: ((W-1)/2, (H-1)/2)."""
+        return np.array([(self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0])
+
+    def image_plane_to_pixels(self, xy_mm: np.ndarray) -> np.ndarray:
+        """Map positions on the image plane (lens frame, mm) to pixels.
+
+        The lens forms an inverted image; the sensor read-out turns it upright, so
+        ``u = (W-1)/2 - x / pitch`` and ``v = (H-1)/2 - y / pitch``, with the sensor centred on the
+        nominal optical axis.
+
+        Parameters
+        ----------
+        xy_mm : (..., 2) ndarray
+        """
+        return self.centre_px - np.asarray(xy_mm) / self.pixel_pitch_mm
+
+
+DEFAULT_SENSOR = Sensor()
+
+
+def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Apply OpenCV's distortion to normalised coordinates.
+
+    Parameters
+    ----------
+    xy : (..., 2) ndarray
+        Undistorted normalised coordinates ``(X/Z, Y/Z)``.
+    dist : (K,) ndarray
+        Coefficients in OpenCV order, K in {4, 5, 8}; missing terms are zero.
+
+    Returns
+    -------
+    xy_d : (..., 2) ndarray
+
+    Examples
+    --------
+    >>> distort(np.array([0.1, 0.0]), np.array([-0.2, 0, 0, 0, 0]))
+    array([0.0998, 0.    ])
+    """
+    k = np.zeros(8)
+    dist = np.ravel(dist)
+    k[: len(dist)] = dist
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+@dataclass
+class CameraModel:
+    """Intrinsics of one camera (one zoom state).
+
+    Attributes
+    ----------
+    fx, fy : float
+        Focal lengths, px.
+    cx, cy : float
+        Principal point, px (OpenCV convention).
+    dist : (5,) or (8,) ndarray
+        Distortion coefficients, OpenCV order.
+    sensor : Sensor
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    sensor: Sensor = DEFAULT_SENSOR
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def project_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) normalised undistorted coordinates -> (..., 2) pixels."""
+        xd = distort(np.asarray(xy, dtype=float), self.dist)
+        return np.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """(..., 3) points in the camera frame -> (..., 2) pixels."""
+        p = np.asarray(points_cam, dtype=float)
+        return self.project_normalized(p[..., :2] / p[..., 2:3])
+
+    def to_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "dist": [float(v) for v in self.dist],
+                "sensor": {"width_px": self.sensor.width_px, "height_px": self.sensor.height_px,
+                           "pixel_pitch_mm": self.sensor.pixel_pitch_mm}}
