@@ -60,11 +60,17 @@ class RealRays:
 
 
 def _rotate(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.sum(R * v[..., None, :], axis=-1)
+    """``R @ v`` over broadcast batches; R (..., 3, 3), v (..., 3)."""
+    if R.ndim == 2:
+        return v @ R.T
+    return np.matmul(R, v[..., None])[..., 0]
 
 
 def _rotate_back(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.sum(R * v[..., :, None], axis=-2)
+    """``R^T @ v``."""
+    if R.ndim == 2:
+        return v @ R
+    return np.matmul(np.swapaxes(R, -1, -2), v[..., None])[..., 0]
 
 
 def trace_real(lens: Prescription, thickness: np.ndarray, position: np.ndarray,
