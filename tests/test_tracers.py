@@ -26,7 +26,7 @@ def test_paraxial_and_exact_agree_for_small_errors(laikin, rng):
     par = chief_ray_image(laikin, thickness, mis)
     real = chief_ray_image_real(laikin, thickness, mis)
     shift = np.linalg.norm(par, axis=-1)
-    assert shift.min() > 1e-4  # the errors do move the image
+    assert np.median(shift) > 1e-4  # the errors do move the image (um level)
     # second-order terms: (0.1 mrad)^2-level relative differences
     assert np.all(np.linalg.norm(real - par, axis=-1) < 1e-3 * shift + 1e-9)
 
