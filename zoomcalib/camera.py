@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Sensor", "CameraModel", "distort", "DEFAULT_SENSOR"]
+__all__ = ["Sensor", "CameraModel", "distort", "invert_projection", "DEFAULT_SENSOR"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,41 @@ def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
+def invert_projection(project, uv: np.ndarray, xy0: np.ndarray, iterations: int = 30,
+                      tol_px: float = 1e-9) -> np.ndarray:
+    """Solve ``project(xy) = uv`` for normalised coordinates by Newton iteration.
+
+    The Jacobian is taken by central differences, so any smooth mapping works (the OpenCV model,
+    or the exact lens mapping).
+
+    Parameters
+    ----------
+    project : callable
+        (M, 2) normalised coordinates -> (M, 2) pixels.
+    uv : (M, 2) ndarray
+        Pixels.
+    xy0 : (M, 2) ndarray
+        Starting point (e.g. the pinhole inverse).
+
+    Returns
+    -------
+    xy : (M, 2) ndarray
+    """
+    xy = np.array(xy0, dtype=float)
+    h = 1e-7
+    for _ in range(iterations):
+        r = project(xy) - uv
+        if np.max(np.abs(r), initial=0.0) < tol_px:
+            break
+        ju = (project(xy + [h, 0]) - project(xy - [h, 0])) / (2 * h)  # column d uv / d x
+        jv = (project(xy + [0, h]) - project(xy - [0, h])) / (2 * h)
+        det = ju[:, 0] * jv[:, 1] - jv[:, 0] * ju[:, 1]
+        dx = (jv[:, 1] * r[:, 0] - jv[:, 0] * r[:, 1]) / det
+        dy = (-ju[:, 1] * r[:, 0] + ju[:, 0] * r[:, 1]) / det
+        xy -= np.stack([dx, dy], -1)
+    return xy
+
+
 @dataclass
 class CameraModel:
     """Intrinsics of one camera (one zoom state).
@@ -123,6 +158,13 @@ class CameraModel:
         """(..., 2) normalised undistorted coordinates -> (..., 2) pixels."""
         xd = distort(np.asarray(xy, dtype=float), self.dist)
         return np.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
+
+    def unproject_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """(M, 2) pixels -> (M, 2) normalised undistorted coordinates (inverse of
+        :meth:`project_normalized`)."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        xy0 = (uv - [self.cx, self.cy]) / [self.fx, self.fy]
+        return invert_projection(self.project_normalized, uv, xy0)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """(..., 3) points in the camera frame -> (..., 2) pixels."""

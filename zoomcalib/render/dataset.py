@@ -1,0 +1,172 @@
+"""Multi-view, multi-zoom calibration data sets rendered through the (perturbed) zoom lens.
+
+Poses
+-----
+For each zoom step the target is scaled so that, at the working distance, it spans ``fill`` of the
+image height (the paper uses smaller targets at long focal lengths). Views put the board centre on
+a spread of image positions (a jittered 3 x 3 lattice, then random) with tilts of 15-45 degrees
+about random in-plane axes, and are kept only when every object point lies inside the image with a
+margin, so views cover the whole image.
+
+Layout written by :func:`render_dataset`::
+
+    OUT/steps.csv                 step, zoom, direction, sequence, efl_mm
+    OUT/dataset.json              lens, sensor, tolerances, seed, optics, radiometry, and per step:
+                                  zoom, efl_mm, camera (fitted), misalignment, target spec,
+                                  per view: file, rvec, tvec (board -> camera, mm), points_px
+    OUT/zoom_XX/view_YY.png
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import __version__
+from ..camera import DEFAULT_SENSOR, Sensor
+from ..io import write_csv, write_json
+from ..optics.lens_camera import exact_mapping
+from ..optics.mechanics import Tolerances, draw_misalignment
+from ..optics.misalignment import Misalignment
+from ..optics.prescription import Prescription
+from ..targets import Target, parse_pattern
+from .image import Optics, Radiometry, camera_mapping, project_points, render_image
+
+__all__ = ["generate_poses", "render_dataset", "scaled_target_for_view"]
+
+
+def scaled_target_for_view(target: Target, fy_px: float, sensor: Sensor,
+                           distance_mm: float, fill: float = 0.55) -> Target:
+    """Scale ``target`` so its point grid spans ``fill`` of the image height at ``distance_mm``."""
+    span = np.ptp(target.object_points[:, 1]) or np.ptp(target.object_points[:, 0])
+    want = fill * sensor.height_px * distance_mm / fy_px
+    return target.scaled(want / span)
+
+
+def _rotation(axis_angle: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(axis_angle, dtype=float).reshape(3, 1))[0]
+
+
+def generate_poses(target: Target, mapping, sensor: Sensor, n_views: int, distance_mm: float,
+                   rng: np.random.Generator, margin_px: float = 12.0,
+                   tilt_deg: tuple[float, float] = (15.0, 45.0),
+                   max_tries: int = 4000) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Board poses ``Rt_cam_board = (R, t)`` for a calibration set.
+
+    Returns
+    -------
+    poses : list of ((3, 3) ndarray, (3,) ndarray)
+    """
+    centre = target.object_points.mean(axis=0)
+    lattice = [(a, b) for b in (0.3, 0.5, 0.7) for a in (0.3, 0.5, 0.7)]
+    poses = []
+    for _ in range(max_tries):
+        if len(poses) == n_views:
+            break
+        k = len(poses)
+        if k < len(lattice):
+            fu, fv = np.array(lattice[k]) + rng.uniform(-0.08, 0.08, 2)
+        else:
+            fu, fv = rng.uniform(0.25, 0.75, 2)
+        tilt = np.deg2rad(rng.uniform(*tilt_deg))
+        phi = rng.uniform(0, 2 * np.pi)
+        R = _rotation(tilt * np.array([np.cos(phi), np.sin(phi), 0.0]))
+        R = R @ _rotation([0, 0, rng.uniform(-0.3, 0.3)])
+        xy = mapping.unproject(np.array([[fu * (sensor.width_px - 1),
+                                          fv * (sensor.height_px - 1)]]))[0]
+        dist = distance_mm * rng.uniform(0.9, 1.15)
+        t = dist * np.array([xy[0], xy[1], 1.0]) / np.sqrt(1 + xy @ xy) - R @ centre
+        pts = project_points(target.object_points, mapping, R, t)
+        corners = np.array([[target.extent_mm[0], target.extent_mm[1], 0],
+                            [target.extent_mm[2], target.extent_mm[3], 0]]) @ R.T + t
+        if np.any(corners[:, 2] <= 0):
+            continue
+        if (np.all(pts > margin_px) and np.all(pts[:, 0] < sensor.width_px - 1 - margin_px)
+                and np.all(pts[:, 1] < sensor.height_px - 1 - margin_px)):
+            poses.append((R, t))
+    if len(poses) < n_views:
+        raise RuntimeError(f"found only {len(poses)} of {n_views} poses that keep the target in "
+                           f"view; reduce --fill or the number of views")
+    return poses
+
+
+def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
+                   zoom: list[float], n_views: int, pattern: str, optics: Optics | None = None,
+                   radiometry: Radiometry | None = None, seed: int = 0,
+                   sensor: Sensor = DEFAULT_SENSOR, distance_mm: float = 2000.0,
+                   fill: float = 0.55, through: str = "exact", supersample: int = 4,
+                   progress: Callable[[int], None] | None = None) -> dict:
+    """Render a multi-zoom calibration data set (layout in the module docstring).
+
+    Parameters
+    ----------
+    tolerances : Tolerances or None
+        Mechanical errors; each zoom step gets one draw (locked errors, backlash for a random
+        approach direction, play). None renders the nominal lens.
+    through : {'exact', 'model'}
+        Render through the exact ray-traced mapping, or through the fitted OpenCV model only.
+
+    Returns
+    -------
+    dataset : dict
+        What was written to ``dataset.json``.
+    """
+    optics = optics or Optics()
+    radiometry = radiometry or Radiometry()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    base = parse_pattern(pattern)
+    ss = np.random.SeedSequence(seed)
+    mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
+    n_groups = len(lens.groups)
+    if tolerances is not None:
+        draws = draw_misalignment(lens, tolerances, zoom, 1, mech_seed)
+    else:
+        draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
+                             np.zeros((len(zoom), 1, n_groups, 2)))
+    steps, rows = [], []
+    for i, z in enumerate(zoom):
+        rng = np.random.default_rng(step_seeds[i])
+        mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
+        em = exact_mapping(lens, z, mis, sensor)
+        mapping = em if through == "exact" else camera_mapping(em.camera)
+        target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
+        name = f"zoom_{i:02d}"
+        (out / name).mkdir(exist_ok=True)
+        poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
+        views = []
+        for j, (R, t) in enumerate(poses):
+            view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
+                                supersample)
+            fname = f"view_{j:02d}.png"
+            cv2.imwrite(str(out / name / fname), view.image)
+            views.append({"file": f"{name}/{fname}", **view.truth_dict()})
+            if progress is not None:
+                progress(1)
+        steps.append({
+            "step": name, "zoom": float(z), "efl_mm": em.lens_camera.efl_mm,
+            "camera": em.camera.to_dict(), "principal_point_px": em.lens_camera.principal_point_px,
+            "model_fit_rms_px": em.lens_camera.fit_rms_px,
+            "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
+            "target": target.spec, "psf_sigma_px": views and float(view.sigma_px),
+            "views": views,
+        })
+        rows.append({"step": name, "zoom": float(z), "direction": "", "sequence": i,
+                     "efl_mm": em.lens_camera.efl_mm})
+    write_csv(out / "steps.csv", rows, ["step", "zoom", "direction", "sequence", "efl_mm"])
+    doc = {
+        "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
+        "sensor": asdict(sensor), "seed": seed, "through": through,
+        "tolerances": None if tolerances is None else tolerances.to_dict(),
+        "optics": asdict(optics), "radiometry": asdict(radiometry),
+        "distance_mm": distance_mm, "fill": fill, "supersample": supersample,
+        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); rvec/tvec: board -> "
+                      "camera, mm; points_px: true image position of every target object point",
+        "steps": steps,
+    }
+    write_json(out / "dataset.json", doc)
+    return doc

@@ -1,0 +1,366 @@
+"""Render what a camera records when it looks at a calibration target through a lens.
+
+For every pixel the renderer finds where its sub-samples land on the board (back through the
+lens mapping and the pose), paints the target there with exact coverage of straight edges,
+blurs with the PSF *before* integrating over the pixel (as in a camera), then applies vignetting,
+gain, shot and read noise, gamma and quantisation.
+
+Geometry
+--------
+Pixel sub-sample ``(u, v)`` (OpenCV convention, pixel centres at integers; sub-sample ``k`` of
+``S`` at ``i + (k + 0.5) / S - 0.5``) has normalised coordinates ``xy = mapping.unproject(u, v)``;
+its ray ``s (x, y, 1)`` meets the board plane of pose ``Rt_cam_board = (R, t)`` (board -> camera,
+``P = R b + t``) at ``s = (n . t) / (n . (x, y, 1))``, ``n = R e_z``, i.e. at board point
+``b = R^T (s (x, y, 1) - t)``. This board-coordinate field is computed on a coarse pixel lattice
+and interpolated by bicubic splines (it is smooth: perspective times lens distortion), which also
+give its derivatives ``d b / d (u, v)``.
+
+Coverage
+--------
+Targets are painted as a rectilinear grid of constant cells (every edge of chessboard squares and
+ChArUco marker cells is a grid line in the board frame) plus dark discs. A straight edge at signed
+distance ``d`` (px, along its image normal: ``d_board / |grad_uv b|``) from a sub-sample centre
+covers an exactly computed fraction of that square sub-sample (see :func:`_coverage_beyond`);
+crossings of two edges use the tensor product. The PSF is a
+Gaussian of standard deviation ``sigma`` (see :func:`psf_sigma_px`), applied to the sub-sampled
+coverage before the ``S x S`` box integration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+from scipy.interpolate import RectBivariateSpline
+from scipy.spatial import cKDTree
+
+from ..camera import Sensor
+from ..targets import Target
+
+__all__ = ["Radiometry", "Optics", "psf_sigma_px", "board_coordinates", "render_coverage",
+           "render_image", "apply_radiometry", "project_points", "RenderedView", "camera_mapping"]
+
+BACKGROUND = 0.5  # relative reflectance of what lies beyond the board
+
+
+@dataclass(frozen=True)
+class Optics:
+    """What sets the blur.
+
+    Attributes
+    ----------
+    blur_px : float
+        Extra Gaussian blur (aberrations, sensor MTF), 1-sigma in px.
+    f_number : float
+        For the diffraction term.
+    defocus_mm : float
+        Image-side defocus; the blur circle of diameter ``defocus / N`` enters as a Gaussian of
+        sigma = diameter / 4.
+    wavelength_um : float
+    """
+
+    blur_px: float = 0.7
+    f_number: float = 2.4
+    defocus_mm: float = 0.0
+    wavelength_um: float = 0.55
+
+
+def psf_sigma_px(optics: Optics, pixel_pitch_mm: float) -> float:
+    """Gaussian PSF sigma (px): ``sqrt(blur^2 + s_diff^2 + s_defocus^2)``.
+
+    ``s_diff = 0.42 lambda N`` (the Gaussian that best matches the Airy core) and
+    ``s_defocus = |defocus| / (4 N)``, both converted from mm to px.
+    """
+    s_diff = 0.42 * optics.wavelength_um * 1e-3 * optics.f_number / pixel_pitch_mm
+    s_def = abs(optics.defocus_mm) / (4 * optics.f_number) / pixel_pitch_mm
+    return float(np.sqrt(optics.blur_px**2 + s_diff**2 + s_def**2))
+
+
+@dataclass(frozen=True)
+class Radiometry:
+    """From relative reflectance (0 dark print .. 1 white paper) to digital numbers.
+
+    Attributes
+    ----------
+    white, black : float
+        Signal of white paper and of the dark print, as a fraction of full scale.
+    noise_sd : float
+        Additive Gaussian read noise, fraction of full scale (2/255 = 2 DN at 8 bits).
+    full_well_e : float or None
+        Electrons at full scale; gives Poisson shot noise. None: no shot noise.
+    gain : float
+        Multiplies the signal before clipping (exposure).
+    gamma : float
+        Output = signal ** (1 / gamma).
+    bits : {8, 12, 16}
+    vignetting : float
+        Fractional fall-off at the image corner: ``1 - vignetting * (r / r_corner)^2``.
+    """
+
+    white: float = 0.85
+    black: float = 0.08
+    noise_sd: float = 2.0 / 255.0
+    full_well_e: float | None = None
+    gain: float = 1.0
+    gamma: float = 1.0
+    bits: int = 8
+    vignetting: float = 0.0
+
+
+def _cell_grid(target: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rectilinear grid of the target's axis-aligned dark rectangles.
+
+    Returns
+    -------
+    xs, ys : (Nx,), (Ny,) ndarray
+        Sorted grid lines, board mm (the board's outer edge included).
+    value : (Nx + 1, Ny + 1) ndarray
+        Reflectance of each cell (cell ``i`` lies between ``xs[i-1]`` and ``xs[i]``).
+    """
+    ext = target.extent_mm
+    xs = {ext[0], ext[2]}
+    ys = {ext[1], ext[3]}
+    for p in target.polygons:
+        if not (np.allclose(p[0, 1], p[1, 1]) and np.allclose(p[1, 0], p[2, 0])):
+            raise ValueError("renderer paints axis-aligned rectangles and discs only")
+        xs.update(np.round(p[:, 0], 9))
+        ys.update(np.round(p[:, 1], 9))
+    xs, ys = np.array(sorted(xs)), np.array(sorted(ys))
+    xc = np.concatenate([[xs[0] - 1], 0.5 * (xs[:-1] + xs[1:]), [xs[-1] + 1]])
+    yc = np.concatenate([[ys[0] - 1], 0.5 * (ys[:-1] + ys[1:]), [ys[-1] + 1]])
+    value = np.ones((len(xc), len(yc)))
+    inside = ((xc[:, None] > ext[0]) & (xc[:, None] < ext[2])
+              & (yc[None, :] > ext[1]) & (yc[None, :] < ext[3]))
+    value[~inside] = BACKGROUND
+    for p in target.polygons:
+        mx = (xc > p[:, 0].min()) & (xc < p[:, 0].max())
+        my = (yc > p[:, 1].min()) & (yc < p[:, 1].max())
+        value[np.ix_(mx, my)] = 0.0
+    return xs, ys, value
+
+
+def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
+                      step_px: int = 4) -> tuple[RectBivariateSpline, RectBivariateSpline]:
+    """Splines of the board point seen by each pixel position.
+
+    Parameters
+    ----------
+    mapping : object with ``unproject((M, 2) pixels) -> (M, 2) normalised``
+    R, t : (3, 3), (3,) ndarray
+        ``Rt_cam_board``: board -> camera, mm.
+    step_px : int
+        Lattice spacing of the exactly computed nodes.
+
+    Returns
+    -------
+    bx, by : RectBivariateSpline
+        Board x and y (mm) as functions of ``(v, u)`` (row, column order).
+    """
+    us = np.arange(-2 * step_px, sensor.width_px + 2 * step_px, step_px, dtype=float)
+    vs = np.arange(-2 * step_px, sensor.height_px + 2 * step_px, step_px, dtype=float)
+    gv, gu = np.meshgrid(vs, us, indexing="ij")
+    xy = mapping.unproject(np.stack([gu.ravel(), gv.ravel()], -1))
+    ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)  # shape (M, 3)
+    n = R[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n @ t) / (ray @ n)
+    s = np.where(s > 0, s, np.nan)
+    b = (s[:, None] * ray - t) @ R  # R^T (P - t), shape (M, 3)
+    if np.any(~np.isfinite(b)):
+        raise ValueError("the board plane does not cover the whole field of view "
+                         "(a pose looks past the board's horizon)")
+    bx = RectBivariateSpline(vs, us, b[:, 0].reshape(gv.shape), kx=3, ky=3)
+    by = RectBivariateSpline(vs, us, b[:, 1].reshape(gv.shape), kx=3, ky=3)
+    return bx, by
+
+
+def _coverage_beyond(d: np.ndarray, nu: np.ndarray, nv: np.ndarray, S: int) -> np.ndarray:
+    """Fraction of a square sub-sample (side 1/S px) beyond a straight edge at distance ``d`` px.
+
+    The sub-sample projected on the edge normal ``(nu, nv)`` is the sum of two uniform variables of
+    widths ``a = |nu| / S`` and ``b = |nv| / S`` (a >= b); the covered fraction is its tail:
+    ``1/2 - d / a`` for ``d <= (a - b) / 2``, ``((a + b) / 2 - d)^2 / (2 a b)`` up to
+    ``(a + b) / 2``, and 0 beyond. Exact for any edge direction.
+    """
+    a = np.maximum(np.abs(nu), np.abs(nv)) / S
+    b = np.minimum(np.abs(nu), np.abs(nv)) / S
+    d = np.abs(d)
+    lin = 0.5 - d / a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quad = np.where(b > 1e-12, ((a + b) / 2 - d) ** 2 / (2 * a * b), 0.0)
+    out = np.where(d <= (a - b) / 2, lin, quad)
+    return np.where(d >= (a + b) / 2, 0.0, out)
+
+
+def _edge_weight(coord, grad_u, grad_v, lines, S):
+    """Index of the cell, step towards the nearest line, and the coverage across it."""
+    i = np.searchsorted(lines, coord)  # cell index, shape like coord
+    left = lines[np.clip(i - 1, 0, len(lines) - 1)]
+    right = lines[np.clip(i, 0, len(lines) - 1)]
+    d_left = np.where(i > 0, coord - left, np.inf)
+    d_right = np.where(i < len(lines), right - coord, np.inf)
+    nearer_right = d_right < d_left
+    g = np.maximum(np.hypot(grad_u, grad_v), 1e-300)  # board mm per px across the line
+    d = np.minimum(d_left, d_right) / g  # px
+    w = _coverage_beyond(d, grad_u / g, grad_v / g, S)
+    step = np.where(nearer_right, 1, -1)
+    return i, step, w
+
+
+def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
+                    sigma_px: float, supersample: int = 4, band_rows: int = 96) -> np.ndarray:
+    """Relative reflectance seen by each pixel: painted, blurred, then pixel-integrated.
+
+    Returns
+    -------
+    image : (H, W) float64 ndarray
+        0 = dark print, 1 = white paper, ``BACKGROUND`` beyond the board.
+    """
+    S = int(supersample)
+    bxs, bys = board_coordinates(mapping, R, t, sensor)
+    xs, ys, value = _cell_grid(target)
+    discs = target.discs
+    tree = cKDTree(discs[:, :2]) if len(discs) else None
+    W, H = sensor.width_px, sensor.height_px
+    halo = int(np.ceil(4 * sigma_px)) + 1
+    out = np.empty((H, W))
+    sub = (np.arange(S) + 0.5) / S - 0.5
+    u = (np.arange(W)[:, None] + sub).ravel()  # shape (W S,)
+    for r0 in range(0, H, band_rows):
+        r1 = min(H, r0 + band_rows)
+        a0, a1 = r0 - halo, r1 + halo
+        v = (np.arange(a0, a1)[:, None] + sub).ravel()  # shape ((a1 - a0) S,)
+        bx, by = bxs(v, u), bys(v, u)  # shape (V, U)
+        bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
+        by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
+        ix, sx, wx = _edge_weight(bx, bx_u, bx_v, xs, S)
+        iy, sy, wy = _edge_weight(by, by_u, by_v, ys, S)
+        nx, ny = value.shape
+        cov = ((1 - wx) * (1 - wy) * value[ix, iy]
+               + wx * (1 - wy) * value[np.clip(ix + sx, 0, nx - 1), iy]
+               + (1 - wx) * wy * value[ix, np.clip(iy + sy, 0, ny - 1)]
+               + wx * wy * value[np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)])
+        if tree is not None:
+            dist, k = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
+            dist, k = dist.reshape(bx.shape), k.reshape(bx.shape)
+            ex = (bx - discs[k, 0]) / np.maximum(dist, 1e-12)
+            ey = (by - discs[k, 1]) / np.maximum(dist, 1e-12)
+            # gradient of |b - c| in px: J^T e with J = d b / d (u, v)
+            gu, gv = bx_u * ex + by_u * ey, bx_v * ex + by_v * ey
+            g = np.maximum(np.hypot(gu, gv), 1e-300)
+            d_px = (discs[k, 2] - dist) / g  # > 0 inside the disc
+            beyond = _coverage_beyond(d_px, gu / g, gv / g, S)
+            cov = cov * np.where(d_px > 0, beyond, 1.0 - beyond)
+        if sigma_px > 0:
+            cov = cv2.GaussianBlur(cov, (0, 0), sigmaX=sigma_px * S, sigmaY=sigma_px * S,
+                                   borderType=cv2.BORDER_REPLICATE)
+        cov = cov.reshape(a1 - a0, S, W, S).mean(axis=(1, 3))
+        out[r0:r1] = cov[halo: halo + (r1 - r0)]
+    return out
+
+
+def apply_radiometry(reflectance: np.ndarray, radiometry: Radiometry, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """Signal, vignetting, noise, gamma and quantisation.
+
+    Returns
+    -------
+    image : (H, W) uint8 or uint16 ndarray
+    """
+    rm = radiometry
+    H, W = reflectance.shape
+    signal = rm.black + (rm.white - rm.black) * (reflectance - 0.0)
+    if rm.vignetting:
+        v, u = np.mgrid[0:H, 0:W]
+        r2 = ((u - (W - 1) / 2) ** 2 + (v - (H - 1) / 2) ** 2) / (((W - 1) / 2) ** 2
+                                                                 + ((H - 1) / 2) ** 2)
+        signal = signal * (1 - rm.vignetting * r2)
+    signal = signal * rm.gain
+    if rm.full_well_e:
+        signal = rng.poisson(np.clip(signal, 0, None) * rm.full_well_e) / rm.full_well_e
+    if rm.noise_sd:
+        signal = signal + rng.normal(0.0, rm.noise_sd, signal.shape)
+    signal = np.clip(signal, 0.0, 1.0)
+    if rm.gamma != 1.0:
+        signal = signal ** (1.0 / rm.gamma)
+    full = 2**rm.bits - 1
+    dtype = np.uint8 if rm.bits <= 8 else np.uint16
+    return np.round(signal * full).astype(dtype)
+
+
+def project_points(points_board: np.ndarray, mapping, R: np.ndarray, t: np.ndarray
+                   ) -> np.ndarray:
+    """True image positions of board points, px (OpenCV convention).
+
+    Parameters
+    ----------
+    points_board : (n, 3) ndarray
+        Board frame, mm.
+
+    Returns
+    -------
+    uv : (n, 2) ndarray
+    """
+    P = points_board @ R.T + t
+    return mapping.project(P[:, :2] / P[:, 2:3])
+
+
+@dataclass
+class RenderedView:
+    """One rendered image and its truth."""
+
+    image: np.ndarray
+    points_px: np.ndarray
+    visible: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    sigma_px: float
+
+    def truth_dict(self) -> dict:
+        return {"rvec": cv2.Rodrigues(self.R)[0].ravel().tolist(), "tvec": self.t.tolist(),
+                "points_px": self.points_px.tolist(), "visible": self.visible.tolist()}
+
+
+def render_image(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
+                 optics: Optics | None = None, radiometry: Radiometry | None = None,
+                 rng: np.random.Generator | int = 0, supersample: int = 4) -> RenderedView:
+    """Render one view of ``target`` at pose ``Rt_cam_board = (R, t)`` through ``mapping``.
+
+    ``mapping`` is an :class:`~zoomcalib.optics.lens_camera.ExactMapping` (render through the
+    exact ray-traced lens) or a :class:`~zoomcalib.camera.CameraModel` wrapped by
+    :func:`camera_mapping`.
+
+    Returns
+    -------
+    RenderedView
+        The image, the true pixel position of every object point, and which of them fall
+        inside the image (with a 1-px margin).
+    """
+    rng = np.random.default_rng(rng)
+    optics = optics or Optics()
+    radiometry = radiometry or Radiometry()
+    sigma = psf_sigma_px(optics, sensor.pixel_pitch_mm)
+    cov = render_coverage(target, mapping, R, t, sensor, sigma, supersample)
+    image = apply_radiometry(cov, radiometry, rng)
+    pts = project_points(target.object_points, mapping, R, t)
+    visible = ((pts[:, 0] > 0) & (pts[:, 0] < sensor.width_px - 1)
+               & (pts[:, 1] > 0) & (pts[:, 1] < sensor.height_px - 1))
+    return RenderedView(image, pts, visible, R, t, sigma)
+
+
+class camera_mapping:  # noqa: N801 (used like a function)
+    """Adapter: a :class:`~zoomcalib.camera.CameraModel` as a renderer mapping."""
+
+    def __init__(self, camera):
+        self.camera = camera
+
+    def project(self, xy: np.ndarray) -> np.ndarray:
+        return self.camera.project_normalized(np.asarray(xy, float).reshape(-1, 2))
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        return self.camera.unproject_normalized(uv)
+
+
+def optics_dict(optics: Optics) -> dict:
+    return asdict(optics)
