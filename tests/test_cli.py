@@ -42,3 +42,34 @@ def test_simulate_bad_inputs_give_one_line_errors(tmp_path):
     res = CliRunner().invoke(main, ["simulate", "--tolerances", str(tol), "--out", str(tmp_path)])
     assert res.exit_code == 2
     assert "tol.yaml: field 'groups.variator.play_um'" in res.output
+
+
+def test_target_and_render_commands(tmp_path):
+    import json
+
+    import cv2
+
+    res = CliRunner().invoke(main, ["target", "acircles:4x5:20", "--dpi", "100",
+                                    "--out", str(tmp_path / "t")])
+    assert res.exit_code == 0, res.output
+    geo = json.loads((tmp_path / "t.json").read_text())
+    assert len(geo["object_points"]) == 20
+    assert cv2.imread(str(tmp_path / "t.png")).shape[:2] == (473, 709)  # 180 x 120 mm at 100 dpi
+    res = CliRunner().invoke(main, ["target", "hexagons:3x3:1", "--out", str(tmp_path / "u")])
+    assert res.exit_code == 2 and "not understood" in res.output
+
+    out = tmp_path / "set"
+    res = CliRunner().invoke(main, ["render", "--zoom", "0.2", "--views", "1", "--seed", "4",
+                                    "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "dataset.json").read_text())
+    view = doc["steps"][0]["views"][0]
+    img = cv2.imread(str(out / view["file"]), cv2.IMREAD_GRAYSCALE)
+    assert img.shape == (960, 1280)
+    pts = np.array(view["points_px"])
+    # truth lies on X-junctions: dark and bright quadrants around each point
+    i, j = np.round(pts[len(pts) // 2]).astype(int)
+    patch = img[j - 6:j + 7, i - 6:i + 7].astype(float)
+    assert patch.max() - patch.min() > 100
+    with (out / "steps.csv").open() as fh:
+        assert fh.readline().strip().split(",")[:3] == ["step", "zoom", "direction"]

@@ -94,5 +94,95 @@ def simulate(lens, tolerances, steps, samples, seed, tracer, direction, out):
     click.echo(f"wrote {', '.join(str(p) for p in res.files.values())}")
 
 
+def _parse_target(spec):
+    from .targets import PatternError, parse_pattern
+
+    try:
+        return parse_pattern(spec)
+    except PatternError as exc:
+        raise click.BadParameter(str(exc), param_hint="PATTERN") from None
+
+
+@main.command()
+@click.argument("pattern")
+@click.option("--dpi", default=300.0, show_default=True, type=click.FloatRange(min=10),
+              help="Resolution of the PNG.")
+@click.option("--out", default="target", show_default=True,
+              help="Output stem: writes STEM.png, STEM.svg (mm) and STEM.json (geometry).")
+def target(pattern, dpi, out):
+    """Write a printable target for PATTERN.
+
+    PATTERN is chessboard:COLSxROWS:SQUARE (inner corners, mm), circles:COLSxROWS:SPACING,
+    acircles:COLSxROWS:SPACING or charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT.
+    """
+    from .targets import write_printable
+
+    t = _parse_target(pattern)
+    files = write_printable(t, out, dpi)
+    w, h = t.size_mm
+    click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
+
+
+@main.command()
+@click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
+@click.option("--tolerances", type=click.Path(dir_okay=False),
+              help="Mechanical tolerance file; default: the built-in tolerances. Each zoom step "
+                   "gets one draw of the errors.")
+@click.option("--nominal", is_flag=True, help="Render through the aligned lens (no errors).")
+@click.option("--zoom", "zoom_list", help="Comma-separated zoom values in [0, 1].")
+@click.option("--steps", default=3, show_default=True, type=click.IntRange(min=1),
+              help="Evenly spaced zoom steps (when --zoom is not given).")
+@click.option("--views", default=6, show_default=True, type=click.IntRange(min=1),
+              help="Views per zoom step.")
+@click.option("--pattern", default="chessboard:9x6:25", show_default=True,
+              help="Target (scaled per zoom step to fill the view).")
+@click.option("--noise", default=2.0, show_default=True, type=click.FloatRange(min=0),
+              help="Read noise, 1-sigma in 8-bit digital numbers (of 255).")
+@click.option("--blur", default=0.7, show_default=True, type=click.FloatRange(min=0),
+              help="Gaussian blur sigma, px (added to diffraction and defocus).")
+@click.option("--defocus", default=0.0, show_default=True, help="Image-side defocus, mm.")
+@click.option("--bits", default=8, show_default=True, type=click.Choice(["8", "12", "16"]))
+@click.option("--through", default="exact", show_default=True,
+              type=click.Choice(["exact", "model"]),
+              help="Render through the exact ray-traced lens, or its fitted OpenCV model.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
+def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
+           bits, through, seed, out):
+    """Render calibration images through the (perturbed) zoom lens.
+
+    Writes one subfolder per zoom step (OUT/zoom_XX/view_YY.png), OUT/steps.csv and
+    OUT/dataset.json with every truth: camera per step, lens errors, poses and the true
+    pixel position of every target point (OpenCV convention).
+    """
+    from .render.dataset import render_dataset
+    from .render.image import Optics, Radiometry
+
+    lens_ = _load_lens(lens)
+    _parse_target(pattern)
+    tol = None if nominal else _load_tolerances(tolerances, lens_)
+    if zoom_list:
+        try:
+            zoom = [float(z) for z in zoom_list.split(",")]
+        except ValueError:
+            raise click.BadParameter("must be numbers separated by commas",
+                                     param_hint="--zoom") from None
+        if any(not 0 <= z <= 1 for z in zoom):
+            raise click.BadParameter("zoom values must lie in [0, 1]", param_hint="--zoom")
+    else:
+        zoom = list(np.linspace(0, 1, steps)) if steps > 1 else [0.0]
+    optics = Optics(blur_px=blur, f_number=lens_.f_number, defocus_mm=defocus)
+    radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
+    with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
+        doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
+                             through=through, progress=bar.update)
+    for st in doc["steps"]:
+        cam = st["camera"]
+        click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "
+                   f"fx {cam['fx']:.1f}, c ({cam['cx']:.2f}, {cam['cy']:.2f}) px, "
+                   f"target {st['target']}, {len(st['views'])} views")
+    click.echo(f"wrote {out}/steps.csv, {out}/dataset.json and {len(zoom) * views} images")
+
+
 if __name__ == "__main__":
     main()

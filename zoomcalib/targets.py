@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Target", "parse_pattern", "PatternError"]
+__all__ = ["Target", "parse_pattern", "PatternError", "write_printable"]
 
 
 class PatternError(ValueError):
@@ -236,3 +236,54 @@ def parse_pattern(spec: str) -> Target:
         f"pattern {spec!r} not understood; use chessboard:COLSxROWS:SQUARE, "
         "circles:COLSxROWS:SPACING, acircles:COLSxROWS:SPACING or "
         "charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT")
+
+
+def write_printable(target: Target, stem: str, dpi: float = 300.0) -> list[str]:
+    """Write a printable target: ``STEM.png`` at ``dpi``, ``STEM.svg`` in mm, and ``STEM.json``
+    with the geometry (object points in mm, board frame).
+
+    Returns
+    -------
+    files : list of str
+    """
+    import json
+
+    import cv2
+
+    ext = target.extent_mm
+    px_per_mm = dpi / 25.4
+    w, h = (int(np.ceil((ext[2] - ext[0]) * px_per_mm)), int(np.ceil((ext[3] - ext[1])
+                                                                      * px_per_mm)))
+    img = np.full((h, w), 255, np.uint8)
+    shift = 4  # cv2 fixed-point bits for sub-pixel vertices
+    scale = px_per_mm * (1 << shift)
+    # pixel centres at integers: the board point at pixel centre (i, j) is ext[:2] + (i+0.5)/ppmm
+    polys = [np.round((p - ext[:2]) * scale - 0.5 * (1 << shift)).astype(np.int32)
+             for p in target.polygons]
+    if polys:
+        cv2.fillPoly(img, polys, 0, lineType=cv2.LINE_AA, shift=shift)
+    for x, y, r in target.discs:
+        c = np.round((np.array([x, y]) - ext[:2]) * scale - 0.5 * (1 << shift)).astype(int)
+        cv2.circle(img, tuple(int(v) for v in c), int(round(r * scale)), 0, -1, cv2.LINE_AA,
+                   shift)
+    files = [f"{stem}.png", f"{stem}.svg", f"{stem}.json"]
+    cv2.imwrite(files[0], img)
+    wmm, hmm = ext[2] - ext[0], ext[3] - ext[1]
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{wmm:g}mm" height="{hmm:g}mm" '
+             f'viewBox="{ext[0]:g} {ext[1]:g} {wmm:g} {hmm:g}">',
+             f'<rect x="{ext[0]:g}" y="{ext[1]:g}" width="{wmm:g}" height="{hmm:g}" '
+             'fill="white"/>']
+    for p in target.polygons:
+        pts = " ".join(f"{x:g},{y:g}" for x, y in p)
+        parts.append(f'<polygon points="{pts}" fill="black"/>')
+    for x, y, r in target.discs:
+        parts.append(f'<circle cx="{x:g}" cy="{y:g}" r="{r:g}" fill="black"/>')
+    parts.append("</svg>")
+    with open(files[1], "w") as fh:
+        fh.write("\n".join(parts) + "\n")
+    with open(files[2], "w") as fh:
+        json.dump({"pattern": target.spec, "units": "mm", "frame": "board: x along columns, "
+                   "y along rows, z = 0", "extent_mm": target.extent_mm.tolist(),
+                   "pattern_size": list(target.pattern_size),
+                   "object_points": target.object_points.tolist(), "dpi": dpi}, fh, indent=1)
+    return files
