@@ -128,6 +128,31 @@ def bench_optiland_states(lens, quick):
             "optiland build+trace per state", n / t_ol, "")
 
 
+def bench_render(lens, quick):
+    import cv2
+
+    from zoomcalib.camera import DEFAULT_SENSOR
+    from zoomcalib.optics.lens_camera import exact_mapping
+    from zoomcalib.render.image import render_image
+    from zoomcalib.targets import parse_pattern
+
+    mapping = exact_mapping(lens, 0.3)
+    target = parse_pattern("chessboard:17x12:10")  # squares of about 60 px at 500 mm
+    R = cv2.Rodrigues(np.array([0.25, -0.2, 0.03]))[0]
+    t = np.array([-80.0, -55.0, 500.0])
+    holder = {}
+
+    def run():
+        holder["v"] = render_image(target, mapping, R, t, DEFAULT_SENSOR, rng=0)
+
+    t_render = best_of(run, repeat=1 if quick else 3)
+    img = holder["v"].image
+    t_sb = best_of(lambda: cv2.findChessboardCornersSB(img, (17, 12),
+                                                       flags=cv2.CALIB_CB_ACCURACY))
+    return ("render 1280x960 chessboard (exact)", "images/s", 1 / t_render,
+            "cv2.findChessboardCornersSB, same image", 1 / t_sb, "<= 0.5 s/image")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller batches")
@@ -136,7 +161,7 @@ def main():
     print(f"machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
           f"python {platform.python_version()}, numpy {np.__version__}")
     rows = [bench_paraxial(lens, args.quick), bench_exact(lens, args.quick),
-            bench_optiland_states(lens, args.quick)]
+            bench_optiland_states(lens, args.quick), bench_render(lens, args.quick)]
     print(f"{'benchmark':34s} {'unit':28s} {'ours':>10s}  {'peer':34s} {'peer rate':>10s} "
           f"{'ratio':>8s}  goal")
     for name, unit, ours, peer_name, peer, goal in rows:
