@@ -73,3 +73,20 @@ def test_target_and_render_commands(tmp_path):
     assert patch.max() - patch.min() > 100
     with (out / "steps.csv").open() as fh:
         assert fh.readline().strip().split(",")[:3] == ["step", "zoom", "direction"]
+
+
+def test_detect_command_reports_error_against_truth(tmp_path):
+    import json
+    from pathlib import Path
+
+    example = Path(__file__).parents[1] / "data" / "synthetic" / "example"
+    out = tmp_path / "det.json"
+    res = CliRunner().invoke(main, ["detect", str(example), "--pattern", "chessboard:9x6:25",
+                                    "--method", "sb", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["pattern"] == "chessboard:9x6:25"
+    assert [im["file"] for im in doc["images"]][0] == "zoom_00/view_00.png"
+    assert all(im["error"] is None and len(im["ids"]) == 54 for im in doc["images"])
+    rms = float(res.output.split("RMS ")[1].split(" px")[0])
+    assert rms < 0.3  # a misordered board or a half-pixel slip would be far larger

@@ -184,5 +184,61 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     click.echo(f"wrote {out}/steps.csv, {out}/dataset.json and {len(zoom) * views} images")
 
 
+@main.command()
+@click.argument("folder", type=click.Path(exists=True, file_okay=False))
+@click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
+@click.option("--method", "methods", multiple=True,
+              type=click.Choice(["sb", "classic", "circles", "charuco"]),
+              help="Detector (repeat to compare several); default: the target's usual one.")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Parallel processes.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False),
+              help="Detections JSON (with several methods: one file per method, METHOD in "
+                   "the name).")
+def detect(folder, pattern, methods, workers, out):
+    """Detect target points in the images of FOLDER (and its step subfolders).
+
+    Writes {"pattern", "images": [{"file", "points", "ids", "error"}]}. When FOLDER (or its
+    parent) holds a rendered dataset.json, prints each method's error against the truth:
+    RMS, bias and noise.
+    """
+    from pathlib import Path
+
+    from .detect import default_method, detect_folder, image_files, write_detections
+    from .detect.report import error_report, load_truth
+
+    target = _parse_target(pattern)
+    root = Path(folder)
+    files = image_files(root) or sorted(p for sub in sorted(root.iterdir()) if sub.is_dir()
+                                        for p in image_files(sub))
+    if not files:
+        raise click.BadParameter(f"{folder}: no images found", param_hint="FOLDER")
+    found = load_truth(root)
+    base = found[0] if found else root.resolve()
+    methods = methods or (default_method(target),)
+    for method in methods:
+        try:
+            with click.progressbar(length=len(files), label=method, file=sys.stderr) as bar:
+                dets = detect_folder(files, target, method, workers=workers,
+                                     progress=bar.update)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--method") from None
+        for d, f in zip(dets, files, strict=True):
+            d.file = str(Path(f).resolve().relative_to(base))
+        path = out if len(methods) == 1 else str(Path(out).with_suffix("")) + f"_{method}.json"
+        write_detections(path, dets, pattern)
+        failed = [d for d in dets if d.error]
+        click.echo(f"{method}: {len(dets) - len(failed)}/{len(dets)} images detected; "
+                   f"wrote {path}")
+        for d in failed:
+            click.echo(f"  skipped {d.error}")
+        if found:
+            rep = error_report(dets, found[1])
+            if rep["n_points"]:
+                click.echo(f"  vs truth ({rep['n_points']} points): RMS {rep['rms_px']:.4f} px, "
+                           f"bias ({rep['bias_px'][0]:+.4f}, {rep['bias_px'][1]:+.4f}) px, "
+                           f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px")
+
+
 if __name__ == "__main__":
     main()
