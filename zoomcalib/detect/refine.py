@@ -1,0 +1,1176 @@
+"""Model-based subpixel refinement of chessboard X-junctions and of dark dots (ellipses).
+
+Image model
+-----------
+Near a target feature the camera image is modelled as
+
+    I(x) = b + a * P_s(x),   P_s = (pattern * G_sigma * Box_1)(x),
+
+the ideal sharp pattern ``pattern`` (values in [0, 1]) blurred by an isotropic Gaussian point
+spread function ``G_sigma`` (standard deviation ``sigma`` px), then integrated over the square
+1 x 1 px pixel (``Box_1``), then scaled by a contrast ``a`` and an offset ``b``, plus noise.
+Pixels follow OpenCV's convention: the centre of the top-left pixel is (0, 0), x to the right,
+y down; pixel (row i, column j) covers ``[j - 1/2, j + 1/2] x [i - 1/2, i + 1/2]``.
+
+*X-junction (chessboard corner).* Two straight edges cross at the corner ``c``. Edge ``i`` has
+direction angle ``alpha_i`` (radians from the +x axis towards +y, i.e. clockwise on screen) and
+unit normal ``n_i = (-sin alpha_i, cos alpha_i)``; ``u_i = n_i . (x - c)`` is the signed distance
+to edge ``i``. The sharp pattern ``0.5 (1 - sign(u_1) sign(u_2))`` is 1 where the point lies on
+opposite sides of the two edges. The Gaussian blur of this pattern is, exactly,
+
+    P_sigma(x) = Phi(h) + Phi(k) - 2 Phi_2(h, k; rho),   h = u_1 / sigma,  k = u_2 / sigma,
+    rho = n_1 . n_2 = cos(alpha_1 - alpha_2),
+
+where ``Phi`` is the standard normal CDF and ``Phi_2`` the bivariate standard normal CDF with
+correlation ``rho``: the blurred product of two signs is ``E[sign(u_1 + n_1.z) sign(u_2 +
+n_2.z)]`` for ``z ~ N(0, sigma^2 I)``; ``(n_1.z, n_2.z)`` is bivariate normal with correlation
+``n_1 . n_2``, so the expectation is ``4 Phi_2(h, k; rho) - 2 Phi(h) - 2 Phi(k) + 1``. The
+familiar product of two ``erf`` edges is the special case ``rho = 0`` (orthogonal edges) and is
+wrong for the non-orthogonal edges that perspective produces: near the corner it is off by 0.11
+of the contrast at 70 deg between the edges and by 0.18 at 55 deg. ``Phi_2`` is evaluated from
+Sheppard's integral (see :func:`bivariate_normal_cdf`) by Gauss-Legendre quadrature, to < 1e-9
+for ``|rho| <= 0.98`` (edges at least 11.5 deg apart; ``rho`` is clipped there). The blur is
+thus exact up to round-off, not an approximation.
+
+*Pixel integration.* By default the blurred pattern is integrated over each pixel by an
+``n_sub x n_sub`` Gauss-Legendre product rule (``pixel_model='quadrature'``, ``n_sub`` from
+:func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px). Against a 16-node rule the intensity
+error (contrast 1) is 1.3e-5 at sigma = 0.7 px with 3 nodes and 1e-5 at sigma = 0.4 px with 4
+nodes. Fitted to noise-free images from an independent brute-force renderer (32 x 32
+sub-samples per pixel, blur on the fine grid, then pixel averaging; ``tests/test_refine.py``) the
+corner position error is <= 1.2e-5 px for sigma = 0.3 .. 1.0 px.
+
+The cheaper ``pixel_model='gaussian'`` replaces the box by a Gaussian of the same variance, i.e.
+one Gaussian of variance ``sigma^2 + 1/12`` per axis sampled at the pixel centre. The box is not
+a Gaussian (its projection on an edge normal is uniform for an axis-aligned edge and triangular at
+45 deg), so the intensity error is 1.1e-3 max (2.5e-4 RMS) at sigma = 0.7 px, 7e-3 at 0.4 and
+1.5e-2 at 0.3. Both PSFs are point-symmetric, which keeps the corner position error smaller than
+that suggests: measured max 1.6e-4 px at sigma = 0.7, 1.3e-3 px at 0.5, 1.1e-2 px at 0.3 (the
+fitted sigma absorbs part of the mismatch). The refiner uses this model only to get close, then
+finishes with quadrature.
+
+*Dot.* A dark ellipse ``(x - c)^T Q (x - c) <= 1`` (``Q`` symmetric positive definite, semi-axes
+``1 / sqrt(eig Q)``) on a bright background, modelled as a locally straight blurred edge,
+``P = Phi(d / sigma + sigma kappa / 2)``, where ``d = (r - 1) r / |Q (x - c)|`` with
+``r = sqrt((x - c)^T Q (x - c))`` approximates the signed distance to the boundary (exact for
+circles and on the axes of an ellipse) and ``kappa = det(Q) r^3 / |Q (x - c)|^3`` is the
+boundary's curvature at ``c + (x - c) / r``. The curvature term is the first-order effect of
+blurring a curved edge: the half-intensity contour of a blurred disc of radius ``R`` lies
+``sigma^2 / (2 R)`` inside it. Without it the fitted axes of a 5 px dot at sigma = 0.8 px come
+out 0.06-0.15 px short; with it, 0.005 px. The model error is point-symmetric about the centre,
+so the fitted centre is unbiased either way (noise-free error < 4e-4 px down to a 1.8 px minor
+semi-axis; < 4e-5 px for 5 px dots). Valid for dots a few sigma across.
+
+References
+----------
+.. [1] W. F. Sheppard, "On the application of the theory of error to cases of normal distribution
+   and normal correlation", Phil. Trans. R. Soc. A 192 (1899) 101-167.
+.. [2] A. Genz, "Numerical computation of rectangular bivariate and trivariate normal and t
+   probabilities", Statistics and Computing 14 (2004) 251-260.
+.. [3] K. Levenberg (1944); D. W. Marquardt, "An algorithm for least-squares estimation of
+   nonlinear parameters", J. SIAM 11 (1963) 431-441.
+.. [4] D. Chen, G. Zhang, "A new sub-pixel detector for X-corners in camera calibration targets",
+   WSCG 2005; and A. Geiger et al., "Automatic camera and range sensor calibration using a single
+   shot", ICRA 2012 (model-fitting corner refinement).
+.. [5] J. Heikkila, "Moment and curvature preserving technique for accurate ellipse boundary
+   detection", ICPR 1998; J. Mallon, P. F. Whelan, "Which pattern? Biasing aspects of planar
+   calibration patterns and detection methods", Pattern Recognit. Lett. 28 (2007) 921-930
+   (the ellipse centre is not the projected circle centre).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.special import ndtr
+
+__all__ = [
+    "RefineResult",
+    "DotResult",
+    "refine_corners",
+    "refine_dots",
+    "bivariate_normal_cdf",
+    "xjunction_image",
+    "dot_image",
+    "pixel_nodes",
+    "auto_n_sub",
+]
+
+_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
+_RHO_MAX = 0.98  # |cos| of the smallest edge angle handled (~11.5 deg between edges)
+PixelModel = Literal["quadrature", "gaussian"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Building blocks
+# ----------------------------------------------------------------------------------------------
+def _phi(x: np.ndarray) -> np.ndarray:
+    """Standard normal density."""
+    return _INV_SQRT_2PI * np.exp(-0.5 * x * x)
+
+
+def _n_rho_nodes(rho_abs_max: float) -> int:
+    # Gauss-Legendre order for Sheppard's integral; max error (measured against scipy):
+    # 6 nodes: 3e-10 at |rho| <= 0.75; 10 nodes: 3e-12 at 0.9; 16 nodes: 2e-10 at 0.98.
+    if rho_abs_max <= 0.75:
+        return 6
+    if rho_abs_max <= 0.9:
+        return 10
+    return 16
+
+
+def bivariate_normal_cdf(
+    h: np.ndarray, k: np.ndarray, rho: np.ndarray, n_nodes: int | None = None
+) -> np.ndarray:
+    """Bivariate standard normal CDF ``Phi_2(h, k; rho) = P(X <= h, Y <= k)``, vectorised.
+
+    Uses Sheppard's formula (from Plackett's identity ``d Phi_2 / d rho = phi_2``)::
+
+        Phi_2(h, k; rho) = Phi(h) Phi(k)
+            + 1/(2 pi) * int_0^{asin rho} exp(-(h^2 - 2 h k sin t + k^2) / (2 cos^2 t)) dt
+
+    integrated by an ``n_nodes``-point Gauss-Legendre rule. The integrand is smooth for
+    ``|rho| < 1``; the default order keeps the error below 1e-9 for ``|rho| <= 0.95``.
+
+    Parameters
+    ----------
+    h, k : (...) array_like
+        Upper limits (broadcast together with ``rho``).
+    rho : (...) array_like
+        Correlation, ``|rho| < 1``.
+    n_nodes : int, optional
+        Quadrature order; chosen from ``max |rho|`` when omitted.
+
+    Returns
+    -------
+    (...) ndarray
+
+    References
+    ----------
+    Sheppard (1899); Genz (2004) -- see the module docstring.
+
+    Examples
+    --------
+    >>> round(float(bivariate_normal_cdf(0.0, 0.0, 0.5)), 12)  # 1/4 + asin(rho) / (2 pi)
+    0.333333333333
+    """
+    h, k, rho = (np.asarray(v, dtype=float) for v in (h, k, rho))
+    return ndtr(h) * ndtr(k) + _sheppard(h, k, rho, n_nodes)
+
+
+def _sheppard(h: np.ndarray, k: np.ndarray, rho: np.ndarray, n_nodes: int | None) -> np.ndarray:
+    """``Phi_2(h, k; rho) - Phi(h) Phi(k)`` by Gauss-Legendre quadrature of Sheppard's integral.
+
+    The nodes depend on ``rho`` only, so they are computed at ``rho``'s (small) shape and
+    broadcast against ``h`` and ``k``: with ``t_q`` the nodes on ``[0, asin rho]``,
+    ``sum_q w_q exp((h^2 + k^2) (-1 / (2 cos^2 t_q)) + h k (sin t_q / cos^2 t_q))``.
+    """
+    if n_nodes is None:
+        n_nodes = _n_rho_nodes(float(np.max(np.abs(rho), initial=0.0)))
+    t, w = np.polynomial.legendre.leggauss(n_nodes)
+    half = 0.5 * np.arcsin(rho)
+    s = np.sin(half[..., None] * (t + 1.0))
+    c2 = 1.0 - s * s
+    quad = (h * h + k * k)[..., None]
+    cross = (h * k)[..., None]
+    integrand = np.exp(quad * (-0.5 / c2) + cross * (s / c2))
+    return half / (2.0 * np.pi) * (integrand @ w)
+
+
+def pixel_nodes(n_sub: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre product rule over one pixel.
+
+    Parameters
+    ----------
+    n_sub : int
+        Nodes per axis.
+
+    Returns
+    -------
+    offsets : (n_sub**2, 2) ndarray
+        Node offsets ``(dx, dy)`` from the pixel centre, px, inside ``(-1/2, 1/2)^2``.
+    weights : (n_sub**2,) ndarray
+        Weights summing to 1, so ``sum(w * f(centre + offsets))`` is the pixel mean of ``f``.
+
+    Examples
+    --------
+    >>> off, w = pixel_nodes(2)
+    >>> off.shape, float(w.sum())
+    ((4, 2), 1.0)
+    """
+    t, w = np.polynomial.legendre.leggauss(n_sub)
+    t, w = 0.5 * t, 0.5 * w
+    gx, gy = np.meshgrid(t, t)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1), np.outer(w, w).ravel()
+
+
+def auto_n_sub(sigma: float) -> int:
+    """Gauss-Legendre nodes per pixel axis that integrate the blurred pattern over a pixel to
+    about 1e-4 of the contrast or better, for PSF sd ``sigma`` px.
+
+    Measured maximum errors of the X-junction over a window (contrast 1), against a 16-node rule:
+
+    ========  =======  =======  =======  =======
+    sigma     n_sub=3  n_sub=4  n_sub=5  n_sub=6
+    ========  =======  =======  =======  =======
+    0.25      2.4e-3   2.5e-4   2.1e-5   1.5e-6
+    0.4       2.8e-4   9.6e-6   3.1e-7   9.3e-9
+    0.55      ~5e-5    ~1e-6
+    0.7       1.3e-5   1.7e-7   1.8e-9
+    1.0       1.7e-6   1.1e-8
+    ========  =======  =======  =======  =======
+
+    Examples
+    --------
+    >>> auto_n_sub(0.7), auto_n_sub(0.4), auto_n_sub(0.1)
+    (3, 4, 6)
+    """
+    if sigma >= 0.55:
+        return 3
+    if sigma >= 0.35:
+        return 4
+    if sigma >= 0.25:
+        return 5
+    return 6
+
+
+def _window_grid(window: int) -> np.ndarray:
+    """(M, 2) pixel offsets ``(dx, dy)`` of a ``(2 window + 1)^2`` window, row-major."""
+    r = np.arange(-window, window + 1, dtype=float)
+    gx, gy = np.meshgrid(r, r)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def _extract(image: np.ndarray, centres: np.ndarray, window: int):
+    """Patches around integer pixel centres; out-of-image pixels get weight 0.
+
+    Returns
+    -------
+    data : (K, M) float64, weights : (K, M) float64 (0 or 1), origin : (K, 2) int (x, y).
+    """
+    origin = np.rint(centres).astype(np.int64)
+    grid = _window_grid(window).astype(np.int64)
+    xs = origin[:, None, 0] + grid[None, :, 0]
+    ys = origin[:, None, 1] + grid[None, :, 1]
+    h, w = image.shape
+    inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    data = image[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)].astype(np.float64)
+    return data, inside.astype(np.float64), origin
+
+
+def _as_image(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image must be a 2-D grey-level array, got shape {img.shape}")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise ValueError(f"image must be an integer or float array, got dtype {img.dtype}")
+    return img
+
+
+def _as_points(points: np.ndarray, name: str) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts.reshape(-1, 2) if pts.size else np.zeros((0, 2))
+    if not np.all(np.isfinite(pts)):
+        raise ValueError(f"{name} contains non-finite values")
+    return pts
+
+
+# ----------------------------------------------------------------------------------------------
+# X-junction model: value and analytic Jacobian
+# ----------------------------------------------------------------------------------------------
+# Parameter vector per corner (local window coordinates):
+#   0 cx, 1 cy   corner position, px
+#   2 alpha1, 3 alpha2   edge direction angles, rad
+#   4 a, 5 b     contrast and offset (intensity units)
+#   6 log(sigma) PSF blur (only when fitted)
+_XJ_NP = 7
+
+
+def _xj_eval(
+    p: np.ndarray,
+    sigma: np.ndarray,
+    xy: np.ndarray,
+    pixel_model: PixelModel,
+    n_sub: int,
+    jacobian: bool = True,
+):
+    """Pixel-integrated X-junction model and its Jacobian.
+
+    Parameters
+    ----------
+    p : (K, 6) ndarray
+        ``(cx, cy, alpha1, alpha2, a, b)`` in the coordinates of ``xy``.
+    sigma : (K,) ndarray
+        Gaussian PSF standard deviation, px.
+    xy : (M, 2) ndarray
+        Pixel centres.
+
+    Returns
+    -------
+    f : (K, M) ndarray
+        ``b + a * P``.
+    jac : (K, M, 7) ndarray
+        ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma)``.
+
+    Notes
+    -----
+    With ``g = Phi(h) + Phi(k) - 2 Phi_2(h, k; rho)`` at each quadrature node, ``s =
+    sqrt(1 - rho^2)``, and the standard identities ``d Phi_2 / dh = phi(h) Phi((k - rho h) / s)``
+    and ``d Phi_2 / d rho = phi_2(h, k; rho)`` (Plackett):
+
+        dg/dh = phi(h) (1 - 2 Phi((k - rho h) / s)),   dg/dk likewise,
+        dg/drho = -2 exp(-(h^2 - 2 rho h k + k^2) / (2 s^2)) / (2 pi s),
+
+    and ``du_i/dc = -n_i``, ``du_i/dalpha_i = -t_i`` (``t_i`` the coordinate along edge ``i``),
+    ``drho/dalpha_1 = -sin(alpha_1 - alpha_2) = -drho/dalpha_2``, ``dh/dlog sigma = -h``. The
+    pixel value and its derivatives are the node sums weighted by :func:`pixel_nodes`.
+    """
+    if pixel_model == "quadrature":
+        off, wts = pixel_nodes(n_sub)
+        s_eff = sigma
+        dlogs = np.ones_like(sigma)  # d log(s_eff) / d log(sigma)
+    elif pixel_model == "gaussian":
+        off, wts = np.zeros((1, 2)), np.ones(1)
+        s_eff = np.sqrt(sigma**2 + 1.0 / 12.0)
+        dlogs = sigma**2 / s_eff**2
+    else:
+        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+    cx, cy, a1, a2, a, b = (p[:, i] for i in range(6))
+    s1, c1, s2, c2 = np.sin(a1), np.cos(a1), np.sin(a2), np.cos(a2)
+    sd = np.sin(a1 - a2)
+    rho = np.clip(np.cos(a1 - a2), -_RHO_MAX, _RHO_MAX)
+    srho = np.sqrt(1.0 - rho * rho)
+    # node coordinates relative to the corner: (K, M, S)
+    dx = (xy[None, :, 0, None] + off[None, None, :, 0]) - cx[:, None, None]
+    dy = (xy[None, :, 1, None] + off[None, None, :, 1]) - cy[:, None, None]
+    e = (slice(None), None, None)
+    inv_s = 1.0 / s_eff[e]
+    u1 = -s1[e] * dx + c1[e] * dy
+    u2 = -s2[e] * dx + c2[e] * dy
+    h, k = u1 * inv_s, u2 * inv_s
+    r_ = rho[e]
+    nh, nk = ndtr(h), ndtr(k)
+    g = nh + nk - 2.0 * (nh * nk + _sheppard(h, k, r_, None))
+    pix = g @ wts  # (K, M)
+    f = b[:, None] + a[:, None] * pix
+    if not jacobian:
+        return f, None
+    sr = srho[e]
+    ph, pk = _phi(h), _phi(k)
+    gh = ph * (1.0 - 2.0 * ndtr((k - r_ * h) / sr))
+    gk = pk * (1.0 - 2.0 * ndtr((h - r_ * k) / sr))
+    grho = -2.0 * np.exp(-(h * h - 2.0 * r_ * h * k + k * k) / (2.0 * sr * sr)) / (
+        2.0 * np.pi * sr
+    )
+    t1 = c1[e] * dx + s1[e] * dy  # along-edge coordinates; d u_i / d alpha_i = -t_i
+    t2 = c2[e] * dx + s2[e] * dy
+    jac = np.empty(f.shape + (_XJ_NP,))
+    av = a[:, None]
+    jac[..., 0] = av * ((gh * (s1[e] * inv_s) + gk * (s2[e] * inv_s)) @ wts)
+    jac[..., 1] = av * ((gh * (-c1[e] * inv_s) + gk * (-c2[e] * inv_s)) @ wts)
+    jac[..., 2] = av * ((-gh * t1 * inv_s - grho * sd[e]) @ wts)
+    jac[..., 3] = av * ((-gk * t2 * inv_s + grho * sd[e]) @ wts)
+    jac[..., 4] = pix
+    jac[..., 5] = 1.0
+    jac[..., 6] = av * (-(gh * h + gk * k) @ wts) * dlogs[:, None]
+    return f, jac
+
+
+def xjunction_image(
+    xy: np.ndarray,
+    corner: np.ndarray,
+    angles: np.ndarray,
+    sigma: float | np.ndarray,
+    contrast: float | np.ndarray = 1.0,
+    offset: float | np.ndarray = 0.0,
+    *,
+    pixel_model: PixelModel = "quadrature",
+    n_sub: int = 4,
+) -> np.ndarray:
+    """Render the pixel-integrated blurred X-junction model at pixel centres.
+
+    ``I = offset + contrast * (Phi(h) + Phi(k) - 2 Phi_2(h, k; cos(alpha_1 - alpha_2)))``,
+    averaged over each pixel (module docstring). The value is ``offset + contrast`` in the two
+    opposite sectors where ``u_1 u_2 < 0`` and ``offset`` in the other two.
+
+    Parameters
+    ----------
+    xy : (M, 2) ndarray
+        Pixel centres ``(x, y)``, px, OpenCV convention.
+    corner : (K, 2) or (2,) ndarray
+        Corner positions, px.
+    angles : (K, 2) or (2,) ndarray
+        Edge direction angles ``(alpha_1, alpha_2)``, rad (from +x towards +y).
+    sigma, contrast, offset : float or (K,) ndarray
+        Gaussian PSF sd (px), contrast ``a`` and offset ``b``.
+    pixel_model : {'quadrature', 'gaussian'}
+        Pixel integration by Gauss-Legendre nodes, or by the variance-matched Gaussian.
+    n_sub : int
+        Nodes per axis for ``'quadrature'``.
+
+    Returns
+    -------
+    (K, M) or (M,) ndarray
+
+    Examples
+    --------
+    >>> v = xjunction_image(np.array([[0.0, 0.0], [5.0, -5.0], [5.0, 5.0]]), [0.0, 0.0],
+    ...                     [0.0, np.pi / 2], 0.7)
+    >>> np.round(v, 6).tolist()  # one half at the corner; 0 where u1 u2 > 0, 1 where u1 u2 < 0
+    [0.5, 0.0, 1.0]
+    """
+    corner = np.asarray(corner, dtype=float)
+    single = corner.ndim == 1
+    corner = corner.reshape(-1, 2)
+    n = corner.shape[0]
+    ang = np.broadcast_to(np.asarray(angles, dtype=float), (n, 2))
+    p = np.column_stack(
+        [corner, ang, np.broadcast_to(contrast, (n,)), np.broadcast_to(offset, (n,))]
+    ).astype(float)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n,)).copy()
+    f, _ = _xj_eval(p, sig, np.asarray(xy, float).reshape(-1, 2), pixel_model, n_sub, False)
+    return f[0] if single else f
+
+
+# ----------------------------------------------------------------------------------------------
+# Dot (ellipse) model: value and analytic Jacobian
+# ----------------------------------------------------------------------------------------------
+# Parameter vector: 0 cx, 1 cy, 2 q11, 3 q12, 4 q22 (Q scaled: Q = qtilde / R0^2), 5 a, 6 b,
+# 7 log(sigma).
+_DOT_NP = 8
+
+
+def _dot_eval(
+    p: np.ndarray,
+    sigma: np.ndarray,
+    scale: np.ndarray,
+    xy: np.ndarray,
+    n_sub: int,
+    jacobian: bool = True,
+):
+    """Pixel-integrated blurred-ellipse model and its Jacobian.
+
+    Parameters
+    ----------
+    p : (K, 7) ndarray
+        ``(cx, cy, q11, q12, q22, a, b)`` with ``Q = [[q11, q12], [q12, q22]] / scale^2``.
+    sigma, scale : (K,) ndarray
+    xy : (M, 2) ndarray
+
+    Returns
+    -------
+    f : (K, M), jac : (K, M, 8) with the last column ``d f / d log sigma``.
+    """
+    off, wts = pixel_nodes(n_sub)
+    cx, cy, q11, q12, q22, a, b = (p[:, i] for i in range(7))
+    e = (slice(None), None, None)
+    inv2 = 1.0 / scale[e] ** 2
+    Q11, Q12, Q22 = q11[e] * inv2, q12[e] * inv2, q22[e] * inv2
+    det = Q11 * Q22 - Q12 * Q12
+    dx = (xy[None, :, 0, None] + off[None, None, :, 0]) - cx[:, None, None]
+    dy = (xy[None, :, 1, None] + off[None, None, :, 1]) - cy[:, None, None]
+    w1 = Q11 * dx + Q12 * dy
+    w2 = Q12 * dx + Q22 * dy
+    r2 = dx * w1 + dy * w2
+    # A node exactly at the centre (r = G = 0; e.g. an odd n_sub and a centre on a pixel
+    # centre): r / G has no limit there (a cone apex); use the circle value sqrt(2 / tr Q) and
+    # drop its (measure-zero, ~0) derivative contribution.
+    apex = r2 < 1e-16
+    r = np.sqrt(np.where(apex, 1.0, r2))
+    G = np.where(apex, 1.0, np.sqrt(w1 * w1 + w2 * w2))
+    ratio = np.where(apex, np.sqrt(2.0 / (Q11 + Q22)), r / G)
+    d = np.where(apex, -ratio, (r - 1.0) * ratio)
+    kappa = det * ratio**3  # boundary curvature at c + (x - c) / r
+    s_ = sigma[e]
+    z = d / s_ + 0.5 * s_ * kappa
+    pix = ndtr(z) @ wts
+    f = b[:, None] + a[:, None] * pix
+    if not jacobian:
+        return f, None
+    fz = np.where(apex, 0.0, _phi(z))
+    cr = (2.0 * r - 1.0) / G  # dd/dr (holding G)
+    cg = -d / G  # dd/dG (holding r)
+    hk = 1.5 * s_ * kappa  # (sigma / 2) * kappa * 3: d(sigma kappa / 2) = hk (dr / r - dG / G)
+    zr = cr / s_ + hk / r  # dz/dr
+    zg = cg / s_ - hk / G  # dz/dG
+    # derivatives of r and G w.r.t. the node offset (dx, dy): dr = w / r, dG = Q w / G
+    drx, dry = w1 / r, w2 / r
+    dgx, dgy = (Q11 * w1 + Q12 * w2) / G, (Q12 * w1 + Q22 * w2) / G
+    # w.r.t. Q entries (then chain to qtilde = Q * scale^2); d det = (Q22, -2 Q12, Q11)
+    dr11, dr12, dr22 = dx * dx / (2.0 * r), dx * dy / r, dy * dy / (2.0 * r)
+    dg11, dg12, dg22 = w1 * dx / G, (w1 * dy + w2 * dx) / G, w2 * dy / G
+    zdet = 0.5 * s_ * kappa / det
+    av = a[:, None]
+    jac = np.empty(f.shape + (_DOT_NP,))
+    jac[..., 0] = -av * ((fz * (zr * drx + zg * dgx)) @ wts)
+    jac[..., 1] = -av * ((fz * (zr * dry + zg * dgy)) @ wts)
+    jac[..., 2] = av * ((fz * (zr * dr11 + zg * dg11 + zdet * Q22) * inv2) @ wts)
+    jac[..., 3] = av * ((fz * (zr * dr12 + zg * dg12 - 2.0 * zdet * Q12) * inv2) @ wts)
+    jac[..., 4] = av * ((fz * (zr * dr22 + zg * dg22 + zdet * Q11) * inv2) @ wts)
+    jac[..., 5] = pix
+    jac[..., 6] = 1.0
+    jac[..., 7] = av * ((fz * (0.5 * s_ * kappa - d / s_)) @ wts)
+    return f, jac
+
+
+def _dot_params(axes, angle, scale):
+    """Scaled shape entries ``qtilde`` (K, 3) from semi-axes (K, 2) and angle (K,)."""
+    ca, sa = np.cos(angle), np.sin(angle)
+    l1, l2 = 1.0 / axes[:, 0] ** 2, 1.0 / axes[:, 1] ** 2
+    q11 = l1 * ca * ca + l2 * sa * sa
+    q12 = (l1 - l2) * ca * sa
+    q22 = l1 * sa * sa + l2 * ca * ca
+    return np.column_stack([q11, q12, q22]) * (scale**2)[:, None]
+
+
+def _dot_shape(q: np.ndarray, scale: np.ndarray):
+    """Semi-axes (K, 2) (major, minor) and major-axis angle (K,) from scaled ``qtilde``."""
+    q11, q12, q22 = (q[:, i] / scale**2 for i in range(3))
+    tr, det = q11 + q22, q11 * q22 - q12 * q12
+    disc = np.sqrt(np.maximum(0.25 * (q11 - q22) ** 2 + q12 * q12, 0.0))
+    lmin, lmax = 0.5 * tr - disc, 0.5 * tr + disc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axes = np.column_stack([1.0 / np.sqrt(lmin), 1.0 / np.sqrt(lmax)])
+    # the major axis is the eigenvector of the smaller eigenvalue
+    angle = 0.5 * np.arctan2(-2.0 * q12, q22 - q11)
+    angle = np.mod(angle, np.pi)
+    axes[det <= 0] = np.nan
+    return axes, angle
+
+
+def dot_image(
+    xy: np.ndarray,
+    centre: np.ndarray,
+    axes: np.ndarray,
+    angle: float | np.ndarray,
+    sigma: float | np.ndarray,
+    contrast: float | np.ndarray = 1.0,
+    offset: float | np.ndarray = 0.0,
+    *,
+    n_sub: int = 3,
+) -> np.ndarray:
+    """Render the pixel-integrated blurred ellipse model at pixel centres.
+
+    ``I = offset + contrast * Phi(d / sigma)``, ``d`` the approximate signed distance to the
+    ellipse boundary (negative inside), averaged over each pixel (module docstring). With a
+    positive contrast the dot is dark (``offset``) on a bright (``offset + contrast``) ground.
+
+    Parameters
+    ----------
+    xy : (M, 2) ndarray
+        Pixel centres, px.
+    centre : (K, 2) or (2,) ndarray
+        Ellipse centres, px.
+    axes : (K, 2) or (2,) ndarray
+        Semi-axes ``(A, B)``, px; ``A`` lies along ``angle``.
+    angle : float or (K,) ndarray
+        Direction of the ``A`` axis, rad from +x towards +y.
+    sigma, contrast, offset : float or (K,) ndarray
+    n_sub : int
+        Gauss-Legendre nodes per axis and pixel.
+
+    Returns
+    -------
+    (K, M) or (M,) ndarray
+
+    Examples
+    --------
+    >>> v = dot_image(np.array([[0.0, 0.0], [20.0, 0.0]]), [0.0, 0.0], [5.0, 5.0], 0.0, 0.7)
+    >>> np.round(v, 6).tolist()
+    [0.0, 1.0]
+    """
+    centre = np.asarray(centre, dtype=float)
+    single = centre.ndim == 1
+    centre = centre.reshape(-1, 2)
+    n = centre.shape[0]
+    axes = np.broadcast_to(np.asarray(axes, dtype=float), (n, 2))
+    scale = np.ones(n)
+    q = _dot_params(axes, np.broadcast_to(angle, (n,)), scale)
+    p = np.column_stack(
+        [centre, q, np.broadcast_to(contrast, (n,)), np.broadcast_to(offset, (n,))]
+    ).astype(float)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n,)).copy()
+    f, _ = _dot_eval(p, sig, scale, np.asarray(xy, float).reshape(-1, 2), n_sub, False)
+    return f[0] if single else f
+
+
+# ----------------------------------------------------------------------------------------------
+# Batched Levenberg-Marquardt
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class _LMOut:
+    p: np.ndarray
+    jac: np.ndarray
+    resid: np.ndarray
+    cost: np.ndarray
+    converged: np.ndarray
+    n_iter: np.ndarray
+
+
+def _batched_lm(
+    fun: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+    p0: np.ndarray,
+    data: np.ndarray,
+    weights: np.ndarray,
+    *,
+    max_iter: int,
+    tol: float,
+    valid: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> _LMOut:
+    """Levenberg-Marquardt on K independent least-squares problems at once.
+
+    Minimises ``sum_m w_km (d_km - f_m(p_k))^2`` for every ``k``. Each iteration solves, per
+    problem, ``(J^T W J + lambda diag(J^T W J)) delta = J^T W (d - f)`` (Marquardt's scaling),
+    accepts the step if the cost does not increase (``lambda /= 3``), else rejects it
+    (``lambda *= 8``). A problem has converged when a step moves the position (first two
+    parameters) by less than ``tol`` and every other parameter by less than the equivalent
+    (``|delta_j| sqrt(A_jj) < tol max(sqrt(A_00), sqrt(A_11))``) while ``lambda <= 0.01``;
+    that last step is taken without re-evaluating the model. A problem whose ``lambda``
+    exceeds 1e10 has stalled (not converged).
+
+    Parameters
+    ----------
+    fun : callable ``(p (k, P), idx (k,)) -> (f (k, M), jac (k, M, P))``
+    p0 : (K, P) ndarray
+    data, weights : (K, M) ndarray
+
+    Returns
+    -------
+    _LMOut
+    """
+    p = p0.copy()
+    n_all = np.arange(p.shape[0])
+    f, jac = fun(p, n_all)
+    resid = data - f
+    cost = np.einsum("km,km->k", weights, resid * resid)
+    lam = np.full(p.shape[0], 1e-3)
+    active = np.isfinite(cost)
+    converged = np.zeros(p.shape[0], dtype=bool)
+    n_iter = np.zeros(p.shape[0], dtype=int)
+    n_par = p.shape[1]
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        jw = jac[idx] * weights[idx, :, None]
+        A = np.einsum("kmp,kmq->kpq", jw, jac[idx])
+        g = np.einsum("kmp,km->kp", jw, resid[idx])
+        dg = np.diagonal(A, axis1=1, axis2=2)
+        damp = lam[idx, None] * (dg + 1e-9 * dg.max(axis=1, keepdims=True) + 1e-300)
+        M = A + damp[:, :, None] * np.eye(n_par)
+        try:
+            step = np.linalg.solve(M, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.einsum("kpq,kq->kp", np.linalg.pinv(M), g)  # a singular problem
+        # a step this small cannot change the cost materially: take it without re-evaluating
+        scale = np.sqrt(np.maximum(dg, 1e-300))  # parameter scale for the stopping test
+        tiny = (
+            (np.max(np.abs(step[:, :2]), axis=1) < tol)
+            & (np.max(np.abs(step) * scale, axis=1) < tol * np.max(scale[:, :2], axis=1))
+            & (lam[idx] <= 1e-2)  # a near Gauss-Newton step, not one shrunk by damping
+        )
+        n_iter[idx] += 1
+        done = idx[tiny]
+        p[done] += step[tiny]
+        converged[done] = True
+        active[done] = False
+        idx, step = idx[~tiny], step[~tiny]
+        if idx.size == 0:
+            continue
+        pt = p[idx] + step
+        ft, jt = fun(pt, idx)
+        rt = data[idx] - ft
+        ct = np.einsum("km,km->k", weights[idx], rt * rt)
+        ok = np.isfinite(ct) & (ct <= cost[idx] * (1.0 + 1e-12) + 1e-300)
+        if valid is not None:
+            ok &= valid(pt)
+        acc = idx[ok]
+        p[acc], f[acc], jac[acc], resid[acc], cost[acc] = pt[ok], ft[ok], jt[ok], rt[ok], ct[ok]
+        lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
+        lam[idx[~ok]] *= 8.0
+        active[idx[lam[idx] > 1e10]] = False
+    return _LMOut(p, jac, resid, cost, converged, n_iter)
+
+
+def _covariance(out: _LMOut, weights: np.ndarray, n_par: int) -> tuple[np.ndarray, np.ndarray]:
+    """Residual-variance-scaled inverse normal matrix, position block, and residual RMS.
+
+    ``s^2 = sum w r^2 / (n - P)``, ``cov = s^2 (J^T W J)^-1[:2, :2]``.
+    """
+    n = weights.sum(axis=1)
+    jw = out.jac * weights[:, :, None]
+    A = np.einsum("kmp,kmq->kpq", jw, out.jac)
+    s2 = out.cost / np.maximum(n - n_par, 1.0)
+    cov = np.full((A.shape[0], 2, 2), np.nan)
+    ok = np.all(np.isfinite(A.reshape(A.shape[0], -1)), axis=1)
+    ok[ok] = np.linalg.cond(A[ok]) < 1e14
+    if np.any(ok):
+        cov[ok] = np.linalg.inv(A[ok])[:, :2, :2] * s2[ok, None, None]
+    return cov, np.sqrt(out.cost / np.maximum(n, 1.0))
+
+
+# ----------------------------------------------------------------------------------------------
+# Corner refinement
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class RefineResult:
+    """Result of :func:`refine_corners`.
+
+    Attributes
+    ----------
+    points : (K, 2) ndarray
+        Refined corner positions, px, OpenCV convention (centre of the top-left pixel = (0, 0)).
+        Corners that did not converge keep the fitted value; check ``converged``.
+    cov : (K, 2, 2) ndarray
+        1-sigma covariance of ``points`` from the fit, px^2: the residual-variance-scaled inverse
+        normal matrix (all parameters), position block. NaN where singular.
+    converged : (K,) bool
+        The fit converged, stayed inside its window and found a real junction.
+    rms : (K,) ndarray
+        Residual RMS per corner, intensity units of the input image.
+    angles : (K, 2) ndarray
+        Edge direction angles in [0, pi), rad (from +x towards +y).
+    contrast : (K,) ndarray
+        ``a``, signed: the model is ``b + a`` in the two opposite sectors where
+        ``u_1 u_2 < 0`` (``u_i = n_i . (x - c)``, ``n_i = (-sin alpha_i, cos alpha_i)``) and ``b``
+        in the other two (see :func:`xjunction_image`).
+    offset : (K,) ndarray
+        ``b``.
+    sigma : (K,) ndarray
+        Gaussian PSF sd, px (fitted or the fixed value).
+    n_iter : (K,) ndarray
+        Levenberg-Marquardt iterations.
+    """
+
+    points: np.ndarray
+    cov: np.ndarray
+    converged: np.ndarray
+    rms: np.ndarray
+    angles: np.ndarray
+    contrast: np.ndarray
+    offset: np.ndarray
+    sigma: np.ndarray
+    n_iter: np.ndarray
+
+
+def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
+    """Two dominant edge directions per patch from a gradient-orientation histogram.
+
+    The gradient of an X-junction patch points along the edge normals. The orientations
+    ``theta_m = atan2(g_y, g_x) mod pi`` are histogrammed in 3 deg bins weighted by
+    ``|grad I_m|^2``, the histogram is smoothed circularly (binomial kernel, sd ~4 deg); its
+    highest bin gives one normal, the highest bin at least 25 deg away the other. Pixels within
+    1.5 px of the initial corner are left out (their gradients mix both edges).
+
+    Parameters
+    ----------
+    data : (K, M) ndarray
+        Window pixels, row-major.
+    window : int
+    local : (K, 2) ndarray
+        Initial corner in window coordinates.
+
+    Returns
+    -------
+    (K, 2) ndarray
+        Edge direction angles (normal + pi/2), rad.
+    """
+    n = 2 * window + 1
+    n_bins = 60
+    img = data.reshape(-1, n, n)
+    gy, gx = np.gradient(img, axis=(1, 2))
+    grid = _window_grid(window)
+    rr = np.hypot(grid[None, :, 0] - local[:, None, 0], grid[None, :, 1] - local[:, None, 1])
+    wgt = (gx * gx + gy * gy).reshape(len(img), -1) * (rr > 1.5)
+    theta = np.mod(np.arctan2(gy, gx).reshape(len(img), -1), np.pi)
+    b = np.minimum((theta * (n_bins / np.pi)).astype(np.int64), n_bins - 1)
+    b += n_bins * np.arange(len(img))[:, None]
+    hist = np.bincount(b.ravel(), wgt.ravel(), minlength=n_bins * len(img)).reshape(-1, n_bins)
+    for _ in range(3):  # (1, 2, 1)^3 / 64: circular binomial smoothing
+        hist = 0.5 * hist + 0.25 * (np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1))
+    centres = (np.arange(n_bins) + 0.5) * (np.pi / n_bins)
+    j1 = np.argmax(hist, axis=1)
+    sep = np.abs(np.angle(np.exp(2j * (centres[None, :] - centres[j1][:, None])))) / 2.0
+    j2 = np.argmax(np.where(sep > np.deg2rad(25.0), hist, -np.inf), axis=1)
+    return np.column_stack([centres[j1], centres[j2]]) + 0.5 * np.pi
+
+
+def _linear_ab(pix: np.ndarray, data: np.ndarray, weights: np.ndarray):
+    """Weighted least-squares ``a, b`` of ``data ~ b + a * pix``, per row."""
+    sw = weights.sum(1)
+    mx = (weights * pix).sum(1) / sw
+    my = (weights * data).sum(1) / sw
+    vx = (weights * (pix - mx[:, None]) ** 2).sum(1)
+    cxy = (weights * (pix - mx[:, None]) * (data - my[:, None])).sum(1)
+    a = cxy / np.maximum(vx, 1e-300)
+    return a, my - a * mx
+
+
+def _normalise_xj(p: np.ndarray) -> np.ndarray:
+    """Map edge angles into [0, pi); flipping one edge by pi complements the pattern."""
+    p = p.copy()
+    for i in (2, 3):
+        flip = np.floor(p[:, i] / np.pi).astype(int) % 2 == 1
+        p[:, i] = np.mod(p[:, i], np.pi)
+        # complement: b + a g -> (b + a) - a (1 - g)
+        p[flip, 5] += p[flip, 4]
+        p[flip, 4] *= -1.0
+    return p
+
+
+def refine_corners(
+    image: np.ndarray,
+    corners: np.ndarray,
+    window: int = 5,
+    sigma: float | Literal["shared"] | None = None,
+    *,
+    pixel_model: PixelModel = "quadrature",
+    n_sub: int | None = None,
+    max_iter: int = 30,
+    tol: float = 1e-5,
+    chunk: int = 256,
+) -> RefineResult:
+    """Model-based subpixel refinement of chessboard X-junctions.
+
+    For each initial corner (within ~1 px of the truth) the pixels of the ``(2 window + 1)^2``
+    window centred on the nearest pixel are fitted by least squares with the pixel-integrated
+    blurred X-junction (module docstring)::
+
+        I(x) = b + a (Phi(h) + Phi(k) - 2 Phi_2(h, k; cos(alpha_1 - alpha_2))),
+        h = n_1 . (x - c) / sigma,  k = n_2 . (x - c) / sigma,  n_i = (-sin alpha_i, cos alpha_i),
+
+    over ``theta = (c_x, c_y, alpha_1, alpha_2, a, b[, log sigma])`` with batched
+    Levenberg-Marquardt and analytic Jacobians (all corners at once, in chunks of ``chunk``).
+    Edge angles start from the gradient-orientation histogram of the patch, ``a, b`` by linear
+    least squares; the first iterations use the variance-matched Gaussian pixel model, the last
+    ones the requested ``pixel_model``. The covariance is ``s^2 (J^T J)^-1`` (position block)
+    with ``s^2 = RSS / (n - P)``.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        Grey-level image, uint8 / uint16 / float (processed as float64).
+    corners : (K, 2) ndarray
+        Initial corners ``(x, y)``, px, OpenCV convention.
+    window : int
+        Half-size of the fitting window, px (5 -> 11 x 11 pixels).
+    sigma : float, 'shared' or None
+        Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it per
+        corner, takes the median over converged corners and refits every corner with that value
+        fixed (a two-stage estimate of one common blur).
+    pixel_model : {'quadrature', 'gaussian'}
+        Pixel integration model for the final iterations.
+    n_sub : int, optional
+        Gauss-Legendre nodes per pixel axis for ``'quadrature'``; by default
+        :func:`auto_n_sub` of the smallest blur in the batch (3 at sigma = 0.7 px).
+    max_iter : int
+        Levenberg-Marquardt iterations per stage.
+    tol : float
+        Position step (px) below which a fit has converged.
+    chunk : int
+        Corners per vectorised batch (bounds memory: about ``chunk * M * n_sub^2 * 16``
+        doubles per temporary array, ``M = (2 window + 1)^2``).
+
+    Returns
+    -------
+    RefineResult
+
+    Raises
+    ------
+    ValueError
+        If ``image`` is not 2-D, or ``corners`` has non-finite values.
+
+    References
+    ----------
+    Sheppard (1899), Marquardt (1963), Chen & Zhang (2005), Geiger et al. (2012) -- see the
+    module docstring.
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[0:40, 0:40]
+    >>> img = xjunction_image(np.column_stack([xx.ravel(), yy.ravel()]), [20.3, 19.6],
+    ...                       [0.2, 1.9], 0.8).reshape(40, 40)
+    >>> res = refine_corners(img, [[20.0, 20.0]])
+    >>> np.round(res.points, 4).tolist(), bool(res.converged[0])
+    ([[20.3, 19.6]], True)
+    """
+    img = _as_image(image)
+    pts = _as_points(corners, "corners")
+    if window < 2:
+        raise ValueError(f"window must be >= 2, got {window}")
+    if isinstance(sigma, str) and sigma != "shared":
+        raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
+    K = pts.shape[0]
+    if sigma == "shared":
+        first = refine_corners(img, pts, window, None, pixel_model=pixel_model, n_sub=n_sub,
+                               max_iter=max_iter, tol=tol, chunk=chunk)
+        good = first.converged & np.isfinite(first.sigma)
+        s_shared = float(np.median(first.sigma[good])) if np.any(good) else 1.0
+        return refine_corners(img, first.points, window, s_shared, pixel_model=pixel_model,
+                              n_sub=n_sub, max_iter=max_iter, tol=tol, chunk=chunk)
+    out = RefineResult(
+        points=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
+        rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan), contrast=np.full(K, np.nan),
+        offset=np.full(K, np.nan), sigma=np.full(K, np.nan), n_iter=np.zeros(K, int),
+    )
+    for start in range(0, K, chunk):
+        sl = slice(start, min(start + chunk, K))
+        _refine_chunk(img, pts[sl], window, sigma, pixel_model, n_sub, max_iter, tol, out, sl)
+    return out
+
+
+def _refine_chunk(img, pts, window, sigma, pixel_model, n_sub, max_iter, tol, out, sl):
+    data, wts, origin = _extract(img, pts, window)
+    xy = _window_grid(window)
+    local = pts - origin
+    n = pts.shape[0]
+    fit_sigma = sigma is None
+    s_fixed = np.full(n, 1.0 if sigma is None else float(sigma))
+    # pixels outside the image take the mean of the inside ones (no false edge at the border)
+    fill = (data * wts).sum(1, keepdims=True) / np.maximum(wts.sum(1, keepdims=True), 1.0)
+    angles = _initial_angles(np.where(wts > 0, data, fill), window, local)
+    p0 = np.column_stack([local, angles, np.ones(n), np.zeros(n)])
+    pix, _ = _xj_eval(p0, s_fixed, xy, "gaussian", 1, jacobian=False)
+    p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
+    if fit_sigma:
+        p0 = np.column_stack([p0, np.log(s_fixed)])
+    n_par = p0.shape[1]
+
+    def make_fun(model: PixelModel):
+        def fun(p, idx):
+            s = np.exp(p[:, 6]) if fit_sigma else s_fixed[idx]
+            f, jac = _xj_eval(p[:, :6], s, xy, model, n_sub or 1)
+            return f, jac[..., :n_par]
+
+        return fun
+
+    def valid(p):
+        ok = np.all(np.abs(p[:, :2]) < window, axis=1)
+        if fit_sigma:
+            ok &= (p[:, 6] > np.log(0.05)) & (p[:, 6] < np.log(window))
+        return ok
+
+    stage1 = pixel_model == "quadrature"
+    lm = _batched_lm(make_fun("gaussian"), p0, data, wts, max_iter=max_iter,
+                     tol=1e-3 if stage1 else tol, valid=valid)
+    if stage1:
+        n_iter = lm.n_iter
+        if n_sub is None:
+            s_est = np.exp(lm.p[:, 6]) if fit_sigma else s_fixed
+            n_sub = auto_n_sub(float(np.min(s_est, initial=np.inf)))
+        lm = _batched_lm(make_fun("quadrature"), lm.p, data, wts, max_iter=max_iter, tol=tol,
+                         valid=valid)
+        lm.n_iter = lm.n_iter + n_iter
+    cov, rms = _covariance(lm, wts, n_par)
+    p = _normalise_xj(lm.p)
+    sig = np.exp(p[:, 6]) if fit_sigma else s_fixed
+    d_ang = np.abs(np.sin(p[:, 2] - p[:, 3]))
+    ok = (
+        lm.converged
+        & np.all(np.abs(p[:, :2]) < window - 1, axis=1)
+        & (np.abs(p[:, 4]) > 5.0 * rms)
+        & (d_ang > np.sin(np.deg2rad(10.0)))
+        & np.all(np.isfinite(cov.reshape(n, -1)), axis=1)
+    )
+    out.points[sl] = p[:, :2] + origin
+    out.cov[sl] = cov
+    out.converged[sl] = ok
+    out.rms[sl] = rms
+    out.angles[sl] = p[:, 2:4]
+    out.contrast[sl] = p[:, 4]
+    out.offset[sl] = p[:, 5]
+    out.sigma[sl] = sig
+    out.n_iter[sl] = lm.n_iter
+
+
+# ----------------------------------------------------------------------------------------------
+# Dot refinement
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class DotResult:
+    """Result of :func:`refine_dots`.
+
+    Attributes
+    ----------
+    centres : (K, 2) ndarray
+        Fitted ellipse centres, px, OpenCV convention. Under perspective the centre of the imaged
+        ellipse is *not* the image of the circle's centre (the bias grows with the dot size and
+        the tilt); a later stage corrects that.
+    cov : (K, 2, 2) ndarray
+        1-sigma covariance of ``centres`` from the fit, px^2.
+    converged : (K,) bool
+    rms : (K,) ndarray
+        Residual RMS, intensity units.
+    axes : (K, 2) ndarray
+        Semi-axes (major, minor), px (of the half-intensity contour of the model; see the module
+        docstring for the ~sigma^2 / 2R blur shift).
+    angle : (K,) ndarray
+        Direction of the major axis in [0, pi), rad from +x towards +y.
+    contrast, offset : (K,) ndarray
+        ``a`` (background minus dot) and ``b`` (dot level).
+    sigma : (K,) ndarray
+        PSF sd, px.
+    n_iter : (K,) ndarray
+    """
+
+    centres: np.ndarray
+    cov: np.ndarray
+    converged: np.ndarray
+    rms: np.ndarray
+    axes: np.ndarray
+    angle: np.ndarray
+    contrast: np.ndarray
+    offset: np.ndarray
+    sigma: np.ndarray
+    n_iter: np.ndarray
+
+
+def refine_dots(
+    image: np.ndarray,
+    centres: np.ndarray,
+    radius_guess: float | np.ndarray,
+    *,
+    window: int | None = None,
+    sigma: float | None = None,
+    n_sub: int | None = None,
+    max_iter: int = 40,
+    tol: float = 1e-5,
+    chunk: int = 64,
+) -> DotResult:
+    """Model-based subpixel refinement of dark dots, imaged as ellipses.
+
+    Fits, pixel-integrated (module docstring),
+
+        I(x) = b + a Phi(d(x) / sigma + sigma kappa(x) / 2),
+
+    with ``d`` the signed distance to the ellipse ``(x - c)^T Q (x - c) = 1`` and ``kappa`` its
+    curvature, over ``(c_x, c_y, Q_11, Q_12, Q_22, a, b[, log sigma])`` by batched
+    Levenberg-Marquardt with analytic Jacobians. ``Q`` (not axes and angle) is the shape
+    parameter, so circles are not a singular point. Steps that make ``Q`` indefinite are
+    rejected.
+
+    The result is the centre of the *imaged ellipse*. Under perspective projection that is not
+    the projection of the circle's centre; the offset is a known function of the pose and the
+    dot radius and is corrected by a later stage (not here).
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        Grey-level image, uint8 / uint16 / float (processed as float64).
+    centres : (K, 2) ndarray
+        Initial centres, px (within ~1 px, or ~radius/3 for large dots).
+    radius_guess : float or (K,) ndarray
+        Approximate dot radius, px.
+    window : int, optional
+        Half-size of the square fitting window, px; default ``ceil(1.5 R + 3 sigma + 2)`` with
+        ``R`` the largest ``radius_guess`` and ``sigma`` 1 px when fitted. Neighbouring dots
+        must lie outside it.
+    sigma : float, optional
+        Fixed PSF sd, px; fitted per dot when None.
+    n_sub : int, optional
+        Gauss-Legendre nodes per pixel axis; by default :func:`auto_n_sub` of the (fixed, or
+        else fitted) blur: the fit is redone with more nodes if the fitted blur asks for them.
+    max_iter, tol, chunk
+        As in :func:`refine_corners`.
+
+    Returns
+    -------
+    DotResult
+
+    Raises
+    ------
+    ValueError
+        If ``image`` is not 2-D, ``centres`` has non-finite values or a radius is not positive.
+
+    References
+    ----------
+    Heikkila (1998); Mallon & Whelan (2007) -- see the module docstring.
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[0:40, 0:40]
+    >>> img = dot_image(np.column_stack([xx.ravel(), yy.ravel()]), [20.3, 19.6], [7.0, 5.0],
+    ...                 0.4, 0.8).reshape(40, 40)
+    >>> res = refine_dots(img, [[20.0, 20.0]], 6.0)
+    >>> np.round(res.centres, 4).tolist(), np.round(res.axes, 3).tolist()
+    ([[20.3, 19.6]], [[7.0, 5.0]])
+    """
+    img = _as_image(image)
+    pts = _as_points(centres, "centres")
+    K = pts.shape[0]
+    rad = np.broadcast_to(np.asarray(radius_guess, dtype=float), (K,)).copy()
+    if K and not np.all(rad > 0):
+        raise ValueError("radius_guess must be positive")
+    s0 = 1.0 if sigma is None else float(sigma)
+    if window is None:
+        window = int(np.ceil(1.5 * (rad.max() if K else 1.0) + 3.0 * s0 + 2.0))
+    out = DotResult(
+        centres=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
+        rms=np.full(K, np.nan), axes=np.full((K, 2), np.nan), angle=np.full(K, np.nan),
+        contrast=np.full(K, np.nan), offset=np.full(K, np.nan), sigma=np.full(K, np.nan),
+        n_iter=np.zeros(K, int),
+    )
+    for start in range(0, K, chunk):
+        sl = slice(start, min(start + chunk, K))
+        _refine_dot_chunk(img, pts[sl], rad[sl], window, sigma, n_sub, max_iter, tol, out, sl)
+    return out
+
+
+def _refine_dot_chunk(img, pts, rad, window, sigma, n_sub, max_iter, tol, out, sl):
+    data, wts, origin = _extract(img, pts, window)
+    xy = _window_grid(window)
+    n = data.shape[0]
+    fit_sigma = sigma is None
+    s_fixed = np.full(n, 1.0 if fit_sigma else float(sigma))
+    nodes = [n_sub or auto_n_sub(float(s_fixed[0]) if not fit_sigma else 1.0)]
+    q0 = _dot_params(np.column_stack([rad, rad]), np.zeros(n), rad)
+    p0 = np.column_stack([pts - origin, q0, np.ones(n), np.zeros(n)])
+    pix, _ = _dot_eval(p0, s_fixed, rad, xy, nodes[0], jacobian=False)
+    p0[:, 5], p0[:, 6] = _linear_ab(pix, data, wts)
+    if fit_sigma:
+        p0 = np.column_stack([p0, np.log(s_fixed)])
+    n_par = p0.shape[1]
+
+    def fun(p, idx):
+        s = np.exp(p[:, 7]) if fit_sigma else s_fixed[idx]
+        f, jac = _dot_eval(p[:, :7], s, rad[idx], xy, nodes[-1])
+        return f, jac[..., :n_par]
+
+    def valid(p):
+        ok = (p[:, 2] > 0) & (p[:, 4] > 0) & (p[:, 2] * p[:, 4] > p[:, 3] ** 2)
+        ok &= np.all(np.abs(p[:, :2]) < window, axis=1)
+        if fit_sigma:
+            ok &= (p[:, 7] > np.log(0.05)) & (p[:, 7] < np.log(window))
+        return ok
+
+    lm = _batched_lm(fun, p0, data, wts, max_iter=max_iter, tol=tol, valid=valid)
+    if n_sub is None and fit_sigma:
+        need = auto_n_sub(float(np.exp(lm.p[:, 7]).min(initial=np.inf)))
+        if need > nodes[-1]:  # a sharper image than assumed: redo with a finer pixel rule
+            nodes.append(need)
+            n_iter = lm.n_iter
+            lm = _batched_lm(fun, lm.p, data, wts, max_iter=max_iter, tol=tol, valid=valid)
+            lm.n_iter = lm.n_iter + n_iter
+    cov, rms = _covariance(lm, wts, n_par)
+    axes, angle = _dot_shape(lm.p[:, 2:5], rad)
+    p = lm.p
+    ok = (
+        lm.converged
+        & np.all(np.isfinite(axes), axis=1)
+        & (axes[:, 0] + 1.0 < window)
+        & (np.abs(p[:, 5]) > 5.0 * rms)
+        & np.all(np.isfinite(cov.reshape(n, -1)), axis=1)
+    )
+    out.centres[sl] = p[:, :2] + origin
+    out.cov[sl] = cov
+    out.converged[sl] = ok
+    out.rms[sl] = rms
+    out.axes[sl] = axes
+    out.angle[sl] = angle
+    out.contrast[sl] = p[:, 5]
+    out.offset[sl] = p[:, 6]
+    out.sigma[sl] = np.exp(p[:, 7]) if fit_sigma else s_fixed
+    out.n_iter[sl] = lm.n_iter
