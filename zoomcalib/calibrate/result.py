@@ -1,0 +1,119 @@
+"""Calibration inputs and results shared by every backend.
+
+Pixels follow OpenCV's convention (centre of the top-left pixel = (0, 0)); distortion coefficients
+are in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``; poses ``rvec, tvec`` map board to camera
+coordinates (``Rt_cam_board``), in the units of the object points (mm unless stated).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Observations", "CalibrationResult", "DIST_NAMES"]
+
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+@dataclass
+class Observations:
+    """Detected target points of one calibration set.
+
+    Attributes
+    ----------
+    object_points : (n, 3) ndarray
+        The target's points in its own frame (z = 0 for a flat board).
+    views : list of (ids (k,) int ndarray, points (k, 2) ndarray)
+        Per view: which object points were seen and where, px.
+    image_size : (int, int)
+        (width, height), px.
+    names : list of str
+        One name per view (image file).
+    """
+
+    object_points: np.ndarray
+    views: list[tuple[np.ndarray, np.ndarray]]
+    image_size: tuple[int, int]
+    names: list[str] = field(default_factory=list)
+
+    @property
+    def n_views(self) -> int:
+        return len(self.views)
+
+    @property
+    def n_observations(self) -> int:
+        return int(sum(len(ids) for ids, _ in self.views))
+
+
+@dataclass
+class CalibrationResult:
+    """One backend's calibration of one image set.
+
+    Attributes
+    ----------
+    backend : str
+        ``'opencv'``, ``'opencv-ro'`` or ``'bundle'``.
+    K : (3, 3) ndarray
+    dist : (5,) or (8,) ndarray
+        OpenCV order.
+    sd : dict of str to float
+        1-sigma of ``fx, fy, cx, cy`` and of each distortion term (by name, ``DIST_NAMES``).
+    rms_px : float
+        Root-mean-square reprojection error over the inlier observations.
+    per_view_rms_px : (m,) ndarray
+    rvecs, tvecs : (m, 3) ndarray
+        ``Rt_cam_board`` per view.
+    rejected : list of (int, int)
+        (view index, object point id) of observations rejected as outliers.
+    object_points : (n, 3) ndarray or None
+        Refined target points (target-releasing backends), else None.
+    object_points_sd : (n, 3) ndarray or None
+        Their 1-sigma.
+    info : dict
+        Backend-specific extras (iterations, flatness, gauge, ...).
+    """
+
+    backend: str
+    K: np.ndarray
+    dist: np.ndarray
+    sd: dict[str, float]
+    rms_px: float
+    per_view_rms_px: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    rejected: list[tuple[int, int]] = field(default_factory=list)
+    object_points: np.ndarray | None = None
+    object_points_sd: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    def to_dict(self) -> dict:
+        """The ``calibration.json`` entry of this backend (DESIGN.md section 4)."""
+        d = {"K": self.K.tolist(), "dist": [float(v) for v in self.dist],
+             "sd": {k: float(v) for k, v in self.sd.items()}, "rms_px": float(self.rms_px),
+             "per_view_rms_px": [float(v) for v in self.per_view_rms_px],
+             "rejected": [[int(a), int(b)] for a, b in self.rejected],
+             "n_views": int(len(self.per_view_rms_px))}
+        if self.object_points is not None:
+            d["object_points"] = self.object_points.tolist()
+        if self.object_points_sd is not None:
+            d["object_points_sd"] = self.object_points_sd.tolist()
+        d["info"] = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                     for k, v in self.info.items()}
+        return d
