@@ -382,9 +382,43 @@ def _detect_classic(grey8: np.ndarray, best: np.ndarray, target: Target, win: in
     spacing = min(np.linalg.norm(np.diff(g, axis=0), axis=-1).min(),
                   np.linalg.norm(np.diff(g, axis=1), axis=-1).min())
     w = int(max(2, min(win, np.floor(0.45 * spacing))))
-    refined = cv2.cornerSubPix(best, pts.astype(np.float32).reshape(-1, 1, 2), (w, w),
-                               (-1, -1), _SUBPIX_CRITERIA)
-    return np.asarray(refined, np.float64).reshape(-1, 2), np.arange(len(pts))
+
+    def subpix(p):
+        out = cv2.cornerSubPix(best, p.astype(np.float32).reshape(-1, 1, 2), (w, w), (-1, -1),
+                               _SUBPIX_CRITERIA)
+        return np.asarray(out, np.float64).reshape(-1, 2)
+
+    refined = subpix(pts)
+    # findChessboardCorners sometimes places a border corner several pixels off, beyond the
+    # reach of cornerSubPix; such a corner disagrees with the grid of its neighbours. Restart it
+    # from the neighbours' prediction.
+    pred = _grid_prediction(refined.reshape(size[1], size[0], 2)).reshape(-1, 2)
+    bad = np.linalg.norm(refined - pred, axis=1) > max(1.5, 0.1 * spacing)
+    if np.any(bad):
+        refined[bad] = subpix(pred[bad])
+    return refined, np.arange(len(pts))
+
+
+def _grid_prediction(g: np.ndarray) -> np.ndarray:
+    """Predict every corner of a (rows, cols, 2) grid from its neighbours along rows and columns
+    (mean of the two neighbours inside the grid, linear extrapolation at the border); the median
+    of the available predictions is returned, so one bad neighbour does not spoil it."""
+    rows, cols = g.shape[:2]
+    cands = np.full((4, rows, cols, 2), np.nan)
+    for axis, k in ((0, 0), (1, 2)):
+        a = np.moveaxis(g, axis, 0)
+        n = a.shape[0]
+        c1 = np.full_like(a, np.nan)
+        c2 = np.full_like(a, np.nan)
+        c1[1:-1] = 0.5 * (a[:-2] + a[2:])
+        if n >= 3:
+            c1[0] = 2 * a[1] - a[2]
+            c1[-1] = 2 * a[-2] - a[-3]
+            c2[2:] = 2 * a[1:-1] - a[:-2]
+            c2[:-2] = np.where(np.isnan(c2[:-2]), 2 * a[1:-1] - a[2:], c2[:-2])
+        cands[k] = np.moveaxis(c1, 0, axis)
+        cands[k + 1] = np.moveaxis(c2, 0, axis)
+    return np.nanmedian(cands, axis=0)
 
 
 def _blob_detector(image_shape: tuple[int, ...], n_points: int, min_diameter: float,
