@@ -188,8 +188,9 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
 @click.option("--method", "methods", multiple=True,
-              type=click.Choice(["sb", "classic", "circles", "charuco"]),
-              help="Detector (repeat to compare several); default: the target's usual one.")
+              type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
+              help="Detector (repeat to compare several); default: the target's usual one. "
+                   "'model' refines OpenCV's points with our blurred-target model fit.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(min=1),
               help="Parallel processes.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False),
@@ -200,12 +201,12 @@ def detect(folder, pattern, methods, workers, out):
 
     Writes {"pattern", "images": [{"file", "points", "ids", "error"}]}. When FOLDER (or its
     parent) holds a rendered dataset.json, prints each method's error against the truth:
-    RMS, bias and noise.
+    RMS, bias and noise, next to the Cramér-Rao bound of the renderer's image model.
     """
     from pathlib import Path
 
     from .detect import default_method, detect_folder, image_files, write_detections
-    from .detect.report import error_report, load_truth
+    from .detect.report import dataset_crlb, error_report, load_truth
 
     target = _parse_target(pattern)
     root = Path(folder)
@@ -235,9 +236,11 @@ def detect(folder, pattern, methods, workers, out):
         if found:
             rep = error_report(dets, found[1])
             if rep["n_points"]:
+                bound = dataset_crlb(found[2], [d.file for d in dets if d.error is None])
+                extra = f", bound {bound:.4f} px" if bound else ""
                 click.echo(f"  vs truth ({rep['n_points']} points): RMS {rep['rms_px']:.4f} px, "
                            f"bias ({rep['bias_px'][0]:+.4f}, {rep['bias_px'][1]:+.4f}) px, "
-                           f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px")
+                           f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px{extra}")
 
 
 if __name__ == "__main__":

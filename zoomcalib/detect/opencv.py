@@ -86,6 +86,7 @@ METHODS: dict[str, tuple[str, ...]] = {
     "classic": ("chessboard",),
     "circles": ("circles", "acircles"),
     "charuco": ("charuco",),
+    "model": ("chessboard", "circles", "acircles", "charuco"),
 }
 
 #: Target kind -> the method used when none is given.
@@ -481,8 +482,50 @@ def _detect_charuco(grey8: np.ndarray, best: np.ndarray, target: Target, win: in
     return pts[order], ids[order]
 
 
+def _min_spacing(points: np.ndarray) -> float:
+    """Smallest distance between two detected points, px."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(d[:, 1].min())
+
+
+def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: int = 5,
+                  sigma: float | str | None = "shared"):
+    """OpenCV finds the points; our model fit (:mod:`zoomcalib.detect.refine`) places them.
+
+    Chessboard and ChArUco corners: blurred X-junction fit in a ``(2 window + 1)^2`` window
+    (shrunk to 0.45 x the corner spacing). Dots: blurred-ellipse fit; the result is the
+    centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
+    see :func:`zoomcalib.detect.dots.dot_centre_bias`). Corners whose fit did not converge keep
+    OpenCV's position.
+    """
+    from .refine import refine_corners, refine_dots
+
+    base = {"chessboard": _detect_sb, "charuco": _detect_charuco,
+            "circles": _detect_circles, "acircles": _detect_circles}[target.kind]
+    found = base(grey8, best, target)
+    if isinstance(found, str):
+        return found
+    pts, ids = found
+    if len(pts) < 2:
+        return pts, ids
+    img = best.astype(np.float64)
+    spacing = _min_spacing(pts)
+    if target.kind in ("circles", "acircles"):
+        # dot radius in px from the grid spacing and the target's radius/pitch ratio
+        ratio = target.discs[0, 2] / np.min(np.linalg.norm(
+            np.diff(target.object_points[: 2, :2], axis=0), axis=1))
+        res = refine_dots(img, pts, ratio * spacing, sigma=None)
+    else:
+        w = int(max(2, min(window, np.floor(0.45 * spacing))))
+        res = refine_corners(img, pts, window=w, sigma=sigma)
+    out = np.where(res.converged[:, None], res.points, pts)
+    return out, ids
+
+
 _DETECTORS = {"sb": _detect_sb, "classic": _detect_classic, "circles": _detect_circles,
-              "charuco": _detect_charuco}
+              "charuco": _detect_charuco, "model": _detect_model}
 
 
 # ----------------------------------------------------------------------------------------------

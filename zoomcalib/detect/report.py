@@ -9,16 +9,17 @@ import numpy as np
 
 from .opencv import Detection
 
-__all__ = ["load_truth", "error_report"]
+__all__ = ["load_truth", "error_report", "chessboard_crlb", "dataset_crlb"]
 
 
-def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray]] | None:
+def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray], dict] | None:
     """Find ``dataset.json`` in ``folder`` or its parent.
 
     Returns
     -------
-    (root, truth) or None
-        ``truth`` maps an image path relative to ``root`` to its (n, 2) true points, px.
+    (root, truth, dataset) or None
+        ``truth`` maps an image path relative to ``root`` to its (n, 2) true points, px;
+        ``dataset`` is the parsed ``dataset.json``.
     """
     folder = Path(folder).resolve()
     for root in (folder, folder.parent):
@@ -27,7 +28,7 @@ def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray]] | None:
             doc = json.loads(f.read_text())
             truth = {v["file"]: np.asarray(v["points_px"], dtype=float)
                      for st in doc.get("steps", []) for v in st.get("views", [])}
-            return root, truth
+            return root, truth, doc
     return None
 
 
@@ -50,3 +51,62 @@ def error_report(detections: list[Detection], truth: dict[str, np.ndarray]) -> d
             "bias_px": bias.tolist(),
             "noise_px": float(np.sqrt(np.sum(e.var(axis=0, ddof=1)))) if len(e) > 1 else 0.0,
             "max_px": float(np.max(np.linalg.norm(e, axis=1)))}
+
+
+def chessboard_crlb(points: np.ndarray, pattern_size: tuple[int, int], sigma_px: float,
+                    noise_sd: float, contrast: float, quant_step: float = 0.0,
+                    window: int = 5) -> np.ndarray:
+    """Cramér-Rao bound of every corner of a chessboard view, from the renderer's image model.
+
+    The two edges through a corner follow the grid lines, whose image directions are taken from
+    the neighbouring true corners (central differences inside the grid, one-sided at its border).
+
+    Parameters
+    ----------
+    points : (rows * cols, 2) ndarray
+        True corner positions, px, row-major (OpenCV order).
+    pattern_size : (cols, rows)
+    sigma_px, noise_sd, contrast, quant_step : float
+        Gaussian PSF sd (px); noise sd, intensity step and quantisation step, all on the same
+        intensity scale (fractions of full scale).
+
+    Returns
+    -------
+    radial : (rows * cols,) ndarray
+        ``sqrt(trace(cov))`` of the bound, px, with the blur taken as known.
+    """
+    from .crlb import corner_crlb
+
+    cols, rows = pattern_size
+    g = np.asarray(points, dtype=float).reshape(rows, cols, 2)
+    along_row = np.gradient(g, axis=1)  # shape (rows, cols, 2)
+    along_col = np.gradient(g, axis=0)
+    angles = np.stack([np.arctan2(along_row[..., 1], along_row[..., 0]),
+                       np.arctan2(along_col[..., 1], along_col[..., 0])], -1).reshape(-1, 2)
+    bound = corner_crlb(sigma_px, noise_sd, contrast, angles, window, fit_sigma=False,
+                        quant_step=quant_step)
+    return np.asarray(bound.radial_rms).reshape(-1)
+
+
+def dataset_crlb(dataset: dict, files: list[str], window: int = 5) -> float | None:
+    """RMS over the given views' corners of the per-corner bound (px), for chessboard data sets
+    rendered by zoomcalib (None for other targets)."""
+    from ..targets import parse_pattern
+
+    target = parse_pattern(dataset["pattern"])
+    if target.kind != "chessboard":
+        return None
+    rm = dataset["radiometry"]
+    contrast = rm["white"] - rm["black"]
+    quant = 1.0 / (2 ** rm["bits"] - 1)
+    radial = []
+    for st in dataset["steps"]:
+        for v in st["views"]:
+            if v["file"] in files:
+                radial.append(chessboard_crlb(np.asarray(v["points_px"]), target.pattern_size,
+                                              st["psf_sigma_px"], rm["noise_sd"], contrast,
+                                              quant, window))
+    if not radial:
+        return None
+    r = np.concatenate(radial)
+    return float(np.sqrt(np.mean(r**2)))
