@@ -482,12 +482,12 @@ def _detect_charuco(grey8: np.ndarray, best: np.ndarray, target: Target, win: in
     return pts[order], ids[order]
 
 
-def _min_spacing(points: np.ndarray) -> float:
-    """Smallest distance between two detected points, px."""
+def _min_spacing(points: np.ndarray, statistic=np.min) -> float:
+    """Smallest (or another statistic of the) nearest-neighbour distance between points."""
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(points).query(points, k=2)
-    return float(d[:, 1].min())
+    return float(statistic(d[:, 1]))
 
 
 def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: int = 5,
@@ -514,13 +514,14 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     spacing = _min_spacing(pts)
     if target.kind in ("circles", "acircles"):
         # dot radius in px from the grid spacing and the target's radius/pitch ratio
-        ratio = target.discs[0, 2] / np.min(np.linalg.norm(
-            np.diff(target.object_points[: 2, :2], axis=0), axis=1))
-        res = refine_dots(img, pts, ratio * spacing, sigma=None)
+        ratio = target.discs[0, 2] / _min_spacing(target.object_points[:, :2])
+        res = refine_dots(img, pts, ratio * _min_spacing(pts, np.median), sigma=None)
+        refined = res.centres
     else:
         w = int(max(2, min(window, np.floor(0.45 * spacing))))
         res = refine_corners(img, pts, window=w, sigma=sigma)
-    out = np.where(res.converged[:, None], res.points, pts)
+        refined = res.points
+    out = np.where(res.converged[:, None], refined, pts)
     return out, ids
 
 

@@ -481,7 +481,8 @@ def _dot_eval(
     apex = r2 < 1e-16
     r = np.sqrt(np.where(apex, 1.0, r2))
     G = np.where(apex, 1.0, np.sqrt(w1 * w1 + w2 * w2))
-    ratio = np.where(apex, np.sqrt(2.0 / (Q11 + Q22)), r / G)
+    with np.errstate(invalid="ignore"):  # trial steps with an indefinite Q are rejected later
+        ratio = np.where(apex, np.sqrt(2.0 / (Q11 + Q22)), r / G)
     d = np.where(apex, -ratio, (r - 1.0) * ratio)
     kappa = det * ratio**3  # boundary curvature at c + (x - c) / r
     s_ = sigma[e]
