@@ -1,0 +1,612 @@
+"""Calibration files (DESIGN.md section 4): ``calibration.json`` and ``calibration.yml``, the
+per-zoom table ``zoom_calibration.csv``, and the zoom steps of an image folder.
+
+Conventions: pixels in OpenCV's convention (centre of the top-left pixel = (0, 0)); distortion in
+OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``; poses ``rvecs, tvecs`` are ``Rt_cam_board``
+in the target's units (mm for parsed pattern specs); uncertainties are 1-sigma.
+
+``calibration.json``
+--------------------
+::
+
+    {"format": "zoomcalib-calibration", "version": 1, "meta": {...},
+     "steps": {STEP: {BACKEND: ENTRY, ...}, ...}}
+
+``STEP`` is the zoom step's name (``"."`` for a flat folder), ``BACKEND`` the backend that ran
+(``opencv``, ``opencv-ro``, ``bundle``), and ``ENTRY`` is :meth:`CalibrationResult.to_dict`
+(``K`` 3x3 list, ``dist``, ``sd`` by parameter name, ``rms_px``, ``per_view_rms_px``,
+``rejected`` as ``[view, point id]`` pairs, ``n_views``, ``info`` with ``info["views"]`` the
+image names when the backend gives them, and for target-releasing backends ``object_points``
+and ``object_points_sd``) plus ``rvecs`` and ``tvecs`` (m x 3 lists).
+
+``calibration.yml`` (OpenCV FileStorage)
+----------------------------------------
+The same numbers, readable with ``cv2.FileStorage``. Top-level nodes::
+
+    format: zoomcalib-calibration
+    version: 1
+    meta_json: "<meta as a JSON string>"
+    entries: [ PREFIX, ... ]           # one per (step, backend), in file order
+    PREFIX_step: "<step name>"         # original names (any characters)
+    PREFIX_backend: "<backend>"
+    PREFIX_K: !!opencv-matrix 3x3, px
+    PREFIX_dist: !!opencv-matrix 1xN, OpenCV order
+    PREFIX_sd: {fx: .., fy: .., cx: .., cy: .., k1: .., ...}   # 1-sigma, by name
+    PREFIX_rms_px: real
+    PREFIX_n_views: int
+    PREFIX_per_view_rms_px: !!opencv-matrix 1xM (absent when M = 0)
+    PREFIX_views: [ "<image name>", ... ]   (when known)
+    PREFIX_n_rejected: int
+    PREFIX_rejected: !!opencv-matrix Rx2 int, (view, point id) (absent when R = 0)
+    PREFIX_rvecs, PREFIX_tvecs: !!opencv-matrix Mx3 (Rt_cam_board)
+    PREFIX_object_points, PREFIX_object_points_sd: !!opencv-matrix Nx3 (releasing backends)
+
+``PREFIX`` is ``step_<S>_<B>`` with ``S`` the step name and ``B`` the backend, each with every
+character outside ``[A-Za-z0-9_]`` replaced by ``_`` (``"."`` becomes ``root``); when two
+entries would get the same prefix, ``_2``, ``_3``, ... is appended. E.g. the ``opencv`` result of
+step ``zoom_3x`` is ``step_zoom_3x_opencv_K``. A flat folder (the single step ``"."``) with an
+``opencv`` result also gets OpenCV's sample names ``image_width``, ``image_height``,
+``camera_matrix``, ``distortion_coefficients`` and ``avg_reprojection_error`` when ``meta`` has
+``image_size``, so tools reading OpenCV's calibration sample output read it too.
+
+``zoom_calibration.csv``
+------------------------
+One row per step, columns :data:`ZOOM_TABLE_COLUMNS`, then those of
+:data:`ZOOM_TABLE_OPTIONAL` that any row knows. :func:`read_zoom_table` needs only
+:data:`ZOOM_TABLE_REQUIRED`.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from zoomcalib.calibrate.result import CalibrationResult
+from zoomcalib.detect.opencv import IMAGE_EXTENSIONS, image_files
+
+__all__ = [
+    "ZOOM_TABLE_COLUMNS",
+    "ZOOM_TABLE_OPTIONAL",
+    "ZOOM_TABLE_REQUIRED",
+    "exif_focal_length",
+    "read_calibration",
+    "read_zoom_table",
+    "write_calibration",
+    "write_zoom_table",
+    "yaml_prefix",
+    "zoom_from_name",
+    "zoom_steps",
+]
+
+#: Columns of ``zoom_calibration.csv``, always written, in this order.
+ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
+    "step", "zoom", "fx", "fy", "cx", "cy", "sd_fx", "sd_fy", "sd_cx", "sd_cy",
+    "k1", "k2", "p1", "p2", "k3", "rms_px", "n_views")
+#: Columns written after those when any row knows them.
+ZOOM_TABLE_OPTIONAL: tuple[str, ...] = ("direction", "sequence", "focus", "temperature")
+#: Columns :func:`read_zoom_table` cannot do without.
+ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
+
+_TEXT_COLUMNS = ("step", "direction")
+_INT_COLUMNS = ("n_views", "sequence")
+
+
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(f"not JSON-serialisable: {type(v).__name__}")
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# calibration.json / calibration.yml
+
+
+def yaml_prefix(step: str, backend: str) -> str:
+    """The FileStorage node prefix of one (step, backend) entry, before de-duplication.
+
+    Examples
+    --------
+    >>> yaml_prefix(".", "opencv"), yaml_prefix("zoom 3x", "opencv-ro")
+    ('step_root_opencv', 'step_zoom_3x_opencv_ro')
+    """
+    s = "root" if step == "." else re.sub(r"[^A-Za-z0-9_]", "_", str(step))
+    b = re.sub(r"[^A-Za-z0-9_]", "_", str(backend))
+    return f"step_{s}_{b}"
+
+
+def _entry(res: CalibrationResult) -> dict:
+    d = res.to_dict()
+    d["rvecs"] = np.asarray(res.rvecs, float).reshape(-1, 3).tolist()
+    d["tvecs"] = np.asarray(res.tvecs, float).reshape(-1, 3).tolist()
+    return d
+
+
+def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult]],
+                meta: Mapping) -> None:
+    tmp = path.with_name(path.name + ".tmp.yml")
+    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise OSError(f"{path}: cannot write")
+    try:
+        fs.write("format", "zoomcalib-calibration")
+        fs.write("version", 1)
+        fs.write("meta_json", json.dumps(dict(meta), default=_plain))
+        prefixes: list[tuple[str, str, str, CalibrationResult]] = []
+        used: set[str] = set()
+        for step, by_backend in results.items():
+            for backend, res in by_backend.items():
+                base = yaml_prefix(step, backend)
+                prefix, k = base, 1
+                while prefix in used:
+                    k += 1
+                    prefix = f"{base}_{k}"
+                used.add(prefix)
+                prefixes.append((prefix, str(step), str(backend), res))
+        fs.startWriteStruct("entries", cv2.FileNode_SEQ)
+        for prefix, *_ in prefixes:
+            fs.write("", prefix)
+        fs.endWriteStruct()
+        for prefix, step, backend, res in prefixes:
+            fs.write(f"{prefix}_step", step)
+            fs.write(f"{prefix}_backend", backend)
+            fs.write(f"{prefix}_K", np.asarray(res.K, np.float64).reshape(3, 3))
+            fs.write(f"{prefix}_dist", np.asarray(res.dist, np.float64).reshape(1, -1))
+            fs.startWriteStruct(f"{prefix}_sd", cv2.FileNode_MAP)
+            for name, v in res.sd.items():
+                fs.write(re.sub(r"[^A-Za-z0-9_]", "_", str(name)), float(v))
+            fs.endWriteStruct()
+            fs.write(f"{prefix}_rms_px", float(res.rms_px))
+            per_view = np.asarray(res.per_view_rms_px, np.float64).reshape(1, -1)
+            fs.write(f"{prefix}_n_views", int(per_view.shape[1]))
+            if per_view.size:
+                fs.write(f"{prefix}_per_view_rms_px", per_view)
+            views = res.info.get("views")
+            if views:
+                fs.startWriteStruct(f"{prefix}_views", cv2.FileNode_SEQ)
+                for v in views:
+                    fs.write("", str(v))
+                fs.endWriteStruct()
+            fs.write(f"{prefix}_n_rejected", len(res.rejected))
+            if res.rejected:
+                fs.write(f"{prefix}_rejected", np.asarray(res.rejected, np.int32).reshape(-1, 2))
+            for name in ("rvecs", "tvecs"):
+                arr = np.asarray(getattr(res, name), np.float64).reshape(-1, 3)
+                if arr.size:
+                    fs.write(f"{prefix}_{name}", arr)
+            for name in ("object_points", "object_points_sd"):
+                arr = getattr(res, name)
+                if arr is not None:
+                    fs.write(f"{prefix}_{name}", np.asarray(arr, np.float64).reshape(-1, 3))
+        flat = results.get(".") if len(results) == 1 else None
+        size = meta.get("image_size")
+        if flat is not None and "opencv" in flat and size is not None:
+            res = flat["opencv"]
+            fs.write("image_width", int(size[0]))
+            fs.write("image_height", int(size[1]))
+            fs.write("camera_matrix", np.asarray(res.K, np.float64).reshape(3, 3))
+            fs.write("distortion_coefficients", np.asarray(res.dist, np.float64).reshape(-1, 1))
+            fs.write("avg_reprojection_error", float(res.rms_px))
+    finally:
+        fs.release()
+    os.replace(tmp, path)
+
+
+def write_calibration(out_dir: str | os.PathLike,
+                      results: Mapping[str, Mapping[str, CalibrationResult]],
+                      meta: Mapping | None = None) -> list[Path]:
+    """Write ``OUT/calibration.json`` and ``OUT/calibration.yml`` (module docstring).
+
+    Parameters
+    ----------
+    out_dir : path
+        Output folder; created when missing.
+    results : dict of str to (dict of str to CalibrationResult)
+        ``results[step][backend]``; ``"."`` is the step of a flat folder.
+    meta : dict, optional
+        JSON-able facts about the run (pattern, image_size [w, h], seed, versions, ...), stored
+        as ``meta`` (JSON) and ``meta_json`` (YAML).
+
+    Returns
+    -------
+    list of Path
+        ``[calibration.json, calibration.yml]``. Each file is written to a temporary name and
+        renamed, so it is never left half written.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = dict(meta or {})
+    doc = {"format": "zoomcalib-calibration", "version": 1, "meta": meta,
+           "steps": {str(step): {str(b): _entry(r) for b, r in by_backend.items()}
+                     for step, by_backend in results.items()}}
+    jpath = out / "calibration.json"
+    _atomic_write(jpath, json.dumps(doc, indent=1, default=_plain) + "\n")
+    ypath = out / "calibration.yml"
+    _write_yaml(ypath, results, meta)
+    return [jpath, ypath]
+
+
+def _result_from_entry(backend: str, d: dict) -> CalibrationResult:
+    def arr(key, shape=(-1, 3)):
+        v = d.get(key)
+        return None if v is None else np.asarray(v, np.float64).reshape(shape)
+
+    rv = arr("rvecs")
+    tv = arr("tvecs")
+    return CalibrationResult(
+        backend, np.asarray(d["K"], np.float64).reshape(3, 3),
+        np.asarray(d["dist"], np.float64).ravel(), {k: float(v) for k, v in d["sd"].items()},
+        float(d["rms_px"]), np.asarray(d.get("per_view_rms_px", []), np.float64).ravel(),
+        np.zeros((0, 3)) if rv is None else rv, np.zeros((0, 3)) if tv is None else tv,
+        [(int(a), int(b)) for a, b in d.get("rejected", [])], arr("object_points"),
+        arr("object_points_sd"), dict(d.get("info", {})))
+
+
+def read_calibration(path: str | os.PathLike
+                     ) -> tuple[dict[str, dict[str, CalibrationResult]], dict]:
+    """Read a ``calibration.json`` written by :func:`write_calibration`.
+
+    Returns
+    -------
+    results : dict of str to (dict of str to CalibrationResult)
+        ``results[step][backend]``; arrays as written (``info`` values stay JSON lists).
+    meta : dict
+
+    Raises
+    ------
+    ValueError
+        One-line message naming the file when it is not a calibration file.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("steps"), dict):
+        raise ValueError(f"{path}: not a calibration file (needs 'steps')")
+    out: dict[str, dict[str, CalibrationResult]] = {}
+    for step, by_backend in doc["steps"].items():
+        out[step] = {}
+        for backend, entry in by_backend.items():
+            try:
+                out[step][backend] = _result_from_entry(backend, entry)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"{path}: step {step!r} backend {backend!r} is malformed "
+                                 f"({type(exc).__name__}: {exc})") from None
+    return out, dict(doc.get("meta", {}))
+
+
+# ----------------------------------------------------------------------------------------------
+# zoom_calibration.csv
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, bool | np.bool_):
+        return str(bool(v)).lower()
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        v = float(v)
+        return "" if math.isnan(v) else repr(v)
+    return str(v)
+
+
+def write_zoom_table(path: str | os.PathLike, rows: Iterable[Mapping]) -> Path:
+    """Write ``zoom_calibration.csv``: one row per zoom step.
+
+    Parameters
+    ----------
+    path : path
+    rows : iterable of dict
+        Keys from :data:`ZOOM_TABLE_COLUMNS` (px for fx..cy and their ``sd_``; distortion in
+        OpenCV's normalised units; ``rms_px``; ``n_views``) and optionally
+        :data:`ZOOM_TABLE_OPTIONAL`. Missing or None values (and NaN) are written empty. Other
+        keys are ignored.
+
+    Returns
+    -------
+    Path
+        The file, written through a temporary name. Floats are written with ``repr`` (shortest
+        round-trip form), so reading gives back the same numbers.
+    """
+    path = Path(path)
+    rows = [dict(r) for r in rows]
+    optional = [c for c in ZOOM_TABLE_OPTIONAL
+                if any(r.get(c) is not None and _fmt(r.get(c)) != "" for r in rows)]
+    columns = list(ZOOM_TABLE_COLUMNS) + optional
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for r in rows:
+        w.writerow([_fmt(r.get(c)) for c in columns])
+    _atomic_write(path, buf.getvalue())
+    return path
+
+
+def _parse_cell(value: str, column: str, where: str):
+    value = value.strip()
+    if column in _TEXT_COLUMNS:
+        return value
+    if value == "":
+        return None
+    try:
+        f = float(value)
+    except ValueError:
+        if column in ZOOM_TABLE_COLUMNS or column in ZOOM_TABLE_OPTIONAL:
+            raise ValueError(f"{where}: {column} {value!r} is not a number") from None
+        return value
+    if column in _INT_COLUMNS and f.is_integer():
+        return int(f)
+    return f
+
+
+def read_zoom_table(path: str | os.PathLike) -> list[dict]:
+    """Read a ``zoom_calibration.csv`` (any writer of the contract).
+
+    Only :data:`ZOOM_TABLE_REQUIRED` (``zoom, fx, fy, cx, cy``) must be present and filled;
+    other columns are read when present.
+
+    Parameters
+    ----------
+    path : path
+
+    Returns
+    -------
+    list of dict
+        One dict per row, in file order, with every column of the file: ``step`` and
+        ``direction`` as str, ``n_views`` and ``sequence`` as int, other known columns as float
+        (None when empty), unknown columns as float when numeric, else str.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file (and the row, counted from 1 after the header) when a required
+        column is missing or a value is not a number.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
+    reader = csv.DictReader(text.splitlines())
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in ZOOM_TABLE_REQUIRED if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
+                         f"{', '.join(missing)} (needs {', '.join(ZOOM_TABLE_REQUIRED)})")
+    reader.fieldnames = header
+    out = []
+    for k, raw in enumerate(reader, start=1):
+        where = f"{path} row {k}"
+        if None in raw:
+            raise ValueError(f"{where}: more cells than columns")
+        row = {}
+        for c in header:
+            cell = raw.get(c)
+            row[c] = _parse_cell("" if cell is None else cell, c, where)
+        for c in ZOOM_TABLE_REQUIRED:
+            if row[c] is None:
+                raise ValueError(f"{where}: {c} is empty")
+            if not math.isfinite(row[c]):
+                raise ValueError(f"{where}: {c} is not finite")
+        out.append(row)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# zoom steps of an image folder
+
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+def zoom_from_name(name: str) -> float | None:
+    """The zoom value written in a step folder's name, or None.
+
+    The name must hold exactly one number (digits, optionally with a decimal point); with
+    none, or several (e.g. ``f2.8_zoom3``), the name does not say the zoom.
+
+    Examples
+    --------
+    >>> zoom_from_name("zoom_3x"), zoom_from_name("zoom_07"), zoom_from_name("z2.5")
+    (3.0, 7.0, 2.5)
+    >>> zoom_from_name("wide") is None, zoom_from_name("f2.8_zoom3") is None
+    (True, True)
+    """
+    found = _NUMBER.findall(name)
+    return float(found[0]) if len(found) == 1 else None
+
+
+def exif_focal_length(path: str | os.PathLike) -> float | None:
+    """The EXIF FocalLength (tag 0x920A, mm) of an image, or None when absent or unreadable.
+
+    Uses Pillow when it is installed; without Pillow, returns None.
+    """
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        return None
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            value = exif.get_ifd(0x8769).get(0x920A)  # Exif sub-IFD, FocalLength
+            if value is None:
+                value = exif.get(0x920A)
+    except Exception:  # noqa: BLE001 - any unreadable file simply has no focal length
+        return None
+    if value is None:
+        return None
+    try:
+        if isinstance(value, tuple) and len(value) == 2:
+            f = float(value[0]) / float(value[1])
+        else:
+            f = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return f if math.isfinite(f) and f > 0 else None
+
+
+def _exif_zoom(folder: Path) -> float | None:
+    values = [f for f in (exif_focal_length(p) for p in image_files(folder)) if f is not None]
+    return float(np.median(values)) if values else None
+
+
+def _natural_key(name: str):
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t.lower())
+            for t in re.split(r"(\d+)", name) if t]
+
+
+_STEPS_OPTIONAL = {"direction": str, "sequence": int, "focus": float, "temperature": float}
+
+
+def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
+    reader = csv.DictReader(text.splitlines())
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in ("step", "zoom") if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
+                         f"{', '.join(missing)} (needs step, zoom; optional direction, sequence, "
+                         "focus, temperature)")
+    reader.fieldnames = header
+    out: dict[str, tuple[float, dict]] = {}
+    for k, raw in enumerate(reader, start=1):
+        where = f"{path} row {k}"
+        if None in raw:
+            raise ValueError(f"{where}: more cells than columns")
+        step = (raw.get("step") or "").strip()
+        if not step:
+            raise ValueError(f"{where}: step is empty")
+        if step in out:
+            raise ValueError(f"{where}: step {step!r} listed twice")
+        ztext = (raw.get("zoom") or "").strip()
+        try:
+            zoom = float(ztext)
+        except ValueError:
+            raise ValueError(f"{where}: zoom {ztext!r} is not a number") from None
+        if not math.isfinite(zoom):
+            raise ValueError(f"{where}: zoom {ztext!r} is not finite")
+        extras: dict = {"zoom_source": "steps.csv"}
+        for col, kind in _STEPS_OPTIONAL.items():
+            cell = (raw.get(col) or "").strip()
+            if not cell:
+                continue
+            if col == "direction":
+                if cell.lower() not in ("in", "out"):
+                    raise ValueError(f"{where}: direction {cell!r} must be 'in' or 'out'")
+                extras[col] = cell.lower()
+                continue
+            try:
+                v = float(cell)
+            except ValueError:
+                raise ValueError(f"{where}: {col} {cell!r} is not a number") from None
+            if kind is int:
+                if not v.is_integer():
+                    raise ValueError(f"{where}: sequence {cell!r} is not an integer")
+                v = int(v)
+            extras[col] = v
+        out[step] = (zoom, extras)
+    return out
+
+
+def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None, dict]]:
+    """The zoom steps of an image folder (DESIGN.md section 4).
+
+    * ``DIR`` holds images directly: one step named ``"."`` (any subfolders are ignored). Its
+      zoom is the ``"."`` row of ``DIR/steps.csv`` when there is one, else the images' EXIF
+      FocalLength, else None.
+    * Otherwise every subfolder that holds images (hidden ones skipped) is a step, named after
+      the subfolder, in natural name order (``zoom_2`` before ``zoom_10``). Its zoom comes from
+      ``DIR/steps.csv`` (columns ``step`` = subfolder name, ``zoom``; optional ``direction``
+      ``in``/``out``, ``sequence``, ``focus``, ``temperature``), else from the one number in the
+      folder name (``zoom_3x`` -> 3, ``zoom_07`` -> 7), else from the median EXIF FocalLength
+      (mm) of its images, else None.
+
+    When ``steps.csv`` exists it must list every step subfolder, and only those: a name that
+    does not match is far more often a typo than an intended gap, and mixing zoom sources
+    (steps.csv units for some steps, folder-name numbers for others) would corrupt the table.
+
+    Parameters
+    ----------
+    folder : path
+
+    Returns
+    -------
+    list of (str, Path, float or None, dict)
+        ``(step name, image folder, zoom, extras)``; ``extras`` has ``zoom_source``
+        (``"steps.csv"``, ``"name"``, ``"exif"`` or None) and the optional steps.csv columns
+        given for that step.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``folder`` does not exist.
+    ValueError
+        One line naming the file (and row) when ``steps.csv`` is malformed or does not match
+        the subfolders, or when the folder holds no images at all.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such folder")
+    csv_path = root / "steps.csv"
+    table = _read_steps_csv(csv_path) if csv_path.is_file() else None
+    if image_files(root):
+        zoom, extras = None, {"zoom_source": None}
+        if table is not None and "." in table:
+            zoom, extras = table["."]
+            extras = dict(extras)
+        else:
+            zoom = _exif_zoom(root)
+            if zoom is not None:
+                extras = {"zoom_source": "exif"}
+        return [(".", root, zoom, extras)]
+    subdirs = sorted((p for p in root.iterdir()
+                      if p.is_dir() and not p.name.startswith(".") and image_files(p)),
+                     key=lambda p: _natural_key(p.name))
+    if not subdirs:
+        exts = ", ".join(IMAGE_EXTENSIONS)
+        raise ValueError(f"{root}: no images ({exts}) in the folder or its subfolders")
+    steps = []
+    if table is not None:
+        names = {p.name for p in subdirs}
+        unknown = [s for s in table if s not in names]
+        if unknown:
+            raise ValueError(f"{csv_path}: step {unknown[0]!r} is not an image subfolder of "
+                             f"{root}")
+        absent = [p.name for p in subdirs if p.name not in table]
+        if absent:
+            raise ValueError(f"{csv_path}: no row for step subfolder {absent[0]!r}")
+    for p in subdirs:
+        if table is not None:
+            zoom, extras = table[p.name]
+            steps.append((p.name, p, zoom, dict(extras)))
+            continue
+        zoom = zoom_from_name(p.name)
+        if zoom is not None:
+            steps.append((p.name, p, zoom, {"zoom_source": "name"}))
+            continue
+        zoom = _exif_zoom(p)
+        steps.append((p.name, p, zoom, {"zoom_source": "exif" if zoom is not None else None}))
+    return steps

@@ -1,0 +1,506 @@
+"""Calibration with OpenCV: ``cv2.calibrateCameraExtended`` and the object-releasing
+``cv2.calibrateCameraROExtended``.
+
+Conventions: pixels in OpenCV's convention (centre of the top-left pixel = (0, 0), x right,
+y down); distortion in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``; poses ``rvec, tvec``
+are ``Rt_cam_board`` (board to camera), in the units of the target's object points (mm for
+targets from :func:`zoomcalib.targets.parse_pattern`). Uncertainties are 1-sigma, as OpenCV
+reports them (from the Gauss-Newton normal matrix, scaled by the residual variance).
+
+Reprojection errors: ``rms_px`` is ``sqrt(sum |e_i|^2 / N)`` over the N observed points, with
+``|e_i|`` the Euclidean (2-D) reprojection error of one point, px. This is the number OpenCV's
+calibration functions return; it is recomputed here from the result (``cv2.projectPoints``) and
+OpenCV's own value is kept in ``info["opencv_rms_px"]``. ``per_view_rms_px`` is the same
+quantity per view.
+
+Flag quirks of OpenCV 5.0 handled here
+--------------------------------------
+* ``CALIB_DISABLE_SCHUR_COMPLEMENT`` has the same value as ``CALIB_TILTED_MODEL`` (``1 << 18``),
+  so asking for the Bouguet engine also frees the two tilted-sensor terms (tau_x, tau_y), which
+  trade against the principal point (on ``opencv-samples`` cx moves by 17 px with a 1-sigma of
+  10 px). Whenever that bit is set, ``CALIB_FIX_TAUX_TAUY`` is added with zero tilt, which gives
+  the same result as the default (Schur) engine.
+* ``calibrateCameraRO`` with ``CALIB_USE_INTRINSIC_GUESS`` fails an assertion in the Schur
+  engine (``nparams == NINTRINSIC + nimages * 6``); :func:`calibrate_opencv_ro` then switches to
+  the Bouguet engine (``CALIB_DISABLE_SCHUR_COMPLEMENT | CALIB_FIX_TAUX_TAUY``) and says so in
+  ``info["engine"]``.
+* OpenCV only takes ``float32`` points; they are converted here (``float32`` keeps about 1e-4 px
+  at 10^3 px, far below detection noise).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from zoomcalib.calibrate.result import DIST_NAMES, CalibrationResult, Observations
+from zoomcalib.detect.opencv import Detection
+from zoomcalib.targets import Target, parse_pattern
+
+__all__ = [
+    "MODELS",
+    "calibrate_opencv",
+    "calibrate_opencv_ro",
+    "default_fixed_point",
+    "flag_names",
+    "observations_from_detections",
+]
+
+#: Distortion model name -> number of coefficients (OpenCV order).
+MODELS: dict[str, int] = {"standard": 5, "rational": 8}
+
+_BIT18 = 1 << 18  # CALIB_DISABLE_SCHUR_COMPLEMENT == CALIB_TILTED_MODEL in OpenCV 5.0
+_DISABLE_SCHUR = int(getattr(cv2, "CALIB_DISABLE_SCHUR_COMPLEMENT", 0))
+_FIX_TAU = int(getattr(cv2, "CALIB_FIX_TAUX_TAUY", 0))
+_N_OPENCV_DIST = 14  # k1..k6, p1, p2, s1..s4, tau_x, tau_y: the longest vector OpenCV returns
+
+# Flag names in order of preference: where two names share a value, the first is reported.
+_FLAG_ORDER = (
+    "CALIB_USE_INTRINSIC_GUESS", "CALIB_FIX_ASPECT_RATIO", "CALIB_FIX_PRINCIPAL_POINT",
+    "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_FOCAL_LENGTH", "CALIB_FIX_K1", "CALIB_FIX_K2",
+    "CALIB_FIX_K3", "CALIB_FIX_K4", "CALIB_FIX_K5", "CALIB_FIX_K6", "CALIB_RATIONAL_MODEL",
+    "CALIB_THIN_PRISM_MODEL", "CALIB_FIX_S1_S2_S3_S4", "CALIB_USE_LU",
+    "CALIB_DISABLE_SCHUR_COMPLEMENT", "CALIB_TILTED_MODEL", "CALIB_FIX_TAUX_TAUY",
+    "CALIB_USE_QR", "CALIB_FIX_TANGENT_DIST", "CALIB_USE_EXTRINSIC_GUESS",
+    "CALIB_RECOMPUTE_EXTRINSIC", "CALIB_CHECK_COND", "CALIB_FIX_SKEW",
+)
+
+
+def flag_names(flags: int) -> list[str]:
+    """The ``cv2.CALIB_*`` names whose bits are set in ``flags``.
+
+    Bits that two names share in OpenCV 5.0 (``1 << 18``: ``CALIB_DISABLE_SCHUR_COMPLEMENT``
+    and ``CALIB_TILTED_MODEL``) are reported under the first name of the module's list.
+
+    Examples
+    --------
+    >>> flag_names(cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_RATIONAL_MODEL)
+    ['CALIB_FIX_ASPECT_RATIO', 'CALIB_RATIONAL_MODEL']
+    """
+    out, seen = [], 0
+    for name in _FLAG_ORDER:
+        v = int(getattr(cv2, name, 0))
+        if v and flags & v == v and not seen & v:
+            out.append(name)
+            seen |= v
+    rest = int(flags) & ~seen
+    if rest:
+        out.append(f"0x{rest:x}")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# observations
+
+
+def observations_from_detections(detections: Iterable[Detection], target: Target | str,
+                                 image_size: tuple[int, int] | None = None,
+                                 min_points: int = 4) -> Observations:
+    """Collect the usable detections of one image set into :class:`Observations`.
+
+    Parameters
+    ----------
+    detections : iterable of Detection
+        As returned by :func:`zoomcalib.detect.opencv.detect_folder`; points in px, OpenCV
+        convention, ``ids`` indexing ``target.object_points``.
+    target : Target or str
+        The target (or its pattern spec); its object points (board frame, mm, z = 0) become
+        ``Observations.object_points``.
+    image_size : (int, int), optional
+        (width, height), px. Default: the detections' own ``image_size``, which must then agree.
+    min_points : int
+        Views with fewer points are left out (a planar pose needs 4).
+
+    Returns
+    -------
+    Observations
+        One view per image that was detected with at least ``min_points`` points, in input
+        order, ``names`` the images' file names. Failed images are skipped.
+
+    Raises
+    ------
+    ValueError
+        If an image's size differs from the others (or from ``image_size``), if ids fall
+        outside the target or repeat, or if no size can be found; the message names the file.
+    """
+    target = parse_pattern(target) if isinstance(target, str) else target
+    n = target.n_points
+    views, names = [], []
+    size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+    for d in detections:
+        if not d.ok or len(d.ids) < min_points:
+            continue
+        if d.image_size != (0, 0):
+            if size is None:
+                size = d.image_size
+            elif d.image_size != size:
+                raise ValueError(f"{d.file}: image size {d.image_size[0]}x{d.image_size[1]} "
+                                 f"differs from the set's {size[0]}x{size[1]}")
+        ids = np.asarray(d.ids, np.int64)
+        outside = ids[(ids < 0) | (ids >= n)]
+        if outside.size:
+            raise ValueError(f"{d.file}: point id {int(outside[0])} outside the target's {n} "
+                             f"points ({target.spec})")
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError(f"{d.file}: repeated point ids")
+        views.append((ids.copy(), np.asarray(d.points, np.float64).reshape(-1, 2).copy()))
+        names.append(d.file)
+    if size is None:
+        if not views:
+            size = (0, 0)
+        else:
+            raise ValueError("image size unknown: pass image_size (the detections carry none)")
+    return Observations(np.asarray(target.object_points, np.float64).copy(), views, size, names)
+
+
+# ----------------------------------------------------------------------------------------------
+# shared helpers
+
+
+def _check_model(model: str, flags: int) -> tuple[str, int, int]:
+    if model not in MODELS:
+        raise ValueError(f"unknown distortion model {model!r}; choose "
+                         + " or ".join(repr(m) for m in MODELS))
+    flags = int(flags)
+    if flags & cv2.CALIB_RATIONAL_MODEL:
+        model = "rational"
+    if model == "rational":
+        flags |= cv2.CALIB_RATIONAL_MODEL
+    if flags & cv2.CALIB_THIN_PRISM_MODEL:
+        raise ValueError("CALIB_THIN_PRISM_MODEL is not supported: results hold 5 (standard) or "
+                         "8 (rational) distortion coefficients")
+    if flags & _BIT18:
+        # In OpenCV 5.0 this bit is both DISABLE_SCHUR_COMPLEMENT and TILTED_MODEL: keep the
+        # Bouguet engine, keep the sensor untilted.
+        flags |= _FIX_TAU
+    return model, flags, MODELS[model]
+
+
+def _names(obs: Observations) -> list[str]:
+    return list(obs.names) if len(obs.names) == obs.n_views else \
+        [f"view {i}" for i in range(obs.n_views)]
+
+
+def _check_views(obs: Observations, names: Sequence[str], n_dist: int, min_views: int,
+                 extra_unknowns: int, what: str) -> None:
+    if obs.n_views < min_views:
+        raise ValueError(f"{what}: {obs.n_views} usable view{'s' if obs.n_views != 1 else ''}; "
+                         f"need at least {min_views}")
+    w, h = obs.image_size
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{what}: image size {w}x{h} is not valid")
+    for name, (ids, pts) in zip(names, obs.views, strict=True):
+        if len(ids) < 4:
+            raise ValueError(f"{what}: view {name} has {len(ids)} points; a pose needs at least 4")
+        if len(pts) != len(ids):
+            raise ValueError(f"{what}: view {name} has {len(pts)} points but {len(ids)} ids")
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"{what}: view {name} has non-finite image points")
+    n_unknowns = 4 + n_dist + 6 * obs.n_views + extra_unknowns
+    n_equations = 2 * obs.n_observations
+    if n_equations <= n_unknowns:
+        raise ValueError(f"{what}: {obs.n_observations} points give {n_equations} equations for "
+                         f"{n_unknowns} unknowns; add views or points")
+
+
+def _initial(obs: Observations, flags: int, fix_aspect: bool, K_guess, dist_guess,
+             n_dist: int) -> tuple[np.ndarray, np.ndarray, int]:
+    if fix_aspect:
+        flags |= cv2.CALIB_FIX_ASPECT_RATIO
+    K = np.eye(3)
+    if K_guess is not None:
+        K = np.array(K_guess, np.float64).reshape(3, 3)
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    elif flags & cv2.CALIB_USE_INTRINSIC_GUESS:
+        raise ValueError("CALIB_USE_INTRINSIC_GUESS needs K_guess")
+    elif flags & cv2.CALIB_FIX_ASPECT_RATIO:
+        K[0, 0] = K[1, 1] = 1.0  # only the ratio fx / fy = 1 is used
+    dist = np.zeros(_N_OPENCV_DIST)
+    if dist_guess is not None:
+        g = np.asarray(dist_guess, np.float64).ravel()
+        if len(g) > n_dist:
+            raise ValueError(f"dist_guess has {len(g)} terms; the model has {n_dist}")
+        dist[:len(g)] = g
+    return K, dist, flags
+
+
+def _sd_by_name(sdi: np.ndarray, K: np.ndarray, flags: int, n_dist: int) -> tuple[dict, list]:
+    sdi = np.asarray(sdi, np.float64).ravel()
+    sd = {"fx": sdi[0], "fy": sdi[1], "cx": sdi[2], "cy": sdi[3]}
+    for i, name in enumerate(DIST_NAMES[:n_dist]):
+        # OpenCV's order: k1, k2, p1, p2, k3, k4, k5, k6 (= DIST_NAMES)
+        sd[name] = sdi[4 + i]
+    notes = []
+    if flags & cv2.CALIB_FIX_ASPECT_RATIO and sd["fx"] == 0.0:
+        # fx = (fx/fy) * fy is tied to fy: its 1-sigma follows.
+        sd["fx"] = sd["fy"] * K[0, 0] / K[1, 1]
+        notes.append("fx tied to fy (CALIB_FIX_ASPECT_RATIO): sd fx = sd fy * fx / fy")
+    return {k: float(v) for k, v in sd.items()}, notes
+
+
+def _fixed_names(flags: int, n_dist: int) -> list[str]:
+    fixed = []
+    if flags & cv2.CALIB_FIX_FOCAL_LENGTH and flags & cv2.CALIB_USE_INTRINSIC_GUESS:
+        fixed += ["fx", "fy"]
+    if flags & cv2.CALIB_FIX_PRINCIPAL_POINT:
+        fixed += ["cx", "cy"]
+    if flags & (cv2.CALIB_ZERO_TANGENT_DIST | int(getattr(cv2, "CALIB_FIX_TANGENT_DIST", 0))):
+        fixed += ["p1", "p2"]
+    for k in range(1, 7):
+        if f"k{k}" in DIST_NAMES[:n_dist] and flags & getattr(cv2, f"CALIB_FIX_K{k}"):
+            fixed.append(f"k{k}")
+    return fixed
+
+
+def _residuals(obj: list[np.ndarray], img: list[np.ndarray], rvecs, tvecs, K, dist
+               ) -> tuple[float, np.ndarray]:
+    sq, per_view, n = 0.0, [], 0
+    for o, p, r, t in zip(obj, img, rvecs, tvecs, strict=True):
+        proj, _ = cv2.projectPoints(np.asarray(o, np.float64), np.asarray(r, np.float64),
+                                    np.asarray(t, np.float64), K, dist)
+        e2 = np.sum((proj.reshape(-1, 2) - p.reshape(-1, 2)) ** 2, axis=1)
+        per_view.append(np.sqrt(e2.mean()))
+        sq += e2.sum()
+        n += len(e2)
+    return float(np.sqrt(sq / n)), np.asarray(per_view)
+
+
+def _criteria(criteria):
+    if criteria is None:
+        return (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    return tuple(criteria)
+
+
+def _run(fn, what: str, *args, **kwargs):
+    try:
+        return fn(*args, **kwargs)
+    except cv2.error as exc:
+        msg = " ".join(str(exc).split())
+        raise RuntimeError(f"{what}: OpenCV failed: {msg}") from None
+
+
+def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, flags: int,
+            n_dist: int, model: str, names: list[str], opencv_rms: float,
+            opencv_per_view) -> CalibrationResult:
+    K = np.asarray(out_K, np.float64).reshape(3, 3)
+    dist_all = np.asarray(out_dist, np.float64).ravel()
+    dist = dist_all[:n_dist].copy()
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
+        raise RuntimeError(f"{backend}: calibration diverged (non-finite intrinsics)")
+    rv = np.asarray(rvecs, np.float64).reshape(-1, 3)
+    tv = np.asarray(tvecs, np.float64).reshape(-1, 3)
+    rms, per_view = _residuals(obj, img, rv, tv, K, dist)
+    sd, notes = _sd_by_name(sdi, K, flags, n_dist)
+    sde = np.asarray(sde, np.float64).reshape(-1, 6)
+    info = {
+        "model": model, "flags": int(flags), "flag_names": flag_names(flags),
+        "views": list(names), "n_points": int(sum(len(o) for o in obj)),
+        "opencv_rms_px": float(opencv_rms),
+        "opencv_per_view_rms_px": np.asarray(opencv_per_view, np.float64).ravel(),
+        "sd_rvecs": sde[:, :3], "sd_tvecs": sde[:, 3:],
+        "fixed": _fixed_names(flags, n_dist),
+        "engine": "bouguet" if flags & _DISABLE_SCHUR else "schur",
+    }
+    if notes:
+        info["notes"] = notes
+    return CalibrationResult(backend, K, dist, sd, rms, per_view, rv, tv, info=info)
+
+
+# ----------------------------------------------------------------------------------------------
+# calibration
+
+
+def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
+                     fix_aspect: bool = False, *, K_guess: np.ndarray | None = None,
+                     dist_guess: Sequence[float] | None = None, criteria=None,
+                     min_views: int = 3) -> CalibrationResult:
+    """Calibrate with ``cv2.calibrateCameraExtended`` (target points taken as exact).
+
+    Parameters
+    ----------
+    obs : Observations
+        Object points (board frame, any length unit; mm for parsed targets) and per-view
+        detections (px, OpenCV convention).
+    model : {'standard', 'rational'}
+        5 coefficients ``(k1, k2, p1, p2, k3)`` or 8 (``CALIB_RATIONAL_MODEL``, adds k4..k6).
+    flags : int
+        Further ``cv2.CALIB_*`` flags (``CALIB_FIX_K3``, ``CALIB_ZERO_TANGENT_DIST``, ...).
+        ``CALIB_THIN_PRISM_MODEL`` is refused; bit ``1 << 18`` is taken as
+        ``CALIB_DISABLE_SCHUR_COMPLEMENT`` and the sensor tilt is then fixed at zero (see the
+        module notes).
+    fix_aspect : bool
+        Add ``CALIB_FIX_ASPECT_RATIO``: fx / fy stays at 1 (or at ``K_guess``'s ratio).
+    K_guess : (3, 3) ndarray, optional
+        Initial camera matrix, px; sets ``CALIB_USE_INTRINSIC_GUESS``.
+    dist_guess : sequence of float, optional
+        Initial distortion, OpenCV order (used with ``K_guess`` or ``CALIB_FIX_K*``).
+    criteria : tuple, optional
+        OpenCV termination criteria; default ``(COUNT + EPS, 100, 1e-12)``.
+    min_views : int
+        Fewest views accepted. Two views of a plane give exactly the four constraints that the
+        four intrinsics of a zero-skew camera need, leaving nothing to check them by; 3 is the
+        default.
+
+    Returns
+    -------
+    CalibrationResult
+        ``backend = "opencv"``; ``K`` (3, 3) px; ``dist`` (5,) or (8,); ``sd`` 1-sigma of fx, fy,
+        cx, cy and each distortion term by name (0 for a fixed term; with a fixed aspect ratio
+        ``sd["fx"] = sd["fy"] * fx / fy``); ``rms_px`` and ``per_view_rms_px`` (m,) as in the
+        module notes; ``rvecs, tvecs`` (m, 3) ``Rt_cam_board``. ``info``: ``model``,
+        ``flags``/``flag_names`` (as run), ``views`` (names), ``n_points``, ``opencv_rms_px``,
+        ``opencv_per_view_rms_px``, ``sd_rvecs``/``sd_tvecs`` (m, 3), ``fixed`` (names of
+        parameters held fixed), ``engine``.
+
+    Raises
+    ------
+    ValueError
+        Too few views (``min_views``), a view with fewer than 4 points, fewer equations than
+        unknowns, or inconsistent options.
+    RuntimeError
+        If OpenCV fails or diverges.
+    """
+    model, flags, n_dist = _check_model(model, flags)
+    names = _names(obs)
+    _check_views(obs, names, n_dist, min_views, 0, "calibrate_opencv")
+    K0, d0, flags = _initial(obs, flags, fix_aspect, K_guess, dist_guess, n_dist)
+    obj = [np.asarray(obs.object_points[ids], np.float32) for ids, _ in obs.views]
+    img = [np.asarray(pts, np.float32).reshape(-1, 1, 2) for _, pts in obs.views]
+    out = _run(cv2.calibrateCameraExtended, "calibrate_opencv", obj, img,
+               tuple(int(v) for v in obs.image_size), K0, d0, flags=flags,
+               criteria=_criteria(criteria))
+    rms, K, dist, rvecs, tvecs, sdi, sde, per_view = out
+    return _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist, model,
+                   names, rms, per_view)
+
+
+def default_fixed_point(object_points: np.ndarray) -> int:
+    """The target point :func:`calibrate_opencv_ro` holds fixed by default.
+
+    OpenCV fixes three things to set the gauge of the released target: point 0 (all three
+    coordinates), the chosen point (all three) and the z of the last point. The chosen point is
+    the one farthest from the line through the first and last points, so that the three span the
+    largest triangle: for a chessboard, the top-right corner OpenCV recommends (ties go to the
+    lower index).
+
+    Parameters
+    ----------
+    object_points : (n, 3) ndarray
+
+    Returns
+    -------
+    int
+        In ``[1, n - 2]``.
+
+    Examples
+    --------
+    >>> default_fixed_point(parse_pattern("chessboard:9x6:25").object_points)
+    8
+    """
+    p = np.asarray(object_points, np.float64)
+    a, b = p[0], p[-1]
+    u = (b - a) / max(np.linalg.norm(b - a), 1e-300)
+    rel = p[1:-1] - a
+    dist = np.linalg.norm(rel - np.outer(rel @ u, u), axis=1)
+    best = np.flatnonzero(dist >= dist.max() * (1 - 1e-9))[0]
+    return int(best + 1)
+
+
+def calibrate_opencv_ro(obs: Observations, model: str = "standard", flags: int = 0,
+                        fix_aspect: bool = False, *, i_fixed_point: int | None = None,
+                        K_guess: np.ndarray | None = None,
+                        dist_guess: Sequence[float] | None = None, criteria=None,
+                        min_views: int = 3) -> CalibrationResult:
+    """Calibrate with OpenCV's object-releasing method (``cv2.calibrateCameraROExtended``,
+    Strobl & Hirzinger 2011): the target points are refined together with the camera.
+
+    OpenCV needs the same points, in the same order, in every view, so only the views that
+    see every target point are used (sorted by id); the others are left out and listed in
+    ``info["dropped_views"]``.
+
+    Parameters
+    ----------
+    obs, model, flags, fix_aspect, K_guess, dist_guess, criteria, min_views
+        As in :func:`calibrate_opencv`. With ``CALIB_USE_INTRINSIC_GUESS`` (or ``K_guess``)
+        the Bouguet engine is used (``CALIB_DISABLE_SCHUR_COMPLEMENT | CALIB_FIX_TAUX_TAUY``):
+        OpenCV 5.0's Schur engine asserts on that combination.
+    i_fixed_point : int, optional
+        Index of the target point held fixed together with point 0 and the z of the last point
+        (OpenCV's gauge), in ``[1, n - 2]``. Default :func:`default_fixed_point`.
+
+    Returns
+    -------
+    CalibrationResult
+        ``backend = "opencv-ro"``; as :func:`calibrate_opencv` for the used views, plus
+        ``object_points`` (n, 3), the refined target points in the board frame (the distance
+        between point 0 and the fixed point keeps its nominal value, which sets the scale),
+        and ``object_points_sd`` (n, 3), their 1-sigma (0 for the fixed coordinates).
+        ``info`` adds ``i_fixed_point``, ``dropped_views`` (names), ``full_views_only``
+        (an explanation) and ``max_point_shift`` (largest move of a target point from its
+        nominal position, same units as the object points).
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``min_views`` full views, too few points, or a bad ``i_fixed_point``.
+    RuntimeError
+        If OpenCV fails or diverges.
+    """
+    model, flags, n_dist = _check_model(model, flags)
+    names_all = _names(obs)
+    n = len(obs.object_points)
+    keep, dropped = [], []
+    for name, (ids, pts) in zip(names_all, obs.views, strict=True):
+        if len(ids) == n and np.array_equal(np.sort(ids), np.arange(n)):
+            order = np.argsort(ids)
+            keep.append((name, ids[order], pts[order]))
+        else:
+            dropped.append(name)
+    full = Observations(obs.object_points, [(i, p) for _, i, p in keep], obs.image_size,
+                        [nm for nm, _, _ in keep])
+    if full.n_views < min_views:
+        raise ValueError(f"calibrate_opencv_ro: {full.n_views} of {obs.n_views} views see all "
+                         f"{n} target points; object releasing needs at least {min_views} "
+                         "such views")
+    if n < 4:
+        raise ValueError(f"calibrate_opencv_ro: the target has {n} points; need at least 4")
+    # Released points: 3 n unknowns less the 7 fixed by the gauge.
+    _check_views(full, full.names, n_dist, min_views, 3 * n - 7, "calibrate_opencv_ro")
+    if i_fixed_point is None:
+        i_fixed_point = default_fixed_point(obs.object_points)
+    i_fixed_point = int(i_fixed_point)
+    if not 1 <= i_fixed_point <= n - 2:
+        raise ValueError(f"calibrate_opencv_ro: i_fixed_point {i_fixed_point} outside "
+                         f"[1, {n - 2}]")
+    K0, d0, flags = _initial(full, flags, fix_aspect, K_guess, dist_guess, n_dist)
+    engine_note = None
+    if flags & cv2.CALIB_USE_INTRINSIC_GUESS and not flags & _DISABLE_SCHUR:
+        flags |= _DISABLE_SCHUR | _FIX_TAU
+        engine_note = ("CALIB_USE_INTRINSIC_GUESS: Bouguet engine (CALIB_DISABLE_SCHUR_COMPLEMENT"
+                       " | CALIB_FIX_TAUX_TAUY); OpenCV 5.0's Schur engine asserts with RO")
+    obj_nominal = np.asarray(obs.object_points, np.float32)
+    obj = [obj_nominal] * full.n_views
+    img = [np.asarray(pts, np.float32).reshape(-1, 1, 2) for _, pts in full.views]
+    out = _run(cv2.calibrateCameraROExtended, "calibrate_opencv_ro", obj, img,
+               tuple(int(v) for v in obs.image_size), i_fixed_point, K0, d0, flags=flags,
+               criteria=_criteria(criteria))
+    rms, K, dist, rvecs, tvecs, new_obj, sdi, sde, sdo, per_view = out
+    refined = np.asarray(new_obj, np.float64).reshape(n, 3)
+    if not np.all(np.isfinite(refined)):
+        raise RuntimeError("calibrate_opencv_ro: refined target points are not finite")
+    res = _finish("opencv-ro", K, dist, rvecs, tvecs, sdi, sde, [refined] * full.n_views, img,
+                  flags, n_dist, model, full.names, rms, per_view)
+    res.object_points = refined
+    res.object_points_sd = np.asarray(sdo, np.float64).reshape(n, 3)
+    res.info.update({
+        "i_fixed_point": i_fixed_point,
+        "dropped_views": dropped,
+        "full_views_only": (f"object releasing needs every point in every view: used "
+                            f"{full.n_views} of {obs.n_views} views"),
+        "max_point_shift": float(np.max(np.linalg.norm(refined - obs.object_points, axis=1))),
+    })
+    if engine_note:
+        res.info["engine_note"] = engine_note
+    return res
