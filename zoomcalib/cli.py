@@ -243,5 +243,66 @@ def detect(folder, pattern, methods, workers, out):
                            f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px{extra}")
 
 
+@main.command()
+@click.argument("folder", type=click.Path(exists=True, file_okay=False))
+@click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
+@click.option("--backend", default="both", show_default=True,
+              type=click.Choice(["opencv", "bundle", "both"]),
+              help="cv2.calibrateCameraExtended, our photogrammetric bundle (refines the "
+                   "target points), or both on the same detections.")
+@click.option("--model", default="standard", show_default=True,
+              type=click.Choice(["standard", "rational"]),
+              help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
+@click.option("--method", type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
+              help="Detector; default: the target's usual one.")
+@click.option("--workers", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Detection processes (0: all cores).")
+@click.option("--out", default="zoomcalib-calibration", show_default=True,
+              type=click.Path(file_okay=False), help="Output folder.")
+def calibrate(folder, pattern, backend, model, method, workers, out):
+    """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
+
+    The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
+    else the images' EXIF focal length. Writes OUT/calibration.json and .yml, and for zoom sets
+    OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
+    OUT/detections/, so a rerun (or an interrupted run) does not detect again.
+    """
+    import os
+
+    from .calibrate.run import calibrate_folder
+    from .detect import image_files
+
+    _parse_target(pattern)
+    backends = ("opencv", "bundle") if backend == "both" else (backend,)
+    from .calibrate.io import zoom_steps
+
+    try:
+        steps = zoom_steps(folder)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
+    messages = []
+    with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
+        run = calibrate_folder(folder, pattern, out, backends, model, method,
+                               workers or os.cpu_count() or 1, bar.update, messages.append)
+    for m in messages:
+        click.echo(m)
+    click.echo(f"{'step':>12s} {'zoom':>7s} {'backend':>8s} {'fx':>10s} {'fy':>10s} "
+               f"{'cx':>9s} {'cy':>9s} {'sd_cx':>7s} {'rms':>7s} views")
+    for step, res in run.results.items():
+        z = run.zoom.get(step)
+        for name, r in res.items():
+            click.echo(f"{step:>12s} {'' if z is None else f'{z:7.3f}':>7s} {name:>8s} "
+                       f"{r.fx:10.2f} {r.fy:10.2f} {r.cx:9.2f} {r.cy:9.2f} "
+                       f"{r.sd.get('cx', float('nan')):7.3f} {r.rms_px:7.3f} "
+                       f"{len(r.per_view_rms_px)}")
+    if run.holdout:
+        click.echo("zoom model, held-out interpolation error (RMS): " + ", ".join(
+            f"{k} {v:.3g}" for k, v in run.holdout.items() if k in ("fx", "fy", "cx", "cy")))
+    if not run.results:
+        raise click.ClickException("no step could be calibrated")
+    click.echo(f"wrote {len(run.files)} files to {out}")
+
+
 if __name__ == "__main__":
     main()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_principal_point_spiral"]
+__all__ = ["plot_principal_point_spiral", "plot_focal_length", "plot_residuals"]
 
 
 def _pyplot():
@@ -58,6 +58,65 @@ def plot_principal_point_spiral(zoom: np.ndarray, mean_px: np.ndarray, std_px: n
     ax.set_ylabel("cy [px]")
     ax.set_title(title or "Principal point across zoom (mean, 1-sigma ellipses)", fontsize=9)
     fig.colorbar(sc, ax=ax, label="zoom", shrink=0.8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_focal_length(zoom: np.ndarray, fx: np.ndarray, sd_fx: np.ndarray, path: str | Path,
+                      zoom_model=None) -> Path:
+    """Focal length (px) versus zoom with 1-sigma error bars and, if given, the zoom model."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
+    ax.errorbar(zoom, fx, yerr=sd_fx, fmt="o", ms=4, capsize=3, label="calibrated fx")
+    if zoom_model is not None:
+        z = np.linspace(np.min(zoom), np.max(zoom), 200)
+        pred = zoom_model.predict(z)
+        ax.plot(z, pred["fx"], "-", lw=1, label="zoom model")
+    ax.set_yscale("log")
+    ax.set_xlabel("zoom")
+    ax.set_ylabel("fx [px]")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_residuals(points: list[np.ndarray], residuals: list[np.ndarray],
+                   image_size: tuple[int, int], path: str | Path, title: str = "") -> Path:
+    """Coverage of the image by the detected points and their reprojection residuals.
+
+    Parameters
+    ----------
+    points, residuals : list of (k, 2) ndarray
+        Per view: observed points and residuals (projected minus observed), px.
+    image_size : (int, int)
+        (width, height), px.
+    """
+    plt = _pyplot()
+    w, h = image_size
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    p = np.concatenate(points)
+    r = np.concatenate(residuals)
+    ax0.scatter(p[:, 0], p[:, 1], s=2, c=np.concatenate(
+        [np.full(len(q), i) for i, q in enumerate(points)]), cmap="tab20")
+    ax0.set_title("coverage (colour = view)", fontsize=9)
+    norm = np.linalg.norm(r, axis=1)
+    scale = 0.08 * max(w, h) / max(np.percentile(norm, 95), 1e-9)
+    ax1.quiver(p[:, 0], p[:, 1], r[:, 0] * scale, r[:, 1] * scale, norm, angles="xy",
+               scale_units="xy", scale=1, cmap="viridis", width=0.002)
+    ax1.set_title(f"residuals x{scale:.0f} (95th pct {np.percentile(norm, 95):.3f} px)",
+                  fontsize=9)
+    for ax in (ax0, ax1):
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_aspect("equal")
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)

@@ -1,0 +1,62 @@
+import csv
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from zoomcalib.cli import main
+
+
+@pytest.fixture(scope="module")
+def zoom_set(tmp_path_factory):
+    out = tmp_path_factory.mktemp("render") / "set"
+    res = CliRunner().invoke(main, ["render", "--zoom", "0.1,0.4,0.7", "--views", "6",
+                                    "--seed", "11", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_calibrate_zoom_set_recovers_rendered_cameras(zoom_set, tmp_path):
+    # a broken step: one unreadable image only -> reported and skipped, the rest calibrated
+    bad = zoom_set / "zoom_99"
+    bad.mkdir()
+    (bad / "view_00.png").write_bytes(b"not an image")
+    with (zoom_set / "steps.csv").open("a") as fh:
+        fh.write("zoom_99,0.9,,3,\n")
+    out = tmp_path / "cal"
+    res = CliRunner().invoke(main, ["calibrate", str(zoom_set), "--pattern", "chessboard:9x6:25",
+                                    "--backend", "opencv", "--method", "model",
+                                    "--workers", "1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "zoom_99" in res.output and "cannot read image" in res.output
+    truth = json.loads((zoom_set / "dataset.json").read_text())
+    cal = json.loads((out / "calibration.json").read_text())
+    with (out / "zoom_calibration.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[:17] == ["step", "zoom", "fx", "fy", "cx", "cy", "sd_fx", "sd_fy",
+                                  "sd_cx", "sd_cy", "k1", "k2", "p1", "p2", "k3", "rms_px",
+                                  "n_views"]
+    assert [r["step"] for r in rows] == ["zoom_00", "zoom_01", "zoom_02"]
+    for st, row in zip(truth["steps"], rows, strict=True):
+        entry = cal["steps"][st["step"]]["opencv"]
+        K = np.array(entry["K"])
+        cam = st["camera"]
+        # the rendered lens is the exact one; its fitted OpenCV model is the reference. The
+        # calibration must land within 4 of its own 1-sigma (plus the model misfit, < 0.01 px).
+        for k, v in (("cx", K[0, 2]), ("cy", K[1, 2]), ("fx", K[0, 0])):
+            assert abs(v - cam[k]) < 4 * entry["sd"][k] + 0.05, (st["step"], k, v, cam[k])
+        assert float(row["rms_px"]) < 0.05
+    for name in ("calibration.yml", "principal_point_path.png", "focal_length.png",
+                 "residuals_zoom_00.png"):
+        assert (out / name).exists()
+    fs = cv2.FileStorage(str(out / "calibration.yml"), cv2.FILE_STORAGE_READ)
+    assert fs.isOpened()
+    fs.release()
+    # a rerun reuses the cached detections
+    stamp = (out / "detections" / "zoom_00.json").stat().st_mtime_ns
+    res = CliRunner().invoke(main, ["calibrate", str(zoom_set), "--pattern", "chessboard:9x6:25",
+                                    "--backend", "opencv", "--method", "model", "--out", str(out)])
+    assert res.exit_code == 0
+    assert (out / "detections" / "zoom_00.json").stat().st_mtime_ns == stamp
