@@ -128,29 +128,50 @@ def bench_optiland_states(lens, quick):
             "optiland build+trace per state", n / t_ol, "")
 
 
-def bench_render(lens, quick):
+def _bench_scene(lens):
     import cv2
 
-    from zoomcalib.camera import DEFAULT_SENSOR
     from zoomcalib.optics.lens_camera import exact_mapping
-    from zoomcalib.render.image import render_image
     from zoomcalib.targets import parse_pattern
 
     mapping = exact_mapping(lens, 0.3)
     target = parse_pattern("chessboard:17x12:10")  # squares of about 60 px at 500 mm
     R = cv2.Rodrigues(np.array([0.25, -0.2, 0.03]))[0]
     t = np.array([-80.0, -55.0, 500.0])
-    holder = {}
+    return mapping, target, R, t
 
-    def run():
-        holder["v"] = render_image(target, mapping, R, t, DEFAULT_SENSOR, rng=0)
 
-    t_render = best_of(run, repeat=1 if quick else 3)
-    img = holder["v"].image
+def bench_render(lens, quick):
+    from zoomcalib.camera import DEFAULT_SENSOR
+    from zoomcalib.render.image import Optics, psf_sigma_px, render_coverage
+
+    mapping, target, R, t = _bench_scene(lens)
+    sigma = psf_sigma_px(Optics(), DEFAULT_SENSOR.pixel_pitch_mm)
+    t_an = best_of(lambda: render_coverage(target, mapping, R, t, DEFAULT_SENSOR, sigma,
+                                           method="analytic"), repeat=1 if quick else 3)
+    t_ss = best_of(lambda: render_coverage(target, mapping, R, t, DEFAULT_SENSOR, sigma,
+                                           method="supersample"), repeat=1)
+    return ("render 1280x960 chessboard, analytic", "images/s", 1 / t_an,
+            "4x4 supersampled renderer", 1 / t_ss, "<= 0.5 s/image")
+
+
+def bench_detect(lens, quick):
+    import cv2
+
+    from zoomcalib.camera import DEFAULT_SENSOR
+    from zoomcalib.detect import detect_image
+    from zoomcalib.render.image import render_image
+
+    mapping, target, R, t = _bench_scene(lens)
+    img = render_image(target, mapping, R, t, DEFAULT_SENSOR, rng=0).image
+    t_model = best_of(lambda: detect_image(img, target, "model"))
     t_sb = best_of(lambda: cv2.findChessboardCornersSB(img, (17, 12),
                                                        flags=cv2.CALIB_CB_ACCURACY))
-    return ("render 1280x960 chessboard (exact)", "images/s", 1 / t_render,
-            "cv2.findChessboardCornersSB, same image", 1 / t_sb, "<= 0.5 s/image")
+    t_cl = best_of(lambda: detect_image(img, target, "classic"))
+    return [("detect + model refinement (187 pts)", "images/s", 1 / t_model,
+             "cv2.findChessboardCornersSB", 1 / t_sb, "<= 0.3 s/image"),
+            ("detect + model refinement (187 pts)", "images/s", 1 / t_model,
+             "findChessboardCorners+cornerSubPix", 1 / t_cl, "")]
 
 
 def main():
@@ -161,13 +182,14 @@ def main():
     print(f"machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
           f"python {platform.python_version()}, numpy {np.__version__}")
     rows = [bench_paraxial(lens, args.quick), bench_exact(lens, args.quick),
-            bench_optiland_states(lens, args.quick), bench_render(lens, args.quick)]
+            bench_optiland_states(lens, args.quick), bench_render(lens, args.quick),
+            *bench_detect(lens, args.quick)]
     print(f"{'benchmark':34s} {'unit':28s} {'ours':>10s}  {'peer':34s} {'peer rate':>10s} "
           f"{'ratio':>8s}  goal")
     for name, unit, ours, peer_name, peer, goal in rows:
         o = f"{ours:10.3g}" if ours else f"{'-':>10s}"
         pr = f"{peer:10.3g}" if peer else f"{'n/a':>10s}"
-        ratio = f"{ours / peer:8.1f}" if ours and peer else f"{'-':>8s}"
+        ratio = f"{ours / peer:8.3g}" if ours and peer else f"{'-':>8s}"
         print(f"{name:34s} {unit:28s} {o}  {peer_name:34s} {pr} {ratio}  {goal}")
 
 

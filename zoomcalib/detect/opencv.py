@@ -510,6 +510,9 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
                   sigma: float | str | None = "shared"):
     """OpenCV finds the points; our model fit (:mod:`zoomcalib.detect.refine`) places them.
 
+    Chessboards start from findChessboardCorners + cornerSubPix (the SB detector when that
+    fails), ChArUco from the ChArUco detector, dots from findCirclesGrid.
+
     Chessboard and ChArUco corners: blurred X-junction fit in a ``(2 window + 1)^2`` window
     (shrunk to 0.45 x the corner spacing). Dots: blurred-ellipse fit; the result is the
     centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
@@ -518,9 +521,15 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     """
     from .refine import refine_corners, refine_dots
 
-    base = {"chessboard": _detect_sb, "charuco": _detect_charuco,
-            "circles": _detect_circles, "acircles": _detect_circles}[target.kind]
-    found = base(grey8, best, target)
+    if target.kind == "chessboard":
+        # findChessboardCorners is ~8x faster than the SB detector; SB is the fallback
+        found = _detect_classic(grey8, best, target)
+        if isinstance(found, str):
+            found = _detect_sb(grey8, best, target)
+    else:
+        base = {"charuco": _detect_charuco, "circles": _detect_circles,
+                "acircles": _detect_circles}[target.kind]
+        found = base(grey8, best, target)
     if isinstance(found, str):
         return found
     pts, ids = found
