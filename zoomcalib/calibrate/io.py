@@ -610,3 +610,31 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
         zoom = _exif_zoom(p)
         steps.append((p.name, p, zoom, {"zoom_source": "exif" if zoom is not None else None}))
     return steps
+
+
+def observations_from_npz(path: str | os.PathLike, scale: float = 1000.0):
+    """Observations exported from mrcal (``obs`` (m, H, W, 3): x, y, weight; ``obj`` (H, W, 3);
+    ``imagersize``), with corners of weight <= 0 dropped.
+
+    Parameters
+    ----------
+    scale : float
+        Multiplies the object points (1000: metres to mm).
+
+    Returns
+    -------
+    obs : Observations
+    weights : list of (k,) ndarray
+        The kept corners' weights, per view.
+    """
+    from .result import Observations
+
+    d = np.load(path)
+    views, weights = [], []
+    for o in d["obs"]:
+        o = o.reshape(-1, 3)
+        keep = o[:, 2] > 0
+        views.append((np.flatnonzero(keep), o[keep, :2]))
+        weights.append(o[keep, 2])
+    obj = d["obj"].reshape(-1, 3) * scale
+    return Observations(obj, views, tuple(int(v) for v in d["imagersize"])), weights

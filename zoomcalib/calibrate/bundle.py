@@ -1,0 +1,1271 @@
+r"""Photogrammetric bundle adjustment that also refines the 3D target points.
+
+In the manner of Lavest, Viala & Dhome (ECCV 1998): the calibration target is not trusted to be
+the nominal flat board; every target point's 3D position is an unknown beside the intrinsics,
+the distortion and the poses, so a board that is bowed, or printed slightly off scale along one
+axis, does not bias the camera.
+
+Model
+-----
+OpenCV's pinhole + distortion model (``zoomcalib.camera``), OpenCV pixel convention (centre of
+the top-left pixel = (0, 0)). For view ``v`` with pose ``Rt_cam_board`` (``R_v = Rod(r_v)``,
+``t_v``), target point ``X_j`` (target frame, the units of ``Observations.object_points``, mm by
+the package's convention) is seen at
+
+.. math::
+
+    (X, Y, Z)^T = R_v X_j + t_v,\quad x = X/Z,\ y = Y/Z,\quad r^2 = x^2 + y^2,
+
+    x_d = x\,\frac{1 + k_1 r^2 + k_2 r^4 + k_3 r^6}{1 + k_4 r^2 + k_5 r^4 + k_6 r^6}
+          + 2 p_1 x y + p_2 (r^2 + 2 x^2),\quad (y_d \text{ likewise}),
+
+    u = f_x x_d + c_x,\quad v = f_y y_d + c_y .
+
+Unknowns: ``fx, fy, cx, cy``, ``k1, k2, p1, p2, k3`` (``model='standard'``; ``'rational'`` adds
+``k4, k5, k6``), 6 per view (Rodrigues ``rvec``, ``tvec``) and ``3 n`` target coordinates, less
+the 7 gauge constraints below: ``9 + 6 m + 3 n - 7`` for the standard model.
+
+Gauge
+-----
+Pixel observations are unchanged if the target frame is moved by a similarity (rotation,
+translation, scale) and the poses compensate, so 7 constraints are needed. By default
+(``gauge_points=None``) three points of the nominal target seen in at least 2 views are chosen:
+``i0`` = the first (point 0 of a fully seen grid), ``ia`` = the one farthest from it (the
+opposite corner), ``ib`` = the one farthest from the line ``i0``–``ia``. Fixed at their nominal
+values are: all three coordinates of ``i0`` (translation), all three of ``ia`` (two rotations,
+and the scale: the distance ``|X_ia - X_i0|`` stays at its nominal value, the known size of the
+target) and the coordinate of ``ib`` along the normal of the plane through the three points
+(``z`` for a flat ``z = 0`` board: the rotation about the line ``i0``–``ia``). The choice is
+described in ``info['gauge']``. Another choice of gauge points gives the same camera and the
+same target up to a similarity (tested: to the LM tolerance), since both the reprojection error
+and the shape prior below are invariant to a similarity.
+
+Shape prior (the guard)
+-----------------------
+Free target points can soak up lens-model misfit: on mrcal's figueroa set (186 views of a
+0.77 m board through a wide lens that OpenCV's 8-term model does not fit exactly),
+``cv2.calibrateCameraRO`` moved f by 0.8 %, and this bundle with every coordinate free moves
+``cy`` by 9 px and ``fx`` by 0.2 % from mrcal's warped-board solution. Real boards bow and twist
+by millimetres, but their points are placed far more accurately than that; so the adjustment
+minimises
+
+.. math::
+
+    F = \sum_i \| w_i (\hat u_i - u_i) \|^2 + \sigma_{px}^2\, d^T \Lambda\, d,
+    \qquad d = \mathrm{vec}\big(R^T (X - s R X_0 - t) / s\big),
+
+    \Lambda = \frac{I - Q Q^T - B B^T}{\sigma_t^2} + \frac{B (T T^T)^{-1} B^T}{\sigma_w^2},
+
+where ``d`` is the deviation of the target points ``X`` from the nominal board ``X_0`` aligned
+on them by the least-squares similarity ``(s, R, t)`` (Umeyama), expressed in the nominal frame;
+``Q`` spans the 7 infinitesimal similarity motions of ``X_0`` and ``B = B_0 T^{-1}`` the 3
+smooth warp modes ``B_0`` (displacement along the board normal by ``u^2``, ``u v``, ``v^2``,
+``(u, v)`` in-plane coordinates scaled to 1 at the farthest point: bow, cylinders, twist; see
+:func:`warp_basis`). ``sigma_w = warp_sigma_mm`` (default 2) is the prior 1-sigma of each warp
+amplitude, ``sigma_t = target_sigma_mm`` (default 0.01) that of every other deformation of each
+coordinate (printing, drilling, placement), and ``sigma_px`` the pixel noise (MAD estimate from
+the residuals, updated after the target is released). The prior is exactly invariant to a
+similarity of ``X``, so it does not depend on the gauge; ``Lambda`` is rotated with ``R`` in the
+normal equations. ``target_sigma_mm=None`` removes it (the plain Lavest bundle).
+
+On figueroa (all 186 views, mrcal's weights, no rejection) the guard gives fx, fy, cx, cy =
+2074.02, 2077.34, 3004.24, 1997.69 against mrcal's warped-board 2073.87, 2077.45, 3004.69,
+1997.38; without it 2077.63, 2076.29, 3000.75, 2005.95 (``tests/test_bundle.py``).
+
+A diagnostic guard: ``info['guard']`` splits the refined target's deviation into warp
+amplitudes and an irregular rest, and holds the flat-target fit for comparison; a
+``RuntimeWarning`` is raised when the irregular rest is more than ``guard_warn_ratio`` times what
+the noise explains (the free points are then fitting something systematic — on figueroa, 4.7 x
+with the prior and 20 x without it; on synthetic data with a 1 mm bow, 0.7 x).
+
+Solver
+------
+Levenberg–Marquardt (Nielsen's damping rule [4]) on the normal equations with an analytic
+Jacobian (:func:`project_jacobian`; checked against finite differences in the tests). The 6 pose
+unknowns of each view are eliminated by the Schur complement, so each iteration factors a dense
+system of ``n_cam + 3 n - 7`` unknowns only:
+
+.. math::
+
+    \begin{pmatrix} U & W \\ W^T & V \end{pmatrix}
+    \begin{pmatrix} \delta_y \\ \delta_p \end{pmatrix} = -\begin{pmatrix} g_y \\ g_p \end{pmatrix},
+    \quad (U - W V^{-1} W^T)\,\delta_y = -g_y + W V^{-1} g_p,
+    \quad \delta_p = -V^{-1}(g_p + W^T \delta_y),
+
+``V`` being block diagonal (6 x 6 per view). The per-view and per-point sums of Jacobian
+products are batched matrix products on the (view, point) grid when at least a third of it is
+observed (else per-observation products summed by view and by point). Rotation columns are
+taken with respect to a small rotation of the camera frame, ``-B [R X_j]_x``, and mapped to the
+Rodrigues vector by the view's left Jacobian of SO(3) (:func:`left_jacobian`), which equals
+Gallego & Yezzi's derivative [3] (:func:`rodrigues`).
+
+Stages: (1) initial camera and poses from ``cv2.calibrateCamera`` (standard model); (2) LM with
+the target held at its nominal shape (for ``'rational'``: up to 10 iterations of the 5-term model
+first, then all 8 terms); (3) LM with the target released; (4) if ``robust``, observations whose
+residual norm exceeds ``reject_sigma`` robust sigmas are rejected and (3) is re-solved, while the
+set changes (at most 3 rounds: with lens-model misfit the tails keep growing as they are
+cut, and rejection would otherwise eat the field edges); (5) covariance.
+
+Covariance
+----------
+``C = s^2 N^{-1}`` with ``N = J^T J + s^2 \Lambda_R`` at the solution (free parameters only;
+``Lambda_R`` the rotated prior precision) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} -
+n_{unknowns})``. With the prior this is a posterior covariance: it includes the board's
+tolerated irregularity, and is larger than the spread of the estimates over noise draws when the
+board is exactly nominal. The 1-sigma of every intrinsic and distortion term is in ``sd``, of
+every target coordinate in ``object_points_sd`` (0 for the gauge-fixed ones), of the poses in
+``info['rvecs_sd']``, ``info['tvecs_sd']``; the whole matrix on request
+(``return_covariance=True``).
+
+References
+----------
+.. [1] J.-M. Lavest, M. Viala, M. Dhome, "Do we really need an accurate calibration pattern to
+   achieve a reliable camera calibration?", ECCV 1998, LNCS 1406, pp. 158-174.
+.. [2] B. Triggs, P. McLauchlan, R. Hartley, A. Fitzgibbon, "Bundle adjustment — a modern
+   synthesis", Vision Algorithms: Theory and Practice, LNCS 1883, 2000 (Schur complement, gauge).
+.. [3] G. Gallego, A. Yezzi, "A compact formula for the derivative of a 3-D rotation in
+   exponential coordinates", J. Math. Imaging Vis. 51, 2015.
+.. [4] K. Madsen, H. B. Nielsen, O. Tingleff, "Methods for non-linear least squares problems",
+   IMM, DTU, 2004 (Levenberg–Marquardt damping).
+.. [5] S. Umeyama, "Least-squares estimation of transformation parameters between two point
+   patterns", IEEE TPAMI 13(4), 1991.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+from zoomcalib.calibrate.result import DIST_NAMES, CalibrationResult, Observations
+
+__all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
+           "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
+
+#: Names of the 12 camera parameters in the internal (full rational) order.
+CAMERA_NAMES = ("fx", "fy", "cx", "cy") + DIST_NAMES
+
+_BLAS = []   # a threadpoolctl controller, made on first use if threadpoolctl is installed
+
+
+def _single_threaded_blas(fn):
+    """Run ``fn`` with a single-threaded BLAS when threadpoolctl is installed.
+
+    The dense systems here have a few hundred unknowns; a multi-threaded BLAS on a busy
+    2-core machine spends its time synchronising (measured: the 18-view synthetic calibration
+    took 65 s instead of 3.6 s for 100 runs with the machine oversubscribed).
+    """
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if not _BLAS:
+            try:
+                from threadpoolctl import ThreadpoolController
+                _BLAS.append(ThreadpoolController())
+            except ImportError:
+                _BLAS.append(None)
+        ctx = (contextlib.nullcontext() if _BLAS[0] is None
+               else _BLAS[0].limit(limits=1, user_api="blas"))
+        with ctx:
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry: Rodrigues with derivative, projection with Jacobian
+# --------------------------------------------------------------------------------------------
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices ``[v]_x`` (``[v]_x a = v x a``)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def rodrigues(rvecs: np.ndarray, derivative: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    r"""Rotation matrices of Rodrigues vectors and their derivatives.
+
+    .. math::
+
+        R = I + \frac{\sin\theta}{\theta}[r]_\times + \frac{1 - \cos\theta}{\theta^2}[r]_\times^2,
+        \quad \theta = \|r\|,
+
+        \frac{\partial R}{\partial r_k} = \frac{r_k [r]_\times + [r \times (I - R) e_k]_\times}
+        {\theta^2} R \quad [3],
+
+    and ``dR/dr_k = [e_k]_x + ([e_k]_x [r]_x + [r]_x [e_k]_x) / 2`` for ``theta < 1e-7``
+    (error O(theta^2)).
+
+    Parameters
+    ----------
+    rvecs : (m, 3) ndarray
+        Rodrigues vectors, rad.
+    derivative : bool
+        Also compute ``dR`` (else it is None).
+
+    Returns
+    -------
+    R : (m, 3, 3) ndarray
+    dR : (m, 3, 3, 3) ndarray or None
+        ``dR[v, k]`` = derivative of ``R[v]`` with respect to ``rvecs[v, k]``.
+    """
+    r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
+    theta2 = np.einsum("vi,vi->v", r, r)
+    theta = np.sqrt(theta2)
+    small = theta < 1e-7
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - theta2 / 24.0, 2.0 * (np.sin(0.5 * th) / th) ** 2)  # (1-cos)/th^2
+    Kx = _skew(r)
+    eye = np.eye(3)
+    IR = -(a[:, None, None] * Kx + b[:, None, None] * (Kx @ Kx))      # I - R, no cancellation
+    R = eye - IR
+    if not derivative:
+        return R, None
+    # c[v, k] = r x ((I - R) e_k); (I - R) e_k is column k of I - R
+    c = np.cross(r[:, None, :], IR.transpose(0, 2, 1))
+    num = r[:, :, None, None] * Kx[:, None] + _skew(c)
+    dR = (num @ R[:, None]) / np.where(small, 1.0, theta2)[:, None, None, None]
+    if np.any(small):
+        E = _skew(eye)[None]                                  # (1, 3, 3, 3): [e_k]_x
+        Ks = Kx[small][:, None]
+        dR[small] = E + 0.5 * (E @ Ks + Ks @ E)
+    return R, dR
+
+
+def left_jacobian(rvecs: np.ndarray) -> np.ndarray:
+    r"""Left Jacobian of SO(3) at Rodrigues vectors ``r``.
+
+    .. math::
+
+        J_l(r) = I + \frac{1 - \cos\theta}{\theta^2}[r]_\times
+                 + \frac{\theta - \sin\theta}{\theta^3}[r]_\times^2,
+
+    so that ``Rod(r + dr) = Exp([J_l(r) dr]_x) Rod(r)`` to first order, i.e.
+    ``dR/dr_k = [J_l(r) e_k]_x R`` — the same derivative as :func:`rodrigues`, factored into a
+    rotation about the camera axes followed by ``J_l``.
+
+    Parameters
+    ----------
+    rvecs : (m, 3) ndarray
+
+    Returns
+    -------
+    Jl : (m, 3, 3) ndarray
+    """
+    r = np.asarray(rvecs, dtype=float).reshape(-1, 3)
+    t2 = np.einsum("vi,vi->v", r, r)
+    t = np.sqrt(t2)
+    small = t < 1e-4
+    ts = np.where(small, 1.0, t)
+    b = np.where(small, 0.5 - t2 / 24.0, 2.0 * (np.sin(0.5 * ts) / ts) ** 2)
+    c = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    Kx = _skew(r)
+    return np.eye(3) + b[:, None, None] * Kx + c[:, None, None] * (Kx @ Kx)
+
+
+def project_jacobian(cam: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, points: np.ndarray,
+                     view_idx: np.ndarray, point_idx: np.ndarray, jacobian: bool = True,
+                     point_jacobian: bool = True, local_rotation: bool = False):
+    r"""Project target points into views, with the analytic Jacobian.
+
+    Parameters
+    ----------
+    cam : (12,) ndarray
+        ``fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (px; distortion in OpenCV order).
+    rvecs, tvecs : (m, 3) ndarray
+        ``Rt_cam_board`` poses (Rodrigues vector, rad; translation, target units).
+    points : (n, 3) ndarray
+        Target points, target frame.
+    view_idx, point_idx : (N,) int ndarray
+        Which view and which point each observation is.
+    jacobian : bool
+        Also return the derivatives.
+    point_jacobian : bool
+        Compute ``Jx`` (else it is None).
+    local_rotation : bool
+        Rotation columns of ``Jp`` with respect to a small rotation ``omega`` of the camera
+        frame, ``R -> Exp([omega]_x) R``, instead of the Rodrigues vector; multiply them by
+        :func:`left_jacobian` of the view to get the latter.
+
+    Returns
+    -------
+    uv : (N, 2) ndarray
+        Projections, px (OpenCV convention); returned alone if ``jacobian`` is False.
+    Jc : (N, 2, 12) ndarray
+        ``d uv / d cam``.
+    Jp : (N, 2, 6) ndarray
+        ``d uv / d (rvec, tvec)`` of the observation's view.
+    Jx : (N, 2, 3) ndarray or None
+        ``d uv / d X_j`` of the observation's point.
+
+    Notes
+    -----
+    With ``rad = a/b`` (numerator and denominator of the rational radial factor) and
+    ``rad' = (a' - rad b') / b`` its derivative with respect to ``r^2``:
+
+    .. math::
+
+        \partial x_d/\partial x = rad + 2 x^2 rad' + 2 p_1 y + 6 p_2 x,\quad
+        \partial x_d/\partial y = 2 x y\, rad' + 2 p_1 x + 2 p_2 y = \partial y_d/\partial x,
+
+        \partial y_d/\partial y = rad + 2 y^2 rad' + 6 p_1 y + 2 p_2 x,
+
+    ``B = d(u, v)/d(X, Y, Z) = diag(f_x, f_y) D [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]``
+    (``D = d(x_d, y_d)/d(x, y)``), ``d uv/dX_j = B R``, ``d uv/dt = B``,
+    ``d uv/d omega = -B [R X_j]_x`` and ``d uv/dr = -B [R X_j]_x J_l(r)``.
+    """
+    m, n = len(rvecs), len(points)
+    R, _ = rodrigues(rvecs, False)
+    if m * n <= 3 * len(view_idx):                       # (nearly) every point in every view
+        RP = (points[None] @ R.transpose(0, 2, 1))[view_idx, point_idx]
+    else:
+        RP = np.einsum("nij,nj->ni", R[view_idx], points[point_idx])
+    Xc = RP + tvecs[view_idx]
+    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = (float(c) for c in cam)
+    iz = 1.0 / Xc[:, 2]
+    x = Xc[:, 0] * iz
+    y = Xc[:, 1] * iz
+    xx, yy, xy = x * x, y * y, x * y
+    r2 = xx + yy
+    r4 = r2 * r2
+    r6 = r4 * r2
+    a = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
+    ib = 1.0 / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
+    rad = a * ib
+    xd = x * rad + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+    yd = y * rad + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+    uv = np.stack([fx * xd + cx, fy * yd + cy], -1)
+    if not jacobian:
+        return uv
+    n_obs = len(x)
+    Jc = np.zeros((n_obs, 2, 12))
+    Jc[:, 0, 0] = xd
+    Jc[:, 1, 1] = yd
+    Jc[:, 0, 2] = 1.0
+    Jc[:, 1, 3] = 1.0
+    # du/dk1..3 = fx x r^(2i) / b, du/dk4..6 = -fx x rad r^(2i) / b (v likewise)
+    fxx, fyy = fx * x * ib, fy * y * ib
+    fxr, fyr = -fx * x * rad * ib, -fy * y * rad * ib
+    for col, pw in ((4, r2), (5, r4), (8, r6)):
+        Jc[:, 0, col] = fxx * pw
+        Jc[:, 1, col] = fyy * pw
+    for col, pw in ((9, r2), (10, r4), (11, r6)):
+        Jc[:, 0, col] = fxr * pw
+        Jc[:, 1, col] = fyr * pw
+    Jc[:, 0, 6] = fx * 2.0 * xy
+    Jc[:, 1, 6] = fy * (r2 + 2.0 * yy)
+    Jc[:, 0, 7] = fx * (r2 + 2.0 * xx)
+    Jc[:, 1, 7] = fy * 2.0 * xy
+    da = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4
+    db = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4
+    drad = (da - rad * db) * ib
+    dxx = rad + 2.0 * xx * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    dxy = 2.0 * xy * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyy = rad + 2.0 * yy * drad + 6.0 * p1 * y + 2.0 * p2 * x
+    B = np.empty((n_obs, 2, 3))  # d uv / d (X, Y, Z) camera frame
+    B[:, 0, 0] = fx * dxx * iz
+    B[:, 0, 1] = fx * dxy * iz
+    B[:, 0, 2] = -(B[:, 0, 0] * x + B[:, 0, 1] * y)
+    B[:, 1, 0] = fy * dxy * iz
+    B[:, 1, 1] = fy * dyy * iz
+    B[:, 1, 2] = -(B[:, 1, 0] * x + B[:, 1, 1] * y)
+    Jp = np.empty((n_obs, 2, 6))
+    Jp[:, :, 3:] = B
+    # -B [a]_x has rows -(B_i x a)
+    Jp[:, :, :3] = -np.cross(B, RP[:, None, :])
+    if not local_rotation:
+        Jp[:, :, :3] = Jp[:, :, :3] @ left_jacobian(rvecs)[view_idx]
+    Jx = B @ R[view_idx] if point_jacobian else None
+    return uv, Jc, Jp, Jx
+
+
+def similarity_basis(points: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the 7 infinitesimal similarity motions of a point set.
+
+    Translations ``e_k``, rotations ``omega_k x (X_j - Xbar)`` and the scaling ``X_j - Xbar``,
+    stacked over the points and orthonormalised.
+
+    Parameters
+    ----------
+    points : (n, 3) ndarray
+
+    Returns
+    -------
+    Q : (3 n, 7) ndarray
+        Orthonormal columns; ``I - Q Q^T`` projects out the similarity.
+    """
+    c = points - points.mean(axis=0)
+    n = len(points)
+    modes = np.zeros((7, n, 3))
+    for k in range(3):
+        modes[k, :, k] = 1.0
+        e = np.zeros(3)
+        e[k] = 1.0
+        modes[3 + k] = np.cross(e, c)
+    modes[6] = c
+    Q, _ = np.linalg.qr(modes.reshape(7, -1).T)
+    return Q
+
+
+def warp_basis(points: np.ndarray) -> np.ndarray:
+    """The 3 smooth out-of-plane warp modes of a (nearly) planar target.
+
+    Displacements along the normal of the best-fit plane by ``u^2``, ``u v`` and ``v^2``, where
+    ``(u, v)`` are in-plane coordinates from the centroid divided by the largest distance from
+    it (so a mode's largest displacement is about 1). The span is independent of the choice
+    of in-plane axes; it holds a bow (``z = b (1 - r^2/R^2)`` up to a similarity), cylindrical
+    bows along either axis and a twist.
+
+    Parameters
+    ----------
+    points : (n, 3) ndarray
+
+    Returns
+    -------
+    B : (3 n, 3) ndarray
+        Unnormalised modes, stacked as ``x`` (point-major).
+    """
+    c = points - points.mean(axis=0)
+    _, _, Vt = np.linalg.svd(c, full_matrices=False)
+    scale = np.sqrt((c * c).sum(axis=1).max())
+    u, v = (c @ Vt[0]) / scale, (c @ Vt[1]) / scale
+    return np.stack([np.outer(f, Vt[2]).ravel() for f in (u * u, u * v, v * v)], axis=1)
+
+
+def shape_precision(points: np.ndarray, target_sigma_mm: float,
+                    warp_sigma_mm: float | None) -> np.ndarray:
+    r"""Precision matrix of the target-shape prior.
+
+    .. math::
+
+        \Lambda = \frac{I - Q Q^T - B B^T}{\sigma_t^2} + \frac{B (T T^T)^{-1} B^T}{\sigma_w^2},
+
+    ``Q`` the orthonormal similarity basis (:func:`similarity_basis`), ``B_0 = B T`` (QR) the
+    smooth warp modes (:func:`warp_basis`) less their projection on ``Q``, so that the last
+    term is ``|alpha|^2 / sigma_w^2`` for a deformation ``B_0 alpha`` (amplitudes ``alpha``,
+    the displacement at the point farthest from the centroid). The prior ``d^T Lambda d`` on a
+    deviation ``d`` from the nominal board leaves the similarity free (gauge), lets each warp
+    amplitude move with 1-sigma ``warp_sigma_mm`` and holds every other deformation to
+    ``target_sigma_mm`` per coordinate. ``warp_sigma_mm=None``: the warp modes get
+    ``target_sigma_mm`` too.
+
+    Parameters
+    ----------
+    points : (n, 3) ndarray
+        Nominal target.
+    target_sigma_mm, warp_sigma_mm : float
+        In the units of ``points``.
+
+    Returns
+    -------
+    Lam : (3 n, 3 n) ndarray
+        In 1 / unit^2.
+    """
+    return _precision(_shape_modes(points), target_sigma_mm, warp_sigma_mm)
+
+
+def _precision(modes, target_sigma_mm: float, warp_sigma_mm: float | None) -> np.ndarray:
+    """:func:`shape_precision` from ``_shape_modes`` output."""
+    Q, B, Ti = modes
+    P = np.eye(Q.shape[0]) - Q @ Q.T
+    if warp_sigma_mm is None:
+        return P / target_sigma_mm**2
+    return (P - B @ B.T) / target_sigma_mm**2 + B @ (Ti @ Ti.T) @ B.T / warp_sigma_mm**2
+
+
+def _rotate_precision(Lam: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``(I (x) R) Lam (I (x) R)^T``: a (3n, 3n) precision of point-major coordinates, rotated."""
+    n = Lam.shape[0] // 3
+    left = (R @ Lam.reshape(n, 3, 3 * n)).reshape(3 * n, 3 * n)       # rows rotated
+    return (left.reshape(3 * n, n, 3) @ R.T).reshape(3 * n, 3 * n)     # columns rotated
+
+
+def _shape_modes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``Q`` (3n, 7) similarity basis, ``B`` (3n, 3) orthonormal warp basis orthogonal to ``Q``
+    and ``T^-1`` (3, 3), so that warp amplitudes are ``alpha = T^-1 B^T d``."""
+    Q = similarity_basis(points)
+    B0 = warp_basis(points)
+    B0 = B0 - Q @ (Q.T @ B0)               # the warp modes less their similarity part
+    B, T = np.linalg.qr(B0)                # B0 = B T
+    return Q, B, np.linalg.inv(T)
+
+
+def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    r"""Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991).
+
+    Parameters
+    ----------
+    src, dst : (n, 3) ndarray
+
+    Returns
+    -------
+    s : float
+    R : (3, 3) ndarray
+    t : (3,) ndarray
+    """
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ np.diag(d) @ Vt
+    s = float((S * d).sum() / (a * a).sum() * len(src))
+    return s, R, md - s * R @ ms
+
+
+# --------------------------------------------------------------------------------------------
+# The problem: indices, residuals, normal equations, LM
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class _State:
+    cam: np.ndarray      # (12,)
+    rvecs: np.ndarray    # (m, 3)
+    tvecs: np.ndarray    # (m, 3)
+    X: np.ndarray        # (n, 3)
+
+    def copy(self) -> _State:
+        return _State(self.cam.copy(), self.rvecs.copy(), self.tvecs.copy(), self.X.copy())
+
+
+class _Problem:
+    """Observations (sorted by view), parameter maps and the normal equations.
+
+    Unknowns are split into ``y`` (free camera parameters, then free target coordinates) and
+    ``p`` (6 pose parameters per view); the normal equations are returned as the blocks
+    ``U = J_y^T J_y (+ prior)``, ``W_v = J_y^T J_{p_v}``, ``V_v = J_{p_v}^T J_{p_v}`` and the
+    gradients ``g_y = J_y^T r``, ``g_p = J_p^T r``.
+    """
+
+    def __init__(self, vi, pi, uv, w, m, n, cam_map, free_pts, X0, Lam, sig2):
+        order = np.argsort(vi, kind="stable")
+        self.vi, self.pi = vi[order], pi[order]
+        self.uv, self.w = uv[order], w[order]
+        self.order = order
+        self.m, self.n = m, n
+        self.N = len(self.vi)
+        self.starts = np.searchsorted(self.vi, np.arange(m))
+        self.cam_map = cam_map               # (12, nc)
+        self.nc = nc = cam_map.shape[1]
+        self.free_pts = free_pts             # (n, 3) bool
+        self.free_idx = np.flatnonzero(free_pts.ravel())
+        self.nx = nx = len(self.free_idx)
+        self.X0 = X0
+        # shape prior: precision Lam (3n, 3n, 1/mm^2) of the deviation from the nominal board
+        # aligned on the current points; cost weight sig2 = sigma_px^2
+        self.Lam = Lam if (Lam is not None and nx) else None
+        self.sig2 = sig2
+        # dense (view, point) grid when at least a third of it is observed
+        self.dense = m * n <= 3 * self.N
+        self.cell = self.vi * n + self.pi
+        self._A_pt = None                        # (n, N) point-observation incidence, lazily
+        if nx:
+            pos = np.full(3 * n, -1)
+            pos[self.free_idx] = np.arange(nx)
+            pos = pos.reshape(n, 3)
+            # block-diagonal J_x^T J_x entries (point j, a, b) that land in U (both free)
+            j, a, b = np.nonzero(free_pts[:, :, None] & free_pts[:, None, :])
+            self.ux_src = (j * 9 + a * 3 + b)
+            self.ux_dst = (nc + pos[j, a]) * (nc + nx) + nc + pos[j, b]
+            # W rows of the observations' free point coordinates
+            o, a = np.nonzero(free_pts[self.pi])
+            self.wx_obs, self.wx_a, self.wx_row = o, a, nc + pos[self.pi[o], a]
+
+    def shape_deviation(self, X: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """Deviation ``(n, 3)`` of ``X`` from the nominal board aligned on it, expressed in the
+        nominal frame: ``d = R^T (X - s R X_0 - t) / s`` with ``(s, R, t)`` the least-squares
+        similarity from ``X_0`` to ``X``; also ``s`` and ``R``."""
+        sc, Rs, t = fit_similarity(self.X0, X)
+        return ((X - t) @ Rs) / sc - self.X0, sc, Rs
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.nc + 6 * self.m + self.nx
+
+    def residuals(self, s: _State) -> np.ndarray:
+        """(N, 2) weighted residuals ``w_i (uv_hat - uv)``, px (observation order sorted)."""
+        uv = project_jacobian(s.cam, s.rvecs, s.tvecs, s.X, self.vi, self.pi, jacobian=False)
+        return (uv - self.uv) * self.w[:, None]
+
+    def cost(self, s: _State) -> float:
+        r = self.residuals(s)
+        F = float(np.einsum("ij,ij->", r, r))
+        if self.Lam is not None:
+            d = self.shape_deviation(s.X)[0].ravel()
+            F += self.sig2 * float(d @ self.Lam @ d)
+        return F
+
+    def normal_equations(self, s: _State):
+        """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
+        # rotation columns w.r.t. a small rotation of the camera frame; the Rodrigues ones
+        # are these times the view's left Jacobian, applied per view below (T_v)
+        uv, Jc, Jp, Jx = project_jacobian(s.cam, s.rvecs, s.tvecs, s.X, self.vi, self.pi,
+                                          point_jacobian=self.nx > 0, local_rotation=True)
+        w = self.w[:, None, None]
+        r = (uv - self.uv) * self.w[:, None]
+        Jc = (Jc * w) @ self.cam_map
+        Jp *= w
+        if self.nx:
+            Jx *= w
+        nc, m, n, nx = self.nc, self.m, self.n, self.nx
+        sums = self._sums_dense if self.dense else self._sums_sparse
+        Ucc, gc, Wc, V, gp, Uxx, Ucx, gx = sums(Jc, Jp, Jx, r)
+        ny = nc + nx
+        U = np.zeros((ny, ny))
+        U[:nc, :nc] = Ucc
+        g = np.empty(ny)
+        g[:nc] = gc
+        W = np.zeros((m, ny, 6))
+        W[:, :nc] = Wc
+        if nx:
+            gx = gx.ravel()
+            if self.Lam is not None:
+                d, sc, Rs = self.shape_deviation(s.X)
+                gx += (self.sig2 / sc) * ((self.Lam @ d.ravel()).reshape(n, 3) @ Rs.T).ravel()
+                U[nc:, nc:] = (self.sig2 / sc**2) * _rotate_precision(self.Lam, Rs)[
+                    np.ix_(self.free_idx, self.free_idx)]
+            U.ravel()[self.ux_dst] += Uxx.ravel()[self.ux_src]
+            f = self.free_idx
+            U[:nc, nc:] = Ucx.transpose(1, 0, 2).reshape(nc, 3 * n)[:, f]
+            U[nc:, :nc] = U[:nc, nc:].T
+            o, a = self.wx_obs, self.wx_a
+            # W entries J_x^T J_p of each observation's free point coordinates
+            W[self.vi[o], self.wx_row] = (Jx[o, 0, a, None] * Jp[o, 0]
+                                          + Jx[o, 1, a, None] * Jp[o, 1])
+            g[nc:] = gx[f]
+        T = np.zeros((m, 6, 6))
+        T[:, :3, :3] = left_jacobian(s.rvecs)
+        T[:, 3:, 3:] = np.eye(3)
+        TT = T.transpose(0, 2, 1)
+        return U, W @ T, TT @ V @ T, g, (TT @ gp[:, :, None])[:, :, 0], r
+
+    def _sums_sparse(self, Jc, Jp, Jx, r):
+        """Per-view and per-point sums of the Jacobian products, for any pattern of views."""
+        st, N, n, nc = self.starts, self.N, self.n, self.nc
+        JpT = Jp.transpose(0, 2, 1)
+        V = np.add.reduceat(JpT @ Jp, st, axis=0)
+        gp = np.add.reduceat(JpT @ r[:, :, None], st, axis=0)[:, :, 0]
+        Jc2 = Jc.reshape(2 * N, nc)
+        Wc = np.add.reduceat(Jc.transpose(0, 2, 1) @ Jp, st, axis=0)
+        Uxx = Ucx = gx = None
+        if self.nx:
+            JxT = Jx.transpose(0, 2, 1)
+            if self._A_pt is None:
+                self._A_pt = scipy.sparse.csr_matrix(
+                    (np.ones(N), (self.pi, np.arange(N))), shape=(n, N))
+            A = self._A_pt
+            Uxx = (A @ (JxT @ Jx).reshape(N, 9)).reshape(n, 3, 3)
+            Ucx = (A @ (Jc.transpose(0, 2, 1) @ Jx).reshape(N, nc * 3)).reshape(n, nc, 3)
+            gx = A @ (JxT @ r[:, :, None]).reshape(N, 3)
+        return Jc2.T @ Jc2, Jc2.T @ r.ravel(), Wc, V, gp, Uxx, Ucx, gx
+
+    def _sums_dense(self, Jc, Jp, Jx, r):
+        """The same sums on the dense (view, point) grid, unobserved pairs zero: batched
+        matrix products per view and per point instead of per observation."""
+        m, n, nc = self.m, self.n, self.nc
+        K = 6 + nc + (3 if self.nx else 0)
+        G = np.zeros((m * n, 2, K + 1))                    # columns: pose, camera, point, r
+        G[self.cell, :, :6] = Jp
+        G[self.cell, :, 6:6 + nc] = Jc
+        if self.nx:
+            G[self.cell, :, 6 + nc:K] = Jx
+        G[self.cell, :, K] = r
+        Gv = G.reshape(m, 2 * n, K + 1)
+        Av = Gv[:, :, :6 + nc].transpose(0, 2, 1) @ Gv[:, :, list(range(6 + nc)) + [K]]
+        V, Wc, gp = Av[:, :6, :6], Av[:, 6:, :6], Av[:, :6, -1]
+        Ucc, gc = Av[:, 6:, 6:-1].sum(axis=0), Av[:, 6:, -1].sum(axis=0)
+        Uxx = Ucx = gx = None
+        if self.nx:
+            Gp = G.reshape(m, n, 2, K + 1)[:, :, :, 6:].transpose(1, 0, 2, 3).reshape(
+                n, 2 * m, nc + 4)
+            Ap = Gp[:, :, nc:nc + 3].transpose(0, 2, 1) @ Gp
+            Uxx, Ucx, gx = Ap[:, :, nc:nc + 3], Ap[:, :, :nc].transpose(0, 2, 1), Ap[:, :, -1]
+        return Ucc, gc, Wc, V, gp, Uxx, Ucx, gx
+
+    def apply(self, s: _State, dy: np.ndarray, dp: np.ndarray) -> _State:
+        t = s.copy()
+        t.cam = s.cam + self.cam_map @ dy[: self.nc]
+        if self.nx:
+            X = t.X.ravel()
+            X[self.free_idx] += dy[self.nc:]
+        t.rvecs += dp[:, :3]
+        t.tvecs += dp[:, 3:]
+        return t
+
+
+def _schur_solve(U, W, V, g, gp, lam):
+    """Solve the damped normal equations by eliminating the poses.
+
+    Damping (Marquardt): ``diag(U) (1 + lam)``, ``diag(V) (1 + lam)``. Returns ``(dy, dp,
+    predicted cost decrease)``, or None if the reduced matrix is not positive definite.
+    """
+    m = V.shape[0]
+    dU = np.diag(U)
+    Ud = U + np.diag(lam * dU + 1e-15 * max(dU.max(initial=0.0), 1.0))
+    dV = np.einsum("vii->vi", V)
+    Vd = V + (lam * dV + 1e-15)[:, :, None] * np.eye(6)
+    try:
+        Lv = np.linalg.cholesky(Vd)
+    except np.linalg.LinAlgError:
+        return None
+    iL = np.linalg.inv(Lv)                                  # (m, 6, 6)
+    G = iL @ W.transpose(0, 2, 1)                           # (m, 6, ny) = L^-1 W^T
+    h = (iL @ gp[:, :, None])[:, :, 0]                      # L^-1 g_p
+    Gf = G.reshape(6 * m, -1)
+    S = Ud - Gf.T @ Gf
+    rhs = -g + Gf.T @ h.ravel()
+    try:
+        cf = scipy.linalg.cho_factor(S, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    dy = scipy.linalg.cho_solve(cf, rhs, check_finite=False)
+    # dp = -V^-1 (g_p + W^T dy) = -L^-T (h + G dy)
+    tmp = h + (G @ dy)
+    dp = -(iL.transpose(0, 2, 1) @ tmp[:, :, None])[:, :, 0]
+    # decrease of the cost predicted by the (undamped) linear model: -2 g.d - d^T N d
+    pred = -(2.0 * (g @ dy + np.einsum("vi,vi->", gp, dp))
+             + dy @ (U @ dy) + 2.0 * np.einsum("vj,vij,i->", dp, W, dy)
+             + np.einsum("vi,vij,vj->", dp, V, dp))
+    return dy, dp, float(pred)
+
+
+def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: float,
+                         lam: float = 1e-10):
+    """Minimise ``prob.cost`` from ``s``; returns the state, the iterations and the cost.
+
+    Gauss-Newton steps damped as in Nielsen's rule ([4]): after a step with gain ratio ``rho``
+    (actual over predicted decrease) ``lam *= max(1/3, 1 - (2 rho - 1)^3)``, after a rejected
+    step ``lam *= nu, nu *= 2``. Stops when the predicted decrease, or the decrease achieved by
+    an accepted step, is below ``tol`` x cost.
+    """
+    F = prob.cost(s)
+    nu = 2.0
+    it = 0
+    for it in range(1, max_iterations + 1):  # noqa: B007
+        U, W, V, g, gp, _ = prob.normal_equations(s)
+        done = False
+        for _ in range(30):
+            sol = _schur_solve(U, W, V, g, gp, lam)
+            if sol is not None:
+                dy, dp, pred = sol
+                if pred <= tol * F:
+                    done = True            # converged: the linear model promises nothing
+                    if pred > 0:
+                        t = prob.apply(s, dy, dp)
+                        Ft = prob.cost(t)
+                        if Ft <= F:
+                            s, F = t, Ft
+                    break
+                t = prob.apply(s, dy, dp)
+                Ft = prob.cost(t)
+                rho = (F - Ft) / pred
+                if np.isfinite(Ft) and rho > 0:
+                    done = F - Ft <= tol * F    # a step this small: the next would be smaller
+                    s, F = t, Ft
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                    nu = 2.0
+                    break
+            lam = max(lam, 1e-9) * nu
+            nu *= 2.0
+        else:
+            done = True
+        if done:
+            break
+    return s, it, F
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
+
+def _gauge(X0: np.ndarray, gauge_points, seen: np.ndarray
+           ) -> tuple[np.ndarray, str, tuple[int, int, int]]:
+    """Fixed-coordinate mask (n, 3) and its description; automatic gauge points are chosen
+    among the points ``seen`` (in at least 2 views)."""
+    n = len(X0)
+    if gauge_points is None:
+        for cand in (np.flatnonzero(seen), np.arange(n)):   # all points if the seen are too few
+            if len(cand) < 3:
+                continue
+            i0 = int(cand[0])
+            ia = int(cand[np.argmax(np.linalg.norm(X0[cand] - X0[i0], axis=1))])
+            e = (X0[ia] - X0[i0]) / max(np.linalg.norm(X0[ia] - X0[i0]), 1e-300)
+            d = X0[cand] - X0[i0]
+            off = np.linalg.norm(d - np.outer(d @ e, e), axis=1)
+            ib = int(cand[np.argmax(off)])
+            if off.max() > 1e-6 * np.linalg.norm(X0[ia] - X0[i0]):
+                break
+    else:
+        i0, ia, ib = (int(i) for i in gauge_points)
+    if len({i0, ia, ib}) < 3 or min(i0, ia, ib) < 0 or max(i0, ia, ib) >= n:
+        raise ValueError(f"gauge_points {gauge_points!r}: need three distinct point ids < {n}")
+    normal = np.cross(X0[ia] - X0[i0], X0[ib] - X0[i0])
+    if np.linalg.norm(normal) < 1e-9 * np.linalg.norm(X0[ia] - X0[i0]) ** 2:
+        raise ValueError(f"gauge points {i0}, {ia}, {ib} are collinear")
+    kb = int(np.argmax(np.abs(normal)))
+    fixed = np.zeros((n, 3), bool)
+    fixed[i0] = True
+    fixed[ia] = True
+    fixed[ib, kb] = True
+    length = float(np.linalg.norm(X0[ia] - X0[i0]))
+    text = (f"point {i0} fixed (x, y, z); point {ia} fixed (x, y, z), so the scale is the nominal "
+            f"distance |X{ia} - X{i0}| = {length:.6g}; point {ib} {'xyz'[kb]} fixed; all at "
+            f"their nominal values")
+    return fixed, text, (i0, ia, ib)
+
+
+def _cam_map(model: str, fix_aspect: bool, aspect: float) -> tuple[np.ndarray, list[str]]:
+    """(12, nc) linear map from the free camera parameters to ``CAMERA_NAMES`` and their names."""
+    nd = 5 if model == "standard" else 8
+    cols, names = [], []
+    if fix_aspect:
+        c = np.zeros(12)
+        c[0], c[1] = aspect, 1.0
+        cols.append(c)
+        names.append("f")
+    else:
+        cols += [np.eye(12)[0], np.eye(12)[1]]
+        names += ["fx", "fy"]
+    for k in range(2, 4 + nd):
+        cols.append(np.eye(12)[k])
+        names.append(CAMERA_NAMES[k])
+    return np.array(cols).T, names
+
+
+def _initial_camera(image_size, X0: np.ndarray, ids_list, pts_list, fix_aspect: bool):
+    """Camera (12,) and poses from ``cv2.calibrateCamera``, standard model, nominal target."""
+    objp = [X0[i].astype(np.float32) for i in ids_list]
+    imgp = [p.astype(np.float32).reshape(-1, 1, 2) for p in pts_list]
+    if np.any(np.abs(X0[:, 2]) > 0):
+        raise ValueError("automatic initialisation needs a flat nominal target (z = 0): pass K0, "
+                         "dist0 (and optionally rvecs0, tvecs0)")
+    flags = cv2.CALIB_FIX_ASPECT_RATIO if fix_aspect else 0
+    K = None
+    if fix_aspect:
+        w, h = image_size
+        K = np.array([[max(w, h), 0, (w - 1) / 2], [0, max(w, h), (h - 1) / 2], [0, 0, 1.0]])
+    try:
+        _, K, d, rv, tv = cv2.calibrateCamera(
+            objp, imgp, tuple(int(v) for v in image_size), K, None, flags=flags,
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 10, 2.2e-16))
+    except cv2.error as exc:
+        raise ValueError(f"the initial cv2.calibrateCamera failed ({exc.err}); the views may be "
+                         "degenerate (e.g. all fronto-parallel)") from exc
+    cam = np.zeros(12)
+    cam[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    cam[4:9] = np.ravel(d)[:5]
+    return cam, np.array(rv).reshape(-1, 3), np.array(tv).reshape(-1, 3)
+
+
+def _outliers(z: np.ndarray, inlier: np.ndarray, pi: np.ndarray, n: int, k: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Observations to reject and to re-admit, from normalised residual norms ``z``.
+
+    A free target point pulled by a gross outlier drags its other observations too, so per
+    round and per point only the observations above ``max(k, z_max / 2)`` are rejected
+    (``z_max`` the point's largest inlier ``z``); rejected observations whose ``z`` fell below
+    ``k`` after the re-solve are re-admitted.
+    """
+    cand = inlier & (z > k)
+    zmax = np.zeros(n)
+    np.maximum.at(zmax, pi[cand], z[cand])
+    new_out = cand & (z >= 0.5 * zmax[pi])
+    return new_out, ~inlier & (z <= k)
+
+
+def _robust_sigma(r: np.ndarray) -> float:
+    """1.4826 x median absolute residual component: sigma of Gaussian residuals."""
+    return float(1.4826 * np.median(np.abs(r)))
+
+
+@_single_threaded_blas
+def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray | None = None,
+                     dist0: np.ndarray | None = None, rvecs0: np.ndarray | None = None,
+                     tvecs0: np.ndarray | None = None, refine_target: bool = True,
+                     robust: bool = True, fix_aspect: bool = False,
+                     target_sigma_mm: float | None = 0.01, warp_sigma_mm: float | None = 2.0,
+                     weights: list[np.ndarray] | None = None,
+                     gauge_points: tuple[int, int, int] | None = None,
+                     reject_sigma: float = 5.0, min_tilt_deg: float = 3.0,
+                     guard_warn_ratio: float = 3.0, max_iterations: int = 100,
+                     tol: float = 1e-8, return_covariance: bool = False) -> CalibrationResult:
+    r"""Calibrate a camera by bundle adjustment, refining the 3D target points too.
+
+    See the module docstring for the model, the gauge, the shape prior and the solver.
+
+    Parameters
+    ----------
+    obs : Observations
+        Nominal target (``object_points`` (n, 3), mm unless stated) and per-view ``(ids (k,),
+        points (k, 2))`` detections, px, OpenCV convention. Each view needs at least 4 points
+        and no point twice.
+    model : {'standard', 'rational'}
+        OpenCV's 5-term (``k1, k2, p1, p2, k3``) or 8-term rational model (adds ``k4..k6``).
+    K0 : (3, 3) ndarray, optional
+        Initial camera matrix. If None, the initial camera and poses come from
+        ``cv2.calibrateCamera`` (at most 10 iterations) on the nominal flat target with
+        OpenCV's standard model: the rational model started from scratch falls into poor local
+        minima on wide lenses (rms 28 px on mrcal's figueroa set). Our adjustment then takes
+        up to 10 more iterations of the standard model and only then frees ``k4..k6``.
+    dist0 : (5,) or (8,) ndarray, optional
+        Initial distortion (zeros if None and ``K0`` is given).
+    rvecs0, tvecs0 : (m, 3) ndarray, optional
+        Initial ``Rt_cam_board`` poses; from ``cv2.solvePnP`` if None and ``K0`` is given.
+    refine_target : bool
+        Release the target points (else only the camera and poses are adjusted).
+    robust : bool
+        After convergence, reject observations with ``|w_i r_i| > reject_sigma * sigma_rob``,
+        ``sigma_rob = 1.4826 median |w r|`` over all residual components (the MAD estimate of
+        the noise, insensitive to the outliers themselves), and re-solve; repeated (at most 3
+        rounds) while the set changes. Per round and target point only the observations above
+        half the point's largest normalised residual go (a gross outlier drags its free point
+        and so its other observations); rejected ones back below the threshold return.
+    fix_aspect : bool
+        Keep ``fx / fy`` at its initial value (1 if initialised here).
+    target_sigma_mm : float or None
+        Tolerance of the target's irregular deformation: prior 1-sigma of each coordinate of
+        each point about the nominal board once a similarity and the smooth warp are removed
+        (module docstring), in the units of ``obs.object_points``. None: no prior at all
+        (every target coordinate free but for the gauge, the plain Lavest bundle).
+    warp_sigma_mm : float or None
+        Prior 1-sigma of the amplitude of each smooth warp mode (bow, cylinder, twist). None:
+        the warp modes get ``target_sigma_mm`` like every other deformation.
+    weights : list of (k,) ndarray, optional
+        Per-observation weights (noise ``sigma / w``, mrcal's convention); weights <= 0 are
+        dropped as outliers.
+    gauge_points : (int, int, int), optional
+        ``(i0, ia, ib)`` for the gauge (module docstring); chosen automatically if None.
+    reject_sigma : float
+        Outlier threshold in robust sigmas. A 2D Gaussian residual exceeds ``k`` sigma with
+        probability ``exp(-k^2/2)``: ``3.7e-6`` for the default 5, so clean data lose nothing.
+    min_tilt_deg : float
+        Refuse the data when every view's board normal is within this angle of the optical axis.
+    guard_warn_ratio : float
+        Warn (``RuntimeWarning``) when the irregular part of the refined target's deformation
+        has an RMS above this many times the RMS the noise alone gives (from the covariance).
+    max_iterations : int
+        Per LM stage.
+    tol : float
+        Stop when the linear model predicts a cost decrease below ``tol`` times the cost.
+    return_covariance : bool
+        Also put the full covariance of all free parameters in ``info['covariance']`` with
+        their names in ``info['parameter_names']``.
+
+    Returns
+    -------
+    CalibrationResult
+        ``backend='bundle'``; ``K``, ``dist`` ((5,) or (8,)), ``sd`` (``fx, fy, cx, cy`` and the
+        distortion terms), ``rms_px`` and ``per_view_rms_px`` over inliers (unweighted px),
+        ``rvecs``, ``tvecs`` (``Rt_cam_board``, target in the gauge frame), ``rejected``
+        (view, id), ``object_points`` (refined, gauge frame; None if ``refine_target`` is
+        False) and ``object_points_sd`` (0 for gauge-fixed coordinates). ``info``:
+
+        - ``gauge`` (text), ``gauge_points``, ``n_unknowns`` (free parameters after the
+          gauge), ``n_observations`` (inliers), ``iterations`` (LM iterations per stage),
+          ``sigma_px`` (``s``, weighted px), ``model``, ``max_tilt_deg``;
+        - ``flatness_mm``, ``flatness_sd_mm``: RMS distance of the refined points from their
+          best-fit plane, and its linearised 1-sigma;
+        - ``guard``: the flat-target fit (``flat_fx`` ...), the shifts from it
+          (``shift_fx_px``, ``shift_fx_sigma`` ...), ``warp_amplitude_mm`` (the 3 warp
+          modes' amplitudes), ``irregular_rms_mm`` and ``irregular_noise_rms_mm``;
+        - ``rvecs_sd``, ``tvecs_sd`` (m, 3); ``points_held`` (points seen in fewer than 2
+          views, kept at their nominal position); ``target_sigma_mm``, ``warp_sigma_mm``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 views; a view with fewer than 4 points, a repeated or out-of-range id;
+        every view fronto-parallel; fewer equations (2 per observation) than unknowns; an
+        unknown model; normal equations singular at the solution.
+
+    Notes
+    -----
+    If ``threadpoolctl`` is installed, the BLAS runs single-threaded inside the call (see
+    ``_single_threaded_blas``); the result does not depend on it, the wall time does.
+
+    Examples
+    --------
+    >>> from zoomcalib.calibrate.bundle import calibrate_bundle  # doctest: +SKIP
+    >>> res = calibrate_bundle(obs, model="rational")             # doctest: +SKIP
+    >>> res.fx, res.sd["fx"], res.info["flatness_mm"], res.rejected   # doctest: +SKIP
+    """
+    if model not in ("standard", "rational"):
+        raise ValueError(f"model must be 'standard' or 'rational', not {model!r}")
+    X0 = np.asarray(obs.object_points, dtype=float).reshape(-1, 3)
+    n, m = len(X0), obs.n_views
+    if m < 3:
+        raise ValueError(f"bundle adjustment needs at least 3 views, got {m}: with fewer the "
+                         "intrinsics, poses and target points are not determined")
+    vi, pi, uv, w, ids_list, pts_list = _flatten(obs, weights)
+    N = len(vi)
+
+    # ---- unknowns, gauge and the count refusal -----------------------------------------
+    seen = np.bincount(pi, minlength=n) >= 2
+    held = np.flatnonzero(~seen) if refine_target else []
+    fixed, gauge_text, gpts = _gauge(X0, gauge_points, seen)
+    fixed[held] = True
+    free_pts = ~fixed if refine_target else np.zeros((n, 3), bool)
+    aspect = 1.0 if K0 is None else float(K0[0][0] / K0[1][1])
+    cam_map, cam_names = _cam_map(model, fix_aspect, aspect)
+    n_unk = cam_map.shape[1] + 6 * m + int(free_pts.sum())
+    if 2 * N < n_unk:
+        raise ValueError(f"{N} observations give {2 * N} equations for {n_unk} unknowns "
+                         f"({cam_map.shape[1]} camera + 6 x {m} pose + {int(free_pts.sum())} "
+                         "target coordinates): add views, or set refine_target=False")
+
+    # ---- stage 1: initial values and the fronto-parallel refusal ------------------------
+    if K0 is None:
+        cam, rv0, tv0 = _initial_camera(obs.image_size, X0, ids_list, pts_list, fix_aspect)
+        if fix_aspect:
+            cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
+    else:
+        cam = np.zeros(12)
+        K0 = np.asarray(K0, float)
+        cam[:4] = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+        if dist0 is not None:
+            d0 = np.ravel(dist0)
+            cam[4:4 + len(d0)] = d0
+        rv0 = tv0 = None
+    if model == "standard":
+        cam[9:] = 0.0
+    if rvecs0 is not None and tvecs0 is not None:
+        rv0 = np.asarray(rvecs0, float).reshape(m, 3).copy()
+        tv0 = np.asarray(tvecs0, float).reshape(m, 3).copy()
+    elif rv0 is None:
+        rv0, tv0 = _initial_poses(cam, X0, ids_list, pts_list)
+    R0, _ = rodrigues(rv0, False)
+    tilts = np.degrees(np.arccos(np.clip(np.abs(R0[:, 2, 2]), 0.0, 1.0)))
+    if tilts.max() < min_tilt_deg:
+        raise ValueError(f"all {m} views are within {min_tilt_deg:g} deg of fronto-parallel "
+                         f"(largest board tilt {tilts.max():.2f} deg): the focal length and the "
+                         "target distance are not separable; add views with the board tilted "
+                         "by 15-45 deg")
+
+    modes = _shape_modes(X0) if refine_target else None
+    Lam = None
+    if refine_target and target_sigma_mm is not None:
+        Lam = _precision(modes, target_sigma_mm, warp_sigma_mm)
+    no_pts = np.zeros((n, 3), bool)
+
+    def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
+        s = slice(None) if sel is None else sel
+        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
+
+    def lm(prob: _Problem, st: _State, lam: float = 1e-10) -> tuple[_State, int]:
+        st, it, _ = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        return st, it
+
+    iterations: dict[str, int] = {}
+    # ---- stage 2: target held at its nominal shape --------------------------------------
+    state = _State(cam, rv0, tv0, X0.copy())
+    if model == "rational" and not np.any(cam[9:]):
+        # free k4..k6 only after some iterations of the 5-term model: from a poor start the
+        # rational model has bad local minima (f 10 % off on the figueroa set)
+        std_map, _ = _cam_map("standard", fix_aspect, cam[0] / cam[1])
+        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
+        state, iterations["flat_standard"], _ = _levenberg_marquardt(
+            std_prob, state, min(max_iterations, 10), tol, 1e-3)
+    flat_prob = problem(0.0, no_pts)
+    state, iterations["flat"] = lm(flat_prob, state, lam=1e-3)
+    flat_state = state.copy()
+    sigma_px = _robust_sigma(flat_prob.residuals(state))
+    # ---- stage 3: target released -------------------------------------------------------
+    prob = flat_prob
+    if refine_target:
+        prob = problem(sigma_px, free_pts)
+        state, iterations["target"] = lm(prob, state)
+    # ---- stage 4: outliers; the prior's pixel sigma from the refined residuals ----------
+    inlier = np.ones(N, bool)
+    for rounds in range(1, 4):
+        r = (project_jacobian(state.cam, state.rvecs, state.tvecs, state.X, vi, pi,
+                              jacobian=False) - uv) * w[:, None]
+        sig = _robust_sigma(r)
+        new_out = readmit = np.zeros(N, bool)
+        if robust:
+            new_out, readmit = _outliers(np.hypot(r[:, 0], r[:, 1]) / sig, inlier, pi, n,
+                                         reject_sigma)
+        reweight = Lam is not None and abs(sig / sigma_px - 1.0) > 0.2
+        if not new_out.any() and not readmit.any() and not reweight:
+            break
+        inlier = (inlier & ~new_out) | readmit
+        sigma_px = sig
+        prob = problem(sigma_px, free_pts, np.flatnonzero(inlier))
+        state, iterations[f"reject{rounds}"] = lm(prob, state)
+    if refine_target and not inlier.all():
+        # the flat-target fit (for the guard's comparison) on the same inliers
+        flat_state, iterations["flat_inliers"] = lm(
+            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state)
+
+    # ---- stage 5: covariance ------------------------------------------------------------
+    U, W, V, _, _, r = prob.normal_equations(state)
+    dof = 2 * prob.N - prob.n_unknowns
+    s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
+    nc, f = prob.nc, prob.free_idx
+    if prob.Lam is not None:
+        # N = J^T J + s^2 Lambda on the point block (the solve used sigma_px^2 Lambda)
+        _, sc, Rs = prob.shape_deviation(state.X)
+        U[nc:, nc:] += ((s2 - sigma_px**2) / sc**2) * _rotate_precision(Lam, Rs)[np.ix_(f, f)]
+    try:
+        iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
+        G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
+        Gf = G.reshape(6 * m, -1)
+        cf = scipy.linalg.cho_factor(U - Gf.T @ Gf, check_finite=False)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("the normal equations are singular at the solution (rms "
+                         f"{np.sqrt(np.mean(r**2) * 2):.3g} px): the data do not determine "
+                         "the unknowns, or the adjustment diverged from a poor start (pass "
+                         "K0/dist0)") from exc
+    Sinv = scipy.linalg.cho_solve(cf, np.eye(len(U)), check_finite=False)
+    cov_y = s2 * Sinv
+    # poses: Cov(p) / s^2 = V^-1 + H S^-1 H^T with H = V^-1 W^T; Cov(y, p) / s^2 = -S^-1 H^T
+    Vinv = iL.transpose(0, 2, 1) @ iL
+    Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
+    HS = Hf @ Sinv
+    pose_var = s2 * (np.einsum("vii->vi", Vinv).ravel() + np.einsum("ij,ij->i", HS, Hf))
+    pose_sd = np.sqrt(pose_var).reshape(m, 6)
+    cam_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_y[:nc, :nc], cam_map))
+    nd = 5 if model == "standard" else 8
+    sd = {name: float(cam_sd[k]) for k, name in enumerate(CAMERA_NAMES[:4 + nd])}
+
+    cam = state.cam
+    K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
+    e2 = np.sum((project_jacobian(cam, state.rvecs, state.tvecs, state.X, vi, pi, jacobian=False)
+                 - uv) ** 2, axis=1)                   # unweighted px^2
+    per_view = np.sqrt(np.bincount(vi[inlier], e2[inlier], m)
+                       / np.maximum(np.bincount(vi[inlier], minlength=m), 1))
+    info: dict = {"gauge": gauge_text, "gauge_points": list(gpts),
+                  "n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
+                  "iterations": iterations, "sigma_px": float(np.sqrt(s2)), "model": model,
+                  "max_tilt_deg": float(tilts.max()), "rvecs_sd": pose_sd[:, :3],
+                  "tvecs_sd": pose_sd[:, 3:], "points_held": [int(i) for i in held],
+                  "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm}
+    obj_pts = obj_sd = None
+    if refine_target:
+        obj_pts = state.X.copy()
+        cov_x = np.zeros((3 * n, 3 * n))
+        cov_x[np.ix_(f, f)] = cov_y[nc:, nc:]
+        obj_sd = np.sqrt(np.diag(cov_x)).reshape(n, 3)
+        info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_x)
+        info["guard"] = _guard(modes, X0, obj_pts, cov_x, flat_state.cam, cam, sd)
+        g = info["guard"]
+        if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
+            warnings.warn(f"the refined target departs from a smoothly warped board by "
+                          f"{g['irregular_rms_mm']:.3g} RMS, "
+                          f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
+                          "the noise explains: the free target points are likely absorbing "
+                          "lens-model misfit (or the target is worse than target_sigma_mm); "
+                          "consider a richer lens model or a smaller target_sigma_mm",
+                          RuntimeWarning, stacklevel=2)
+    if return_covariance:
+        fj, fk = np.divmod(f, 3)
+        info["parameter_names"] = (
+            [f"cam.{c}" for c in cam_names]
+            + [f"X{j}.{'xyz'[k]}" for j, k in zip(fj, fk, strict=True)]
+            + [f"view{v}.{p}" for v in range(m) for p in ("rx", "ry", "rz", "tx", "ty", "tz")])
+        cov_pp = Hf @ HS.T
+        for v in range(m):
+            cov_pp[6 * v:6 * v + 6, 6 * v:6 * v + 6] += Vinv[v]
+        info["covariance"] = s2 * np.block([[Sinv, -HS.T], [-HS, cov_pp]])
+    return CalibrationResult(backend="bundle", K=K, dist=cam[4:4 + nd].copy(), sd=sd,
+                             rms_px=float(np.sqrt(e2[inlier].mean())), per_view_rms_px=per_view,
+                             rvecs=state.rvecs.copy(), tvecs=state.tvecs.copy(),
+                             rejected=[(int(vi[i]), int(pi[i])) for i in np.flatnonzero(~inlier)],
+                             object_points=obj_pts, object_points_sd=obj_sd, info=info)
+
+
+def _flatten(obs: Observations, weights):
+    """Validate and concatenate the views: view and point index, uv, weight per observation."""
+    n = len(obs.object_points)
+    ids_list, pts_list, w_list = [], [], []
+    for v, (ids, pts) in enumerate(obs.views):
+        ids = np.asarray(ids, dtype=int).ravel()
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        wv = np.ones(len(ids)) if weights is None else np.asarray(weights[v], float).ravel()
+        name = f" ({obs.names[v]!r})" if v < len(obs.names) else ""
+        if not (len(ids) == len(pts) == len(wv)):
+            raise ValueError(f"view {v}{name}: {len(ids)} ids, {len(pts)} points, {len(wv)} "
+                             "weights")
+        keep = (wv > 0) & np.all(np.isfinite(pts), axis=1)
+        ids, pts, wv = ids[keep], pts[keep], wv[keep]
+        if len(ids) < 4:
+            raise ValueError(f"view {v}{name} has {len(ids)} usable points; at least 4 are "
+                             "needed to determine its pose")
+        if ids.min() < 0 or ids.max() >= n:
+            raise ValueError(f"view {v}{name}: point ids must lie in [0, {n})")
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError(f"view {v}{name}: a point id appears twice")
+        ids_list.append(ids)
+        pts_list.append(pts)
+        w_list.append(wv)
+    vi = np.concatenate([np.full(len(i), v) for v, i in enumerate(ids_list)])
+    return (vi, np.concatenate(ids_list), np.concatenate(pts_list), np.concatenate(w_list),
+            ids_list, pts_list)
+
+
+def _initial_poses(cam: np.ndarray, X0: np.ndarray, ids_list, pts_list):
+    """``Rt_cam_board`` of every view from ``cv2.solvePnP`` with the camera ``cam``."""
+    Kc = np.array([[cam[0], 0, cam[2]], [0, cam[1], cam[3]], [0, 0, 1.0]])
+    m = len(ids_list)
+    rv, tv = np.zeros((m, 3)), np.zeros((m, 3))
+    for v in range(m):
+        ok, r_, t_ = cv2.solvePnP(X0[ids_list[v]], pts_list[v], Kc, cam[4:])
+        if not ok:
+            raise ValueError(f"view {v}: cv2.solvePnP found no initial pose")
+        rv[v], tv[v] = r_.ravel(), t_.ravel()
+    return rv, tv
+
+
+def _guard(modes, X0: np.ndarray, X: np.ndarray, cov_x: np.ndarray, cam_flat: np.ndarray,
+           cam: np.ndarray, sd: dict) -> dict:
+    """Deformation of the refined target split into similarity, smooth warp and the irregular
+    rest, and the camera's shift from the flat-target fit.
+
+    ``irregular_noise_rms_mm`` is ``sqrt(trace(P C P) / 3n)``: the RMS the irregular part
+    would have from the noise alone (``C`` the covariance of the points, ``P`` the projector on
+    the irregular deformations)."""
+    n = len(X0)
+    Q, B, Ti = modes
+    # deviation from the nominal board aligned on X, in the nominal frame (gauge-independent)
+    sc, Rs, t = fit_similarity(X0, X)
+    d = ((((X - t) @ Rs) / sc) - X0).ravel()
+    cov_x = _rotate_precision(cov_x, Rs.T) / sc**2
+    d = d - Q @ (Q.T @ d)
+    irr = d - B @ (B.T @ d)
+    P_irr = np.eye(3 * n) - Q @ Q.T - B @ B.T
+    noise2 = max(float(np.einsum("ij,ij->", P_irr, cov_x)), 0.0) / (3 * n)  # tr(P C P) = tr(P C)
+    g = {"flat_fx": float(cam_flat[0]), "flat_fy": float(cam_flat[1]),
+         "flat_cx": float(cam_flat[2]), "flat_cy": float(cam_flat[3]),
+         "warp_amplitude_mm": [float(a) for a in Ti @ (B.T @ d)],
+         "irregular_rms_mm": float(np.sqrt(np.mean(irr**2))),
+         "irregular_noise_rms_mm": float(np.sqrt(noise2))}
+    for k, name in enumerate(("fx", "fy", "cx", "cy")):
+        g[f"shift_{name}_px"] = float(cam[k] - cam_flat[k])
+        g[f"shift_{name}_sigma"] = float((cam[k] - cam_flat[k]) / sd[name])
+    return g
+
+
+def _flatness(X: np.ndarray, cov_x: np.ndarray) -> tuple[float, float]:
+    r"""RMS distance of points from their best-fit plane, and its linearised 1-sigma.
+
+    With plane normal ``n`` (smallest singular vector of the centred points) and signed
+    distances ``d_j``, ``phi = sqrt(mean d_j^2)``; since the plane minimises ``sum d_j^2``,
+    ``d phi / d X_j = d_j n / (n_pts phi)`` and ``sd(phi)^2 = g^T C g``.
+    """
+    c = X - X.mean(0)
+    _, _, Vt = np.linalg.svd(c, full_matrices=False)
+    nrm = Vt[2]
+    d = c @ nrm
+    phi = float(np.sqrt(np.mean(d * d)))
+    if phi == 0:
+        return 0.0, 0.0
+    gvec = (d[:, None] * nrm[None, :] / (len(X) * phi)).ravel()
+    return phi, float(np.sqrt(max(gvec @ cov_x @ gvec, 0.0)))
+
