@@ -145,10 +145,12 @@ def target(pattern, dpi, out):
 @click.option("--through", default="exact", show_default=True,
               type=click.Choice(["exact", "model"]),
               help="Render through the exact ray-traced lens, or its fitted OpenCV model.")
+@click.option("--size", default="1280x960", show_default=True,
+              help="Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels).")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
-           bits, through, seed, out):
+           bits, through, size, seed, out):
     """Render calibration images through the (perturbed) zoom lens.
 
     Writes one subfolder per zoom step (OUT/zoom_XX/view_YY.png), OUT/steps.csv and
@@ -171,11 +173,19 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
             raise click.BadParameter("zoom values must lie in [0, 1]", param_hint="--zoom")
     else:
         zoom = list(np.linspace(0, 1, steps)) if steps > 1 else [0.0]
+    from .camera import Sensor
+
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+        sensor = Sensor(width, height)
+    except ValueError:
+        raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
+            from None
     optics = Optics(blur_px=blur, f_number=lens_.f_number, defocus_mm=defocus)
     radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
     with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
         doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
-                             through=through, progress=bar.update)
+                             sensor=sensor, through=through, progress=bar.update)
     for st in doc["steps"]:
         cam = st["camera"]
         click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "

@@ -260,7 +260,8 @@ def _spearman(x, y) -> float:
     return float(stats.spearmanr(x, y)[0])
 
 
-def check_claims(mech: list[dict], scatter: list[dict], lensfun_summary: dict | None) -> list[dict]:
+def check_claims(mech: list[dict], scatter: list[dict], lensfun_summary: dict | None,
+                 mech_steps: list[dict] | None = None) -> list[dict]:
     """The paper's side claims, each with the numbers that decide it.
 
     - the spiral: the mean principal point turns about the centre (total turning angle of the
@@ -271,7 +272,11 @@ def check_claims(mech: list[dict], scatter: list[dict], lensfun_summary: dict | 
     - the pinhole model less well defined at long focal length: correlation of the calibrated
       principal point's detection scatter with focal length;
     - distortion decreasing as focal length increases: from the lensfun database.
+
+    ``mech`` is the dense mechanics table; ``mech_steps`` (default ``mech``) the one at the
+    study's zoom steps, which the detection scatter is matched to.
     """
+    mech_steps = mech if mech_steps is None else mech_steps
     claims = []
     efl = np.array([m["efl_mm"] for m in mech])
     d = np.array([[m["cx_mean"], m["cy_mean"]] for m in mech])
@@ -295,7 +300,7 @@ def check_claims(mech: list[dict], scatter: list[dict], lensfun_summary: dict | 
         if np.isfinite(s["s_det_px"]):
             by_zoom.setdefault(s["zoom"], []).append(s["s_det_px"])
     zs = sorted(by_zoom)
-    efl_of = {round(m["zoom"], 9): m["efl_mm"] for m in mech}
+    efl_of = {round(m["zoom"], 9): m["efl_mm"] for m in mech_steps}
     rho = _spearman([efl_of[round(z, 9)] for z in zs], [np.median(by_zoom[z]) for z in zs])
     claims.append({"claim": "the pinhole model is less well defined at long focal length",
                    "measure": "Spearman(EFL, detection-induced scatter of the principal point)",

@@ -25,20 +25,21 @@ def _table(rows: list[dict], cols: list[str], digits: int = 3) -> str:
                           for r in rows)
 
 
-def study_figures(out: Path, mech: list[dict], scatter: list[dict], fig6: dict | None,
-                  zoom: np.ndarray) -> dict[str, Path]:
-    """Fig. 5 (spiral), Fig. 6 (detection errors of one set), Fig. 7 (scatter vs noise) and the
-    scatter versus focal length."""
+def study_figures(out: Path, mech_dense: list[dict], mech: list[dict], scatter: list[dict],
+                  fig6: dict | None, dense_zoom: np.ndarray) -> dict[str, Path]:
+    """Fig. 5 (spiral, from the dense mechanics table), Fig. 6 (detection errors of one set),
+    Fig. 7 (scatter vs noise) and the scatter versus focal length (at the study's steps)."""
     from ..plots import _pyplot, plot_principal_point_spiral
 
     plt = _pyplot()
     files = {}
-    mean = np.array([[m["cx_mean"], m["cy_mean"]] for m in mech])
-    std = np.array([[m["cx_std"], m["cy_std"]] for m in mech])
+    mean = np.array([[m["cx_mean"], m["cy_mean"]] for m in mech_dense])
+    std = np.array([[m["cx_std"], m["cy_std"]] for m in mech_dense])
+    zoom = np.array([m["zoom"] for m in mech])
     from ..camera import DEFAULT_SENSOR
 
     files["spiral"] = plot_principal_point_spiral(
-        zoom, mean, std, out / "fig5_spiral.png", centre_px=DEFAULT_SENSOR.centre_px,
+        dense_zoom, mean, std, out / "fig5_spiral.png", centre_px=DEFAULT_SENSOR.centre_px,
         title="Fig. 5: principal point from the mechanics (mean, 1-sigma)")
     # Fig. 7: detection-induced scatter versus noise, per zoom step and detector (opencv backend
     # solid, bundle dashed)
@@ -149,6 +150,8 @@ def write_report(out: Path, config: dict, command: str, versions: dict, mech: li
               "dominates\" and fails where it says \"mechanics dominate\". Source: "
               "`comparison.csv`.", ""]
     lines += ["## Mechanics (Fig. 5)", "", f"![spiral]({figures['spiral'].name})", "",
+              "The spiral and the trends are drawn from `mechanics_dense.csv` (41 zoom states); "
+              "the table gives the study's zoom steps.", "",
               _table(mech, ["zoom", "efl_mm", "cx_mean", "cy_mean", "cx_std", "cy_std",
                             "s_mech_px", "shift_px"], digits=5), "Source: `mechanics.csv`.", ""]
     lines += ["## Detection-induced scatter (Fig. 7)", "", f"![fig7]({figures['fig7'].name})",
