@@ -145,8 +145,8 @@ def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern:
 
                     r = calibrate_bundle(obs)
                 res_det[backend] = {"fx": r.fx, "fy": r.fy, "cx": r.cx, "cy": r.cy,
-                                    "sd_cx": r.sd.get("cx"), "sd_cy": r.sd.get("cy"),
-                                    "rms_px": r.rms_px}
+                                    "sd_fx": r.sd.get("fx"), "sd_cx": r.sd.get("cx"),
+                                    "sd_cy": r.sd.get("cy"), "rms_px": r.rms_px}
             except Exception as exc:  # noqa: BLE001 (one failed fit must not lose the others)
                 res_det[backend] = {"error": " ".join(str(exc).split())[:300]}
         out["calibrate_s"] += time.perf_counter() - t3
