@@ -31,3 +31,29 @@ def test_dot_centres_at_45_degrees_under_distortion(rng):
     assert rms(err) > 0.05  # the ellipse centres are biased ...
     assert rms(err - conic[det.ids]) > 0.01  # ... perspective alone does not explain it ...
     assert rms(err - bias[det.ids]) < 0.01  # ... perspective and distortion together do
+
+
+def test_calibration_iterates_the_dot_centre_correction(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from zoomcalib.cli import main
+
+    out = tmp_path / "dots"
+    res = CliRunner().invoke(main, ["render", "--zoom", "0.0", "--views", "8", "--pattern",
+                                    "acircles:4x11:20", "--nominal", "--seed", "5",
+                                    "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    cal = tmp_path / "cal"
+    res = CliRunner().invoke(main, ["calibrate", str(out), "--pattern", "acircles:4x11:20",
+                                    "--method", "model", "--workers", "1", "--out", str(cal)])
+    assert res.exit_code == 0, res.output
+    truth = json.loads((out / "dataset.json").read_text())["steps"][0]["camera"]
+    doc = json.loads((cal / "calibration.json").read_text())["steps"]["zoom_00"]
+    for backend in ("opencv", "bundle"):
+        entry = doc[backend]
+        assert entry["info"]["dot_centre_correction_max_px"] > 0.02  # the bias was there
+        K = np.array(entry["K"])
+        for name, value in (("fx", K[0, 0]), ("cx", K[0, 2]), ("cy", K[1, 2])):
+            assert abs(value - truth[name]) < 4 * entry["sd"][name], (backend, name)

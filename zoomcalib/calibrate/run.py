@@ -78,7 +78,7 @@ def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.nd
     return out
 
 
-def _calibrate(backend: str, obs: Observations, model: str) -> CalibrationResult:
+def _calibrate_once(backend: str, obs: Observations, model: str) -> CalibrationResult:
     if backend == "opencv":
         return calibrate_opencv(obs, model=model)
     if backend == "bundle":
@@ -86,6 +86,48 @@ def _calibrate(backend: str, obs: Observations, model: str) -> CalibrationResult
 
         return calibrate_bundle(obs, model=model)
     raise ValueError(f"unknown backend {backend!r}; use one of {BACKENDS}")
+
+
+def correct_dot_centres(obs: Observations, result: CalibrationResult, radius: float
+                        ) -> tuple[Observations, float]:
+    """Dot detections moved from the imaged ellipses' centres to the images of the circles'
+    centres, with the camera and poses of ``result``
+    (:func:`zoomcalib.detect.dots.dot_centre_bias`: perspective and distortion together).
+
+    Returns
+    -------
+    obs : Observations
+    largest : float
+        Largest correction, px.
+    """
+    from ..camera import CameraModel
+    from ..detect.dots import dot_centre_bias
+
+    cam = CameraModel(result.fx, result.fy, result.cx, result.cy, np.asarray(result.dist))
+    obj = obs.object_points if result.object_points is None else result.object_points
+    views, largest = [], 0.0
+    for (ids, pts), r, t in zip(obs.views, result.rvecs, result.tvecs, strict=True):
+        R = cv2.Rodrigues(np.asarray(r, float).reshape(3, 1))[0]
+        bias = dot_centre_bias(cam.project_normalized, R, np.asarray(t, float), obj[ids],
+                               radius)
+        largest = max(largest, float(np.abs(bias).max(initial=0.0)))
+        views.append((ids, pts - bias))
+    return Observations(obs.object_points, views, obs.image_size, obs.names), largest
+
+
+def _calibrate(backend: str, obs: Observations, model: str,
+               target: Target | None = None) -> CalibrationResult:
+    """Calibrate; for dot targets, iterate the dot-centre correction with the calibration
+    (three rounds: the correction changes by far less than the noise after the second)."""
+    res = _calibrate_once(backend, obs, model)
+    if target is None or not len(target.discs):
+        return res
+    raw = obs
+    for _ in range(3):
+        corrected, largest = correct_dot_centres(raw, res, float(target.discs[0, 2]))
+        res = _calibrate_once(backend, corrected, model)
+    res.info["dot_centre_correction_max_px"] = largest
+    return res
 
 
 def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResult) -> dict:
@@ -165,7 +207,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         step_results = {}
         for backend in backends:
             try:
-                step_results[backend] = _calibrate(backend, obs, model)
+                step_results[backend] = _calibrate(backend, obs, model, target)
             except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
                 msg = " ".join(str(exc).split())
                 run.failures.append(f"step {step}: backend {backend} failed: {msg}")
