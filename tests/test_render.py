@@ -19,6 +19,21 @@ def _pose(rng, distance):
     return R, np.array([rng.uniform(-20, 0), rng.uniform(-20, 0), distance])
 
 
+def _reflectance_at(target, camera, R, t, uu, vv):
+    """Point samples of the sharp target at pixel positions (uu, vv): unproject with the camera
+    model, intersect the board plane, test against the dark squares and the board's edge."""
+    xy = camera.unproject_normalized(np.stack([uu.ravel(), vv.ravel()], -1))
+    ray = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+    b = (((R[:, 2] @ t) / (ray @ R[:, 2]))[:, None] * ray - t) @ R
+    dark = np.zeros(len(b), bool)
+    for p in target.polygons:
+        dark |= ((b[:, 0] >= p[:, 0].min()) & (b[:, 0] < p[:, 0].max())
+                 & (b[:, 1] >= p[:, 1].min()) & (b[:, 1] < p[:, 1].max()))
+    e = target.extent_mm
+    board = (b[:, 0] >= e[0]) & (b[:, 0] < e[2]) & (b[:, 1] >= e[1]) & (b[:, 1] < e[3])
+    return np.where(dark, 0.0, np.where(board, 1.0, BACKGROUND))
+
+
 def _brute_row(target, camera, R, t, row, cols, n_sub):
     """Independent reference: point-sample n_sub x n_sub points per pixel of one image row,
     unproject each with the camera model, intersect the board, test against the dark squares."""
@@ -26,18 +41,7 @@ def _brute_row(target, camera, R, t, row, cols, n_sub):
     u = (np.arange(cols)[:, None] + sub).ravel()
     v = row + sub
     uu, vv = np.meshgrid(u, v)
-    xy = camera.unproject_normalized(np.stack([uu.ravel(), vv.ravel()], -1))
-    ray = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-    n = R[:, 2]
-    b = ((n @ t) / (ray @ n))[:, None] * ray
-    b = (b - t) @ R
-    dark = np.zeros(len(b), bool)
-    for p in target.polygons:
-        dark |= ((b[:, 0] >= p[:, 0].min()) & (b[:, 0] < p[:, 0].max())
-                 & (b[:, 1] >= p[:, 1].min()) & (b[:, 1] < p[:, 1].max()))
-    e = target.extent_mm
-    board = (b[:, 0] >= e[0]) & (b[:, 0] < e[2]) & (b[:, 1] >= e[1]) & (b[:, 1] < e[3])
-    val = np.where(dark, 0.0, np.where(board, 1.0, BACKGROUND)).reshape(n_sub, cols, n_sub)
+    val = _reflectance_at(target, camera, R, t, uu, vv).reshape(n_sub, cols, n_sub)
     return val.mean(axis=(0, 2))
 
 
@@ -99,16 +103,7 @@ def _brute_blurred(target, camera, R, t, sensor, sigma, n):
     sub = (np.arange(n) + 0.5) / n - 0.5
     uu, vv = np.meshgrid((np.arange(W)[:, None] + sub).ravel(),
                          (np.arange(H)[:, None] + sub).ravel())
-    xy = camera.unproject_normalized(np.stack([uu.ravel(), vv.ravel()], -1))
-    ray = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-    b = (((R[:, 2] @ t) / (ray @ R[:, 2]))[:, None] * ray - t) @ R
-    dark = np.zeros(len(b), bool)
-    for p in target.polygons:
-        dark |= ((b[:, 0] >= p[:, 0].min()) & (b[:, 0] < p[:, 0].max())
-                 & (b[:, 1] >= p[:, 1].min()) & (b[:, 1] < p[:, 1].max()))
-    e = target.extent_mm
-    board = (b[:, 0] >= e[0]) & (b[:, 0] < e[2]) & (b[:, 1] >= e[1]) & (b[:, 1] < e[3])
-    val = np.where(dark, 0.0, np.where(board, 1.0, BACKGROUND)).reshape(H * n, W * n)
+    val = _reflectance_at(target, camera, R, t, uu, vv).reshape(H * n, W * n)
     val = cv2.GaussianBlur(val, (0, 0), sigma * n, borderType=cv2.BORDER_REPLICATE)
     return val.reshape(H, n, W, n).mean(axis=(1, 3))
 

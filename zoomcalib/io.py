@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_csv", "read_csv", "write_json"]
+__all__ = ["write_csv", "read_csv", "write_json", "read_json"]
 
 
 def _plain(v):
@@ -53,3 +53,13 @@ def write_json(path: str | Path, doc: dict) -> Path:
     path = Path(path)
     path.write_text(json.dumps(doc, indent=1, default=_plain) + "\n")
     return path
+
+
+def read_json(path: str | Path, name: str | None = None):
+    """Parse a JSON file; a file that is not JSON raises ``ValueError`` with one line naming it
+    (``name``, default the path) and where the parse failed."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{name or path}: not JSON ({exc.msg} at line {exc.lineno})") from None

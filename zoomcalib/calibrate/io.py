@@ -72,6 +72,7 @@ import numpy as np
 
 from zoomcalib.calibrate.result import CalibrationResult
 from zoomcalib.detect.opencv import IMAGE_EXTENSIONS, image_files
+from zoomcalib.io import read_json
 
 __all__ = [
     "ZOOM_TABLE_COLUMNS",
@@ -276,10 +277,7 @@ def read_calibration(path: str | os.PathLike
         One-line message naming the file when it is not a calibration file.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("steps"), dict):
         raise ValueError(f"{path}: not a calibration file (needs 'steps')")
     out: dict[str, dict[str, CalibrationResult]] = {}
@@ -384,12 +382,7 @@ def read_zoom_table(path: str | os.PathLike) -> list[dict]:
         column is missing or a value is not a number.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
-    reader = csv.DictReader(text.splitlines())
-    header = [h.strip() for h in (reader.fieldnames or [])]
+    reader, header = _csv_reader(path)
     missing = [c for c in ZOOM_TABLE_REQUIRED if c not in header]
     if missing:
         raise ValueError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
@@ -478,13 +471,19 @@ def _natural_key(name: str):
 _STEPS_OPTIONAL = {"direction": str, "sequence": int, "focus": float, "temperature": float}
 
 
-def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
+def _csv_reader(path: Path) -> tuple[csv.DictReader, list[str]]:
+    """A dict reader over a CSV file (BOM tolerated) and its stripped header; a file that
+    cannot be read gives a one-line ``ValueError`` naming it."""
     try:
         text = path.read_text(encoding="utf-8-sig")
     except OSError as exc:
         raise ValueError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
     reader = csv.DictReader(text.splitlines())
-    header = [h.strip() for h in (reader.fieldnames or [])]
+    return reader, [h.strip() for h in (reader.fieldnames or [])]
+
+
+def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
+    reader, header = _csv_reader(path)
     missing = [c for c in ("step", "zoom") if c not in header]
     if missing:
         raise ValueError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "

@@ -65,6 +65,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from zoomcalib.io import read_json
 from zoomcalib.targets import Target, parse_pattern
 
 __all__ = [
@@ -769,10 +770,7 @@ def read_detections(path: str | os.PathLike) -> tuple[str, list[Detection]]:
         One-line message naming the file when it is not a detections file.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path.name}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    data = read_json(path, path.name)
     if not isinstance(data, dict) or "pattern" not in data \
             or not isinstance(data.get("images"), list):
         raise ValueError(f"{path.name}: not a detections file (needs 'pattern' and 'images')")
