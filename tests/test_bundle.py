@@ -338,7 +338,12 @@ def test_covariance_is_the_inverse_of_the_dense_normal_matrix():
     cov = res.info["covariance"]
     assert cov.shape == (9 + len(free_x) + 6 * m,) * 2
     assert np.abs(cov - dense).max() < 1e-6 * np.abs(np.diag(dense)).max()
-    assert np.isclose(np.sqrt(cov[0, 0]), res.sd["fx"])
+    assert np.isclose(np.sqrt(cov[0, 0]), res.info["sd_with_target_prior"]["fx"])
+    # the reported sd is the repeatability (sandwich) s^2 N^-1 J^T J N^-1, from the same dense J
+    Ninv = np.linalg.inv(N)
+    sandwich = s2 * Ninv @ (J.T @ J) @ Ninv
+    for k, name in enumerate(("fx", "fy", "cx", "cy")):
+        assert np.isclose(np.sqrt(sandwich[k, k]), res.sd[name], rtol=1e-6)
 
 
 def test_outlier_is_rejected_and_reported(synthetic):

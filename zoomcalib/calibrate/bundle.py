@@ -108,11 +108,14 @@ cut, and rejection would otherwise eat the field edges); (5) covariance.
 
 Covariance
 ----------
-``C = s^2 N^{-1}`` with ``N = J^T J + s^2 \Lambda_R`` at the solution (free parameters only;
-``Lambda_R`` the rotated prior precision) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} -
-n_{unknowns})``. With the prior this is a posterior covariance: it includes the board's
-tolerated irregularity, and is larger than the spread of the estimates over noise draws when the
-board is exactly nominal. The 1-sigma of every intrinsic and distortion term is in ``sd``, of
+With ``N = J^T J + s^2 \Lambda_R`` at the solution (free parameters only; ``Lambda_R`` the
+rotated prior precision) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} - n_{unknowns})``, the
+reported covariance of the camera and the target points is the repeatability of the estimate for
+this board, ``C = s^2 N^{-1} J^T J N^{-1}`` (its marginal ``s^2 S^{-1} (S - P) S^{-1}`` with
+``S`` the Schur complement over the poses and ``P = s^2 Lambda_R``): the spread of the estimates
+over noise draws. The posterior ``s^2 N^{-1}``, which also counts the prior's allowance for an
+irregular board, is larger; its camera 1-sigmas are in ``info['sd_with_target_prior']``.
+Without the prior the two agree. The 1-sigma of every intrinsic and distortion term is in ``sd``, of
 every target coordinate in ``object_points_sd`` (0 for the gauge-fixed ones), of the poses in
 ``info['rvecs_sd']``, ``info['tvecs_sd']``; the whole matrix on request
 (``return_covariance=True``).
@@ -1109,10 +1112,14 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     dof = 2 * prob.N - prob.n_unknowns
     s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
     nc, f = prob.nc, prob.free_idx
+    prior = None  # s^2 Lambda on the free point coordinates, (ny, ny)
     if prob.Lam is not None:
         # N = J^T J + s^2 Lambda on the point block (the solve used sigma_px^2 Lambda)
         _, sc, Rs = prob.shape_deviation(state.X)
-        U[nc:, nc:] += ((s2 - sigma_px**2) / sc**2) * _rotate_precision(Lam, Rs)[np.ix_(f, f)]
+        lam_f = _rotate_precision(Lam, Rs)[np.ix_(f, f)] / sc**2
+        U[nc:, nc:] += (s2 - sigma_px**2) * lam_f
+        prior = np.zeros_like(U)
+        prior[nc:, nc:] = s2 * lam_f
     try:
         iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
         G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
@@ -1124,7 +1131,15 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                          "the unknowns, or the adjustment diverged from a poor start (pass "
                          "K0/dist0)") from exc
     Sinv = scipy.linalg.cho_solve(cf, np.eye(len(U)), check_finite=False)
-    cov_y = s2 * Sinv
+    cov_y = s2 * Sinv  # posterior: includes the prior's allowance for an irregular board
+    cov_post = cov_y
+    if prior is not None:
+        # Repeatability of the estimate for this board (sandwich): the marginal of
+        # s^2 N^-1 (J^T J) N^-1 over camera and points is s^2 S^-1 (S - P) S^-1 (the prior P
+        # touches only the points; S is the Schur complement over the poses).
+        S = U - Gf.T @ Gf
+        cov_y = s2 * Sinv @ (S - prior) @ Sinv
+        cov_y = 0.5 * (cov_y + cov_y.T)
     # poses: Cov(p) / s^2 = V^-1 + H S^-1 H^T with H = V^-1 W^T; Cov(y, p) / s^2 = -S^-1 H^T
     Vinv = iL.transpose(0, 2, 1) @ iL
     Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
@@ -1134,6 +1149,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     cam_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_y[:nc, :nc], cam_map))
     nd = 5 if model == "standard" else 8
     sd = {name: float(cam_sd[k]) for k, name in enumerate(CAMERA_NAMES[:4 + nd])}
+    post_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_post[:nc, :nc], cam_map))
 
     cam = state.cam
     K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
@@ -1146,7 +1162,9 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                   "iterations": iterations, "sigma_px": float(np.sqrt(s2)), "model": model,
                   "max_tilt_deg": float(tilts.max()), "rvecs_sd": pose_sd[:, :3],
                   "tvecs_sd": pose_sd[:, 3:], "points_held": [int(i) for i in held],
-                  "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm}
+                  "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm,
+                  "sd_with_target_prior": {name: float(post_sd[k]) for k, name
+                                           in enumerate(CAMERA_NAMES[:4 + nd])}}
     obj_pts = obj_sd = None
     if refine_target:
         obj_pts = state.X.copy()
