@@ -282,12 +282,8 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
         bx, by = bxs(v, u), bys(v, u)  # shape (V, W)
         bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
         by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
-        # second derivatives (u u, u v, v v): perspective bends the board-coordinate field
-        # within a pixel enough to shift edges by ~1e-3 px if the distance is only linearised
-        hess = [(spl(v, u, dy=2), spl(v, u, dx=1, dy=1), spl(v, u, dx=2)) for spl in (bxs, bys)]
         terms = []
-        for coord, gu, gv, lines, hh in ((bx, bx_u, bx_v, xs, hess[0]),
-                                         (by, by_u, by_v, ys, hess[1])):
+        for coord, gu, gv, lines in ((bx, bx_u, bx_v, xs), (by, by_u, by_v, ys)):
             i = np.searchsorted(lines, coord)
             left = lines[np.clip(i - 1, 0, len(lines) - 1)]
             right = lines[np.clip(i, 0, len(lines) - 1)]
@@ -299,38 +295,26 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
             step = np.where(d_right < d_left, 1, -1)
             t_c = -np.minimum(d_left, d_right) / g  # px, < 0: the centre is in its own cell
             m = np.stack([step * gu / g, step * gv / g], -1)  # unit normal into the neighbour
-            f_c = step * (coord - np.where(step > 0, right, left))  # board units, signed
-            terms.append((i, step, t_c, m, f_c, gu, gv, hh))
-        (ix, sx, t1c, m1, *q1), (iy, sy, t2c, m2, *q2) = terms
+            terms.append((i, step, t_c, m))
+        (ix, sx, t1c, m1), (iy, sy, t2c, m2) = terms
         ix2, iy2 = np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)
         v00, v10 = value[ix, iy], value[ix2, iy]
         v01, v11 = value[ix, iy2], value[ix2, iy2]
         pix = v00.copy()
-
-        def node_distance(sel, step, f_c, gu, gv, hh):
-            """Signed distance (in sigmas) of every node of the selected pixels into the
-            neighbouring cell: ``f / |grad f|`` with ``f`` and its gradient expanded to second
-            and first order about the pixel centre."""
-            du, dv = nodes[:, 0], nodes[:, 1]
-            huu, huv, hvv = (h[sel][:, None] for h in hh)
-            s_ = step[sel][:, None]
-            f = (f_c[sel][:, None] + s_ * (gu[sel][:, None] * du + gv[sel][:, None] * dv
-                                           + 0.5 * (huu * du * du + 2 * huv * du * dv
-                                                    + hvv * dv * dv)))
-            g_n = np.hypot(gu[sel][:, None] + huu * du + huv * dv,
-                           gv[sel][:, None] + huv * du + hvv * dv)
-            return f / g_n / sigma
-
         # Only pixels within the blur's reach of a line differ from their cell's value.
-        for t_c, dv_, (sx_, q) in ((t1c, v10 - v00, (sx, q1)), (t2c, v01 - v00, (sy, q2))):
-            sel = (t_c > -reach) & (dv_ != 0)
-            pix[sel] += dv_[sel] * (ndtr(node_distance(sel, sx_, *q)) @ weights)
+        for t_c, m, dv in ((t1c, m1, v10 - v00), (t2c, m2, v01 - v00)):
+            sel = (t_c > -reach) & (dv != 0)
+            tn = (t_c[sel][:, None] + m[sel][:, 0:1] * nodes[:, 0]
+                  + m[sel][:, 1:2] * nodes[:, 1]) / sigma
+            pix[sel] += dv[sel] * (ndtr(tn) @ weights)
         cross = v11 - v10 - v01 + v00
         near = (cross != 0) & (t1c > -reach) & (t2c > -reach)
         if np.any(near):
             rho = np.clip(np.sum(m1[near] * m2[near], -1), -0.98, 0.98)
-            h = node_distance(near, sx, *q1)
-            k = node_distance(near, sy, *q2)
+            h = (t1c[near][:, None] + m1[near][:, 0:1] * nodes[:, 0]
+                 + m1[near][:, 1:2] * nodes[:, 1]) / sigma
+            k = (t2c[near][:, None] + m2[near][:, 0:1] * nodes[:, 0]
+                 + m2[near][:, 1:2] * nodes[:, 1]) / sigma
             pix[near] += cross[near] * (bivariate_normal_cdf(h, k, rho[:, None]) @ weights)
         if tree is not None:
             dist, kk = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
