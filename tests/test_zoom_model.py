@@ -246,24 +246,18 @@ def test_zoom_steps_from_steps_csv(tmp_path):
     assert steps["wide"][3]["temperature"] == 21.5
 
 
-def test_zoom_steps_bad_csv_names_file_and_row(tmp_path):
+@pytest.mark.parametrize("text, message", [
+    ("step,zoom\na,0.1\nb,wide\n", r"steps.csv row 2: zoom 'wide' is not a number"),
+    ("step,zoom,direction\na,0.1,up\nb,0.2,in\n", r"steps.csv row 1: direction 'up'"),
+    ("step,zoom\na,0.1\n", r"steps.csv: no row for step subfolder 'b'"),
+    ("step,zoom\na,0.1\nb,0.2\nc,0.3\n", r"steps.csv: step 'c' is not an image subfolder"),
+    ("name,zoom\na,0.1\n", r"steps.csv: missing column step"),
+])
+def test_zoom_steps_bad_csv_names_file_and_row(tmp_path, text, message):
     for name in ("a", "b"):
         _touch_images(tmp_path / name)
-    csv_path = tmp_path / "steps.csv"
-    csv_path.write_text("step,zoom\na,0.1\nb,wide\n")
-    with pytest.raises(ValueError, match=r"steps.csv row 2: zoom 'wide' is not a number"):
-        zoom_steps(tmp_path)
-    csv_path.write_text("step,zoom,direction\na,0.1,up\nb,0.2,in\n")
-    with pytest.raises(ValueError, match=r"steps.csv row 1: direction 'up'"):
-        zoom_steps(tmp_path)
-    csv_path.write_text("step,zoom\na,0.1\n")
-    with pytest.raises(ValueError, match=r"steps.csv: no row for step subfolder 'b'"):
-        zoom_steps(tmp_path)
-    csv_path.write_text("step,zoom\na,0.1\nb,0.2\nc,0.3\n")
-    with pytest.raises(ValueError, match=r"steps.csv: step 'c' is not an image subfolder"):
-        zoom_steps(tmp_path)
-    csv_path.write_text("name,zoom\na,0.1\n")
-    with pytest.raises(ValueError, match=r"steps.csv: missing column step"):
+    (tmp_path / "steps.csv").write_text(text)
+    with pytest.raises(ValueError, match=message):
         zoom_steps(tmp_path)
 
 
