@@ -1,0 +1,245 @@
+"""The simulation's principal-point model, linearised, and its physical extensions.
+
+For small mechanical errors the principal point moves linearly with every group's decentre and
+tilt (:func:`zoomcalib.optics.paraxial.image_shift_sensitivity`). A decentre ``d`` (mm) of group
+``g`` at lens state ``z`` moves the principal point by
+
+    Delta c(z) = -S_g(z) d / pitch                          (px; the read-out flips the image)
+
+and a tilt ``t`` (rad) by ``-T_g(z) t / pitch``. An error that turns with the barrel at ``m`` times
+its angle ``phi = 4 pi z`` is ``d = R(m phi) a`` with a fixed vector ``a`` in the barrel frame,
+so each such term is two linear columns, ``-S_g R(m phi) e_x / pitch`` and
+``-S_g R(m phi) e_y / pitch``:
+
+- ``m = 1``: the paper's rotation-locked decentre and tilt (the spiral);
+- ``m = 2``: a cam error at twice the barrel rotation (``cam_harmonic``);
+- ``m = 0``: a decentre that does not turn with the barrel (``static_decenter``).
+
+Every model here is therefore linear in its parameters: a :class:`Term` gives a block of columns
+of shape (N, 2, k) (row, axis (cx, cy), parameter).
+
+The lens state of each measured row is found from its focal length: ``efl(z) = fx * pitch``,
+inverted on the lens's EFL curve, so the table's own zoom unit never matters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..optics.cam import barrel_angle, solve_gaps
+from ..optics.mechanics import ARCMIN, UM, Tolerances
+from ..optics.misalignment import vertex_z
+from ..optics.paraxial import effective_focal_length, image_shift_sensitivity
+from ..optics.prescription import Prescription
+from .table import ZoomTable
+
+__all__ = ["LensResponse", "Context", "Term", "moving_groups", "play_sd_px", "FocalRangeError",
+           "offset_term", "group_term", "axis_tilt_term", "direction_offset_term",
+           "covariate_term", "design_matrix", "DEFAULT_PITCH_MM"]
+
+DEFAULT_PITCH_MM = 0.00645
+
+
+class FocalRangeError(ValueError):
+    """The measured focal lengths do not fit the lens's EFL range at the given pixel pitch."""
+
+
+def moving_groups(lens: Prescription) -> tuple[str, ...]:
+    """Names of the groups whose axial position changes with zoom (the barrel moves them)."""
+    thickness = lens.thickness_at(solve_gaps(lens, np.array([0.0, 0.5, 1.0])))
+    z = vertex_z(thickness)  # shape (3, N)
+    firsts = [first for first, _ in lens.groups.values()]
+    return tuple(name for name, s in zip(lens.group_names, firsts, strict=True)
+                 if np.ptp(z[:, s]) > 1e-6)
+
+
+@dataclass
+class LensResponse:
+    """EFL curve and principal-point sensitivities of a lens, on a dense zoom grid.
+
+    Attributes
+    ----------
+    lens : Prescription
+    pitch_mm : float
+        Pixel pitch, mm.
+    zoom_grid, efl_grid : (G,) ndarray
+        Lens state in [0, 1] and its EFL, mm (monotone in zoom).
+    groups : tuple of str
+        The moving groups.
+    """
+
+    lens: Prescription
+    pitch_mm: float
+    zoom_grid: np.ndarray
+    efl_grid: np.ndarray
+    groups: tuple[str, ...]
+
+    @classmethod
+    def of(cls, lens: Prescription, pitch_mm: float = DEFAULT_PITCH_MM,
+           n_grid: int = 801) -> LensResponse:
+        if not pitch_mm > 0:
+            raise ValueError(f"pixel pitch must be positive, got {pitch_mm!r}")
+        zg = np.linspace(0.0, 1.0, n_grid)
+        efl = effective_focal_length(lens, lens.thickness_at(solve_gaps(lens, zg)))
+        if not np.all(np.diff(efl) > 0):
+            raise ValueError(f"lens {lens.name!r}: EFL is not increasing with zoom, so a focal "
+                             f"length does not name one lens state")
+        return cls(lens, float(pitch_mm), zg, efl, moving_groups(lens))
+
+    def with_pitch(self, pitch_mm: float) -> LensResponse:
+        return LensResponse(self.lens, float(pitch_mm), self.zoom_grid, self.efl_grid,
+                            self.groups)
+
+    def state_of_focal(self, fx_px: np.ndarray, source: str = "table",
+                       tolerance: float = 0.03) -> np.ndarray:
+        """(N,) lens state ``z`` whose EFL equals ``fx_px * pitch``.
+
+        Values up to ``tolerance`` (relative) outside the lens's range are clamped to its ends.
+
+        Raises
+        ------
+        FocalRangeError
+            When the measured range does not fit the lens at this pitch.
+        """
+        efl = np.asarray(fx_px, dtype=float) * self.pitch_mm
+        lo, hi = self.efl_grid[0], self.efl_grid[-1]
+        if efl.min() < lo * (1 - tolerance) or efl.max() > hi * (1 + tolerance):
+            raise FocalRangeError(
+                f"{source}: measured focal lengths {fx_px.min():.1f}-{fx_px.max():.1f} px are "
+                f"{efl.min():.2f}-{efl.max():.2f} mm at pixel pitch {self.pitch_mm:g} mm, outside "
+                f"lens {self.lens.name!r} ({lo:.2f}-{hi:.2f} mm). Give the sensor's pitch with "
+                f"--pixel-pitch, or fit it with --pixel-pitch auto")
+        return np.interp(np.clip(efl, lo, hi), self.efl_grid, self.zoom_grid)
+
+    def pitch_range(self, fx_px: np.ndarray) -> tuple[float, float]:
+        """Pixel pitches (mm) at which every measured focal length lies in the lens's range."""
+        fx = np.asarray(fx_px, dtype=float)
+        lo, hi = self.efl_grid[0] / fx.min(), self.efl_grid[-1] / fx.max()
+        if lo > hi:
+            raise FocalRangeError(
+                f"measured zoom ratio {fx.max() / fx.min():.2f} exceeds lens "
+                f"{self.lens.name!r}'s {self.efl_grid[-1] / self.efl_grid[0]:.2f}: no pixel "
+                f"pitch fits; is it the right lens?")
+        return float(lo), float(hi)
+
+    def sensitivities(self, z: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per group: (N,) image shift per decentre (mm/mm) and per tilt (mm/rad) at states z."""
+        thickness = self.lens.thickness_at(solve_gaps(self.lens, np.asarray(z, dtype=float)))
+        return {g: image_shift_sensitivity(self.lens, thickness, g)
+                for g in self.lens.group_names}
+
+    def play_sd_px(self, z: np.ndarray, tolerances: Tolerances) -> np.ndarray:
+        """(N,) 1-sigma per axis of the principal point from the random play, px."""
+        return play_sd_px(self.lens, z, tolerances, self.pitch_mm)
+
+
+def play_sd_px(lens: Prescription, z: np.ndarray, tolerances: Tolerances,
+               pitch_mm: float) -> np.ndarray:
+    """(N,) 1-sigma per axis of the principal point from the groups' random play, px.
+
+    ``sigma^2 = sum_g (S_g play_g)^2 + (T_g play_tilt_g)^2``, over every group of the lens.
+    """
+    thickness = lens.thickness_at(solve_gaps(lens, np.asarray(z, dtype=float)))
+    var = np.zeros(thickness.shape[0])
+    for g in lens.group_names:
+        s_d, s_t = image_shift_sensitivity(lens, thickness, g)
+        tol = tolerances.for_group(g)
+        var += (s_d * tol.play_um * UM) ** 2 + (s_t * tol.play_tilt_arcmin * ARCMIN) ** 2
+    return np.sqrt(var) / pitch_mm
+
+
+@dataclass
+class Context:
+    """What the terms need about the rows: lens state, barrel angle, sensitivities, table."""
+
+    table: ZoomTable
+    z: np.ndarray  # shape (N,)
+    response: LensResponse
+    sens: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    @classmethod
+    def build(cls, table: ZoomTable, z: np.ndarray, response: LensResponse) -> Context:
+        return cls(table, np.asarray(z, dtype=float), response, response.sensitivities(z))
+
+    @property
+    def phi(self) -> np.ndarray:
+        return barrel_angle(self.z)
+
+
+@dataclass(frozen=True)
+class Term:
+    """A block of linear columns with named parameters.
+
+    Attributes
+    ----------
+    name : str
+        Short description, e.g. ``"locked decentre, variator"``.
+    params : tuple of str
+        Parameter names with their unit in the name (``variator_x_um``).
+    columns : callable
+        ``columns(ctx) -> (N, 2, k)``: the change of (cx, cy) per unit of each parameter, px.
+    """
+
+    name: str
+    params: tuple[str, ...]
+    columns: Callable[[Context], np.ndarray]
+
+
+def _rotating(weight: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) columns ``weight * R(angle) e_x`` and ``weight * R(angle) e_y``."""
+    c, s = np.cos(angle), np.sin(angle)
+    return weight[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], 1)
+
+
+def offset_term() -> Term:
+    """A constant principal point (sensor offset), px."""
+    return Term("sensor offset", ("cx0_px", "cy0_px"),
+                lambda ctx: np.broadcast_to(np.eye(2), (len(ctx.z), 2, 2)).copy())
+
+
+def group_term(group: str, kind: str, harmonic: int, label: str, signed_by: str = "") -> Term:
+    """Decentre (``kind='decenter'``, um) or tilt (``'tilt'``, arcmin) of ``group`` turning at
+    ``harmonic`` times the barrel angle, optionally multiplied by the approach direction."""
+    unit = "um" if kind == "decenter" else "arcmin"
+    scale = UM if kind == "decenter" else ARCMIN
+
+    def columns(ctx: Context) -> np.ndarray:
+        s_d, s_t = ctx.sens[group]
+        weight = -(s_d if kind == "decenter" else s_t) * scale / ctx.response.pitch_mm
+        if signed_by == "direction":
+            weight = weight * ctx.table.direction
+        return _rotating(weight, harmonic * ctx.phi)
+
+    return Term(f"{label}, {group}", (f"{group}_x_{unit}", f"{group}_y_{unit}"), columns)
+
+
+def axis_tilt_term() -> Term:
+    """Optical axis tilted against the sensor normal: ``Delta c = fx * theta`` (theta in mrad)."""
+    return Term("axis tilt", ("tilt_x_mrad", "tilt_y_mrad"),
+                lambda ctx: 1e-3 * ctx.table.fx[:, None, None] * np.eye(2)[None])
+
+
+def direction_offset_term() -> Term:
+    """An offset whose sign follows the last zoom move: ``Delta c = s b`` (px, s = +1 in)."""
+    return Term("direction-signed offset", ("half_shift_x_px", "half_shift_y_px"),
+                lambda ctx: ctx.table.direction[:, None, None] * np.eye(2)[None])
+
+
+def covariate_term(column: str, unit: str, label: str) -> Term:
+    """A linear drift with a table column (centred): ``Delta c = (v - mean v) * rate``."""
+
+    def columns(ctx: Context) -> np.ndarray:
+        v = getattr(ctx.table, column)
+        return (v - v.mean())[:, None, None] * np.eye(2)[None]
+
+    return Term(label, (f"rate_x_px_per_{unit}", f"rate_y_px_per_{unit}"), columns)
+
+
+def design_matrix(terms: tuple[Term, ...], ctx: Context) -> np.ndarray:
+    """(2N, K) columns of ``terms`` with rows ordered (cx_0, cy_0, cx_1, ...)."""
+    blocks = [t.columns(ctx) for t in terms]  # each shape (N, 2, k)
+    full = np.concatenate(blocks, axis=2)
+    return full.reshape(-1, full.shape[2])
