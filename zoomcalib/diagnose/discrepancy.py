@@ -46,12 +46,14 @@ from .model import (
 )
 from .table import ZoomTable
 
-__all__ = ["CAUSES", "BIC_MARGIN", "LinearFit", "Candidate", "Diagnosis", "baseline_terms",
-           "cause_variants", "fit_terms", "diagnose_table", "fit_pixel_pitch"]
+__all__ = ["CAUSES", "BIC_MARGIN", "AMBIGUITY_BIC", "LinearFit", "Candidate", "Diagnosis",
+           "baseline_terms", "cause_variants", "fit_terms", "diagnose_table", "fit_pixel_pitch"]
 
 CAUSES = ("axis_tilt", "backlash", "thermal_drift", "cam_harmonic", "static_decenter",
           "focus_shift")
 BIC_MARGIN = 10.0
+#: causes whose BIC is within this of the named one's are reported as not told apart
+AMBIGUITY_BIC = 6.0
 
 
 def baseline_terms(groups: tuple[str, ...]) -> tuple[Term, ...]:
@@ -244,6 +246,15 @@ class Diagnosis:
     def best(self) -> Candidate | None:
         return self.candidates[0] if self.candidates else None
 
+    @property
+    def ambiguous_with(self) -> list[str]:
+        """Other causes that fit almost as well as the named one (BIC within AMBIGUITY_BIC)."""
+        if self.extended is None:
+            return []
+        return [c.cause for c in self.candidates[1:]
+                if c.delta_bic - self.extended.delta_bic < AMBIGUITY_BIC
+                and c.delta_bic < -BIC_MARGIN]
+
     def to_dict(self) -> dict:
         """The ``diagnosis.json`` document."""
         if self.extended is not None:
@@ -258,15 +269,17 @@ class Diagnosis:
         base_params, base_sd = self.baseline.param_dict()
         return {
             "cause": self.cause,
+            "ambiguous_with": self.ambiguous_with,
             "baseline": {**self.baseline.summary(), "params": base_params,
                          "params_sd": base_sd},
             "extended": ext,
             "gain": {"cv_rms_ratio": self.baseline.cv_rms_px / ext_fit.cv_rms_px},
             "candidates": [c.to_dict() for c in self.candidates],
             "skipped": [{"cause": k, "reason": v} for k, v in self.skipped.items()],
-            "selection": {"bic_margin": BIC_MARGIN, "rule": "name the cause with the lowest "
-                          "BIC when it beats the baseline by more than bic_margin and also "
-                          "lowers the held-out-step cv_rms_px; else 'none'"},
+            "selection": {"bic_margin": BIC_MARGIN, "ambiguity_bic": AMBIGUITY_BIC,
+                          "rule": "name the cause with the lowest BIC when it beats the "
+                                  "baseline by more than bic_margin and also lowers the "
+                                  "held-out-step cv_rms_px; else 'none'"},
             "lens": self.response.lens.name, "moving_groups": list(self.response.groups),
             "pixel_pitch_mm": self.pitch_mm, "pitch_fit": self.pitch_fit,
             "noise": {"rms_sigma_px": float(np.sqrt(np.mean(self.sigma_px ** 2))),

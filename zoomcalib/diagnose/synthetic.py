@@ -13,7 +13,7 @@ the last move's direction and the capture order recorded per row. The truth is
   tolerances' ``play_um`` and ``play_tilt_arcmin``);
 - measurement noise of the calibration, 1-sigma ``sd_wide_px * (f / f_min) ** sd_growth``;
 - optionally one hidden cause, of a random direction and of a magnitude given as the RMS of its
-  effect over the rows in units of the RMS noise.
+  effect over the rows (less its mean) in units of the RMS noise.
 """
 
 from __future__ import annotations
@@ -41,6 +41,11 @@ def _rot(angle: np.ndarray, vec: np.ndarray) -> np.ndarray:
     return np.stack([c * vec[0] - s * vec[1], s * vec[0] + c * vec[1]], axis=-1)
 
 
+def _visible_rms(effect: np.ndarray) -> float:
+    """RMS of an (N, 2) effect without its mean: a constant shift is the sensor offset's."""
+    return float(np.sqrt(np.mean((effect - effect.mean(axis=0)) ** 2)))
+
+
 def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.Generator, *,
                          n_zoom: int = 9, passes: int = 2, pitch_mm: float = 0.00645,
                          tolerances: Tolerances | None = None,
@@ -62,8 +67,8 @@ def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.G
     tolerances : Tolerances, optional
         Locked-error amplitudes and play (default: the built-in tolerances).
     magnitude : float or (float, float)
-        RMS of the hidden effect over the rows in units of the RMS noise (a range draws it
-        uniformly).
+        RMS over the rows of the hidden effect less its mean (a constant shift cannot be told
+        from the sensor offset), in units of the RMS noise; a range draws it uniformly.
     sd_wide_px, sd_growth : float
         Measurement 1-sigma of cx and cy at the shortest focal length and its growth exponent.
     with_focus, with_temperature : bool
@@ -148,7 +153,7 @@ def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.G
                 return principal_points(dec)
 
             effect = with_amplitude(1.0) - pp_model  # per um
-            a_um = m * noise_rms / np.sqrt(np.mean(effect ** 2))
+            a_um = m * noise_rms / _visible_rms(effect)
             pp = with_amplitude(a_um)
             truth["params"] = {f"{g}_x_um": a_um * unit[0], f"{g}_y_um": a_um * unit[1]}
         else:
@@ -163,7 +168,7 @@ def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.G
             else:  # focus_shift
                 per_unit = (focus - focus.mean())[:, None] * unit
                 names = ("rate_x_px_per_focus_unit", "rate_y_px_per_focus_unit")
-            a = m * noise_rms / np.sqrt(np.mean(per_unit ** 2))
+            a = m * noise_rms / _visible_rms(per_unit)
             pp = pp_model + a * per_unit
             truth["params"] = {names[0]: a * unit[0], names[1]: a * unit[1]}
 

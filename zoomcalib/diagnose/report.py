@@ -1,0 +1,177 @@
+"""``diagnosis.json``, ``report.md`` and the figures of a diagnosis."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..io import write_json
+from ..plots import _pyplot
+from .discrepancy import Diagnosis, LinearFit
+from .model import Context, design_matrix
+from .table import ZoomTable
+
+__all__ = ["write_diagnosis", "plot_path", "plot_residuals"]
+
+
+def _dense_context(diag: Diagnosis, n: int = 400) -> Context:
+    """Lens states spanning the measured focal range, for drawing the simulated path."""
+    z = np.linspace(diag.z.min(), diag.z.max(), n)
+    fx = np.interp(z, diag.response.zoom_grid, diag.response.efl_grid) / diag.pitch_mm
+    zeros = np.zeros(n)
+    table = ZoomTable(zoom=z, fx=fx, fy=fx, cx=zeros, cy=zeros, sd_cx=zeros, sd_cy=zeros,
+                      source="dense")
+    return Context.build(table, z, diag.response)
+
+
+def _fitted(fit: LinearFit, ctx: Context) -> np.ndarray:
+    """(N, 2) principal points of a fit at the rows of ``ctx``."""
+    return (design_matrix(fit.terms, ctx) @ fit.params).reshape(-1, 2)
+
+
+def plot_path(diag: Diagnosis, path: str | Path) -> Path:
+    """Measured principal points against the simulation's path (baseline fit) and the extension.
+
+    The baseline is drawn along the whole measured focal range (its terms depend on the lens
+    state only); the extended model at the measured rows, because its extra terms may depend on
+    the direction, capture order or focus of each row.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 6.0), dpi=120)
+    dense = _dense_context(diag)
+    curve = _fitted(diag.baseline, dense)
+    ax.plot(curve[:, 0], curve[:, 1], "-", color="0.45", lw=1.0,
+            label="simulated path (baseline fit)")
+    meas = diag.table.principal_point
+    sd = np.maximum(diag.sigma_px, 1e-9)
+    sc = ax.scatter(meas[:, 0], meas[:, 1], c=diag.table.fx * diag.pitch_mm, cmap="viridis",
+                    s=16, zorder=3, label="measured")
+    ax.errorbar(meas[:, 0], meas[:, 1], xerr=sd, yerr=sd, fmt="none", ecolor="0.7", lw=0.6,
+                zorder=2)
+    if diag.extended is not None:
+        ctx = Context.build(diag.table, diag.z, diag.response)
+        ext = _fitted(diag.extended.fit, ctx)
+        ax.plot(ext[:, 0], ext[:, 1], "x", color="C3", ms=5,
+                label=f"extended ({diag.cause}) at the rows")
+    ax.invert_yaxis()  # image convention: y down
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("cx [px]")
+    ax.set_ylabel("cy [px]")
+    ax.legend(fontsize=7, loc="best")
+    fig.colorbar(sc, ax=ax, label="focal length [mm]", shrink=0.8)
+    ax.set_title(f"Principal point: measured vs simulated ({diag.table.source})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_residuals(diag: Diagnosis, path: str | Path) -> Path:
+    """Residuals against focal length, before (baseline) and after the extension, coloured by
+    the direction of the last zoom move (left) and by capture order (right)."""
+    plt = _pyplot()
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6.4), dpi=110, sharex=True, sharey="row")
+    efl = diag.table.fx * diag.pitch_mm
+    after = diag.extended.fit if diag.extended is not None else diag.baseline
+    order = (diag.table.sequence if diag.table.sequence is not None
+             else np.arange(diag.table.n, dtype=float))
+    direction = (diag.table.direction if diag.table.direction is not None
+                 else np.zeros(diag.table.n))
+    for row, (fit, name) in enumerate([(diag.baseline, "baseline"),
+                                       (after, f"extended: {diag.cause}")]):
+        r = fit.residual_px
+        ax = axes[row, 0]
+        for sign, colour, label in [(1.0, "C0", "in"), (-1.0, "C1", "out"),
+                                    (0.0, "0.5", "unknown")]:
+            m = direction == sign
+            if m.any():
+                ax.plot(efl[m], r[m, 0], "o", color=colour, ms=4, label=f"cx, {label}")
+                ax.plot(efl[m], r[m, 1], "s", color=colour, ms=4, mfc="none",
+                        label=f"cy, {label}")
+        ax.set_ylabel(f"{name}\nresidual [px]")
+        ax.legend(fontsize=6, ncol=2)
+        ax = axes[row, 1]
+        sc = ax.scatter(efl, r[:, 0], c=order, cmap="plasma", s=14, marker="o")
+        ax.scatter(efl, r[:, 1], c=order, cmap="plasma", s=18, marker="x")
+        fig.colorbar(sc, ax=ax, label="capture order")
+        for a in axes[row]:
+            a.axhline(0.0, color="0.6", lw=0.6)
+            a.set_xscale("log")
+            a.xaxis.set_major_formatter(ScalarFormatter())
+            a.xaxis.set_minor_formatter(NullFormatter())
+    axes[0, 0].set_title("by direction of the last zoom move (o cx, square cy)", fontsize=8)
+    axes[0, 1].set_title("by capture order (o cx, x cy)", fontsize=8)
+    for a in axes[1]:
+        a.set_xlabel("focal length [mm] (from measured fx)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def _fmt_params(params: dict, sds: dict) -> str:
+    return ", ".join(f"{k} = {v:.4g} ± {sds[k]:.2g}" for k, v in params.items()) or "-"
+
+
+def report_markdown(diag: Diagnosis, doc: dict) -> str:
+    """A short human report of the diagnosis."""
+    t = diag.table
+    lines = [f"# Diagnosis of {t.source}", ""]
+    verdict = (f"**Cause: `{diag.cause}`** ({diag.extended.variant})" if diag.extended
+               else "**Cause: `none`**: no extension beats the simulation's model significantly.")
+    lines += [verdict, ""]
+    if doc["ambiguous_with"]:
+        lines += [f"Not told apart from: {', '.join(doc['ambiguous_with'])} (BIC within "
+                  f"{doc['selection']['ambiguity_bic']:g}); their signatures are nearly the same "
+                  f"on this lens at this noise.", ""]
+    pitch = f"{diag.pitch_mm:.6g} mm"
+    if diag.pitch_fit:
+        pitch += (f" (fitted: ± {diag.pitch_fit['sd_mm']:.2g} mm, admissible "
+                  f"{diag.pitch_fit['range_mm'][0]:.5g}-{diag.pitch_fit['range_mm'][1]:.5g} mm)")
+    efl = t.fx * diag.pitch_mm
+    lines += [f"- {t.n} rows, {len(np.unique(t.zoom_groups()))} zoom settings; lens "
+              f"`{diag.response.lens.name}`, moving groups {', '.join(diag.response.groups)}",
+              f"- pixel pitch {pitch}; measured focal lengths {efl.min():.2f}-{efl.max():.2f} mm "
+              f"(lens states {diag.z.min():.3f}-{diag.z.max():.3f})",
+              f"- noise per row: measurement {'sigmas from the table' if t.has_sd else 'unknown'}"
+              f" with the lens model's play scatter, RMS {doc['noise']['rms_sigma_px']:.3g} px "
+              f"(play alone {doc['noise']['rms_play_px']:.3g} px)", ""]
+    b, e = doc["baseline"], doc["extended"]
+    lines += ["| model | rms [px] | chi2/dof | held-out-step cv_rms [px] | parameters |",
+              "|---|---|---|---|---|",
+              f"| baseline (paper's model) | {b['rms_px']:.3g} | {b['chi2_dof']:.3g} | "
+              f"{b['cv_rms_px']:.3g} | {b['n_params']} |",
+              f"| extended ({e['cause']}) | {e['rms_px']:.3g} | {e['chi2_dof']:.3g} | "
+              f"{e['cv_rms_px']:.3g} | {e['n_params']} |", "",
+              f"Gain (baseline cv_rms / extended cv_rms): {doc['gain']['cv_rms_ratio']:.3g}", ""]
+    if diag.extended is not None:
+        lines += ["Extension parameters (1-sigma scaled by chi2/dof): "
+                  + _fmt_params(e["params"], e["params_sd"]), ""]
+    lines += ["## Candidates", "", "| cause | variant | delta BIC | cv_rms [px] | parameters |",
+              "|---|---|---|---|---|"]
+    for c in doc["candidates"]:
+        lines.append(f"| {c['cause']} | {c['variant']} | {c['delta_bic']:.1f} | "
+                     f"{c['cv_rms_px']:.3g} | {_fmt_params(c['params'], c['params_sd'])} |")
+    if doc["skipped"]:
+        lines += ["", "Not testable with this table: " + "; ".join(
+            f"{s['cause']} ({s['reason']})" for s in doc["skipped"])]
+    lines += ["", f"Rule: {doc['selection']['rule']} (bic_margin "
+              f"{doc['selection']['bic_margin']:g}).", "",
+              "Figures: `path.png` (measured vs simulated principal point), `residuals.png` "
+              "(residuals before and after the extension).", ""]
+    return "\n".join(lines)
+
+
+def write_diagnosis(diag: Diagnosis, out: str | Path) -> list[Path]:
+    """Write ``diagnosis.json``, ``report.md``, ``path.png`` and ``residuals.png`` to ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = diag.to_dict()
+    files = [write_json(out / "diagnosis.json", doc)]
+    md = out / "report.md"
+    md.write_text(report_markdown(diag, doc))
+    files += [md, plot_path(diag, out / "path.png"), plot_residuals(diag, out / "residuals.png")]
+    return files
