@@ -1,8 +1,11 @@
 """Find what the simulation's principal-point model gets wrong on measured per-zoom data.
 
 The baseline is the paper's model fitted to the measured principal points: a sensor offset plus,
-for every moving group, the decentre and tilt locked to the barrel rotation (amplitude and phase,
-each through its sensitivity curve from the lens model; see :mod:`zoomcalib.diagnose.model`).
+for every moving group, the decentre locked to the barrel rotation (amplitude and phase, through
+the group's sensitivity curve from the lens model; see :mod:`zoomcalib.diagnose.model`). A locked
+tilt adds little: a group's shift per tilt is nearly proportional to its shift per decentre (the
+ratio, the neutral pivot, changes by 10-25 % over the zoom range of ``laikin-10x``), so the fitted
+decentre absorbs it; ``locked_tilt=True`` adds the tilt columns all the same.
 Each row's noise is its measurement 1-sigma and the random-play scatter of the lens model added in
 quadrature, ``sigma_i^2 = sd_i^2 + sigma_play(z_i)^2``.
 
@@ -56,12 +59,13 @@ BIC_MARGIN = 10.0
 AMBIGUITY_BIC = 6.0
 
 
-def baseline_terms(groups: tuple[str, ...]) -> tuple[Term, ...]:
-    """Sensor offset + rotation-locked decentre and tilt of each moving group."""
+def baseline_terms(groups: tuple[str, ...], locked_tilt: bool = False) -> tuple[Term, ...]:
+    """Sensor offset + rotation-locked decentre (and optionally tilt) of each moving group."""
     terms = [offset_term()]
     for g in groups:
-        terms += [group_term(g, "decenter", 1, "locked decentre"),
-                  group_term(g, "tilt", 1, "locked tilt")]
+        terms.append(group_term(g, "decenter", 1, "locked decentre"))
+        if locked_tilt:
+            terms.append(group_term(g, "tilt", 1, "locked tilt"))
     return tuple(terms)
 
 
@@ -308,41 +312,45 @@ def _noise(table: ZoomTable, response: LensResponse, z: np.ndarray,
 
 
 def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolerances,
-                    n_grid: int = 121) -> dict:
-    """Fit the pixel pitch (a scale between measured px and the lens's mm) by the baseline's BIC.
+                    n_grid: int = 121, locked_tilt: bool = False) -> dict:
+    """Fit the pixel pitch (a scale between measured px and the lens's mm) with the baseline.
 
-    The admissible pitches keep every measured focal length inside the lens's EFL range; the
-    baseline is fitted on a geometric grid of them and the best taken. The 1-sigma is half the
-    width of the interval where ``chi2 / s2 - min <= 1`` (``s2`` the best fit's ``chi2_dof``).
+    The admissible pitches keep every measured focal length inside the lens's EFL range. On a
+    geometric grid of them the baseline is fitted and scored by its Gaussian deviance
+    ``D = chi2 + 2 sum ln sigma_i`` (the play part of ``sigma_i`` is in px and so depends on the
+    pitch; chi2 alone would favour the pitch with the largest play). The pitch is told by where the
+    spiral's phase, locked to the barrel angle of each row's lens state, fits best; the 1-sigma
+    is half the width of the interval with ``D - min D <= 1`` (``D`` scaled by the best fit's
+    ``chi2_dof`` when that exceeds 1). ``at_range_end`` flags a minimum at an end of the
+    admissible range: the data do not determine the pitch.
 
     Returns
     -------
-    dict with ``pitch_mm``, ``sd_mm``, ``range_mm``.
+    dict with ``pitch_mm``, ``sd_mm``, ``range_mm``, ``at_range_end``.
     """
     lo, hi = response.pitch_range(table.fx)
     grid = np.geomspace(lo, hi, n_grid) if hi > lo else np.array([lo])
     groups = table.zoom_groups()
-    chi2 = np.empty(len(grid))
-    dof_scale = None
-    terms = baseline_terms(response.groups)
-    fits = []
+    terms = baseline_terms(response.groups, locked_tilt)
+    deviance = np.empty(len(grid))
+    chi2_dof = np.empty(len(grid))
     for i, p in enumerate(grid):
         r = response.with_pitch(p)
         z = r.state_of_focal(table.fx, table.source)
         sigma, _ = _noise(table, r, z, tolerances)
         f = fit_terms(terms, Context.build(table, z, r), sigma, groups)
-        chi2[i] = f.chi2
-        fits.append(f)
-    best = int(np.argmin(chi2))
-    dof_scale = max(fits[best].chi2_dof, 1e-300)
-    inside = grid[(chi2 - chi2[best]) / dof_scale <= 1.0]
+        deviance[i] = f.chi2 + 4.0 * np.sum(np.log(sigma))  # two coordinates per row
+        chi2_dof[i] = f.chi2_dof
+    best = int(np.argmin(deviance))
+    scale = max(chi2_dof[best], 1.0)
+    inside = grid[(deviance - deviance[best]) / scale <= 1.0]
     return {"pitch_mm": float(grid[best]), "sd_mm": float(0.5 * np.ptp(inside)),
             "range_mm": [lo, hi], "at_range_end": best in (0, len(grid) - 1)}
 
 
 def diagnose_table(table: ZoomTable, response: LensResponse,
-                   tolerances: Tolerances | None = None, fit_pitch: bool = False
-                   ) -> Diagnosis:
+                   tolerances: Tolerances | None = None, fit_pitch: bool = False,
+                   locked_tilt: bool = False) -> Diagnosis:
     """Fit the baseline and every testable cause to ``table``; name the cause, or ``none``.
 
     Parameters
@@ -354,6 +362,8 @@ def diagnose_table(table: ZoomTable, response: LensResponse,
         For the random-play scatter (default: the built-in tolerances).
     fit_pitch : bool
         Fit the pixel pitch too (:func:`fit_pixel_pitch`).
+    locked_tilt : bool
+        Give the baseline the locked tilt of each moving group as well as its decentre.
 
     Returns
     -------
@@ -364,7 +374,7 @@ def diagnose_table(table: ZoomTable, response: LensResponse,
     tolerances = tolerances if tolerances is not None else load_tolerances()
     pitch_fit = None
     if fit_pitch:
-        pitch_fit = fit_pixel_pitch(table, response, tolerances)
+        pitch_fit = fit_pixel_pitch(table, response, tolerances, locked_tilt=locked_tilt)
         response = response.with_pitch(pitch_fit["pitch_mm"])
     z = response.state_of_focal(table.fx, table.source)
     sigma, play = _noise(table, response, z, tolerances)
@@ -373,7 +383,7 @@ def diagnose_table(table: ZoomTable, response: LensResponse,
     if len(np.unique(groups)) < 3:
         raise ValueError(f"{table.source}: {len(np.unique(groups))} distinct zoom settings; "
                          f"at least 3 are needed to hold steps out")
-    base_terms = baseline_terms(response.groups)
+    base_terms = baseline_terms(response.groups, locked_tilt)
     base = fit_terms(base_terms, ctx, sigma, groups)
     variants, skipped = cause_variants(table, response.groups)
     candidates = []

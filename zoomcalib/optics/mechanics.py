@@ -18,6 +18,7 @@ Tolerance files (JSON or YAML) give these per group in micrometres and arcminute
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -203,7 +204,7 @@ def systematic_misalignment(lens: Prescription, tolerances: Tolerances, zoom: np
 
 def draw_misalignment(lens: Prescription, tolerances: Tolerances, zoom: np.ndarray,
                       n_samples: int, seed: int | np.random.SeedSequence = 0,
-                      direction: str = "random") -> Misalignment:
+                      direction: str | Sequence[str] = "random") -> Misalignment:
     """Monte Carlo draws of the group errors at each zoom state.
 
     Every zoom step gets its own child of ``SeedSequence(seed)``, so a step's draws do not depend
@@ -215,8 +216,8 @@ def draw_misalignment(lens: Prescription, tolerances: Tolerances, zoom: np.ndarr
     n_samples : int
         Draws per zoom state (S).
     seed : int or SeedSequence
-    direction : {'random', 'in', 'out'}
-        Direction of the last zoom move before each draw.
+    direction : {'random', 'in', 'out'} or (Z,) sequence of them
+        Direction of the last zoom move before each draw (one for all steps, or one per step).
 
     Returns
     -------
@@ -224,6 +225,9 @@ def draw_misalignment(lens: Prescription, tolerances: Tolerances, zoom: np.ndarr
         ``decenter`` and ``tilt`` of shape (Z, S, G, 2).
     """
     zoom = np.atleast_1d(np.asarray(zoom, dtype=float))
+    per_step = [direction] * len(zoom) if isinstance(direction, str) else list(direction)
+    if len(per_step) != len(zoom):
+        raise ValueError(f"direction: {len(per_step)} values for {len(zoom)} zoom steps")
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     n_groups = len(lens.groups)
     dec = np.empty((len(zoom), n_samples, n_groups, 2))
@@ -233,7 +237,7 @@ def draw_misalignment(lens: Prescription, tolerances: Tolerances, zoom: np.ndarr
                        for g in lens.group_names]) * ARCMIN
     for i, child in enumerate(ss.spawn(len(zoom))):
         rng = np.random.default_rng(child)
-        sign = _direction_sign(direction, (n_samples,), rng)  # shape (S,)
+        sign = _direction_sign(per_step[i], (n_samples,), rng)  # shape (S,)
         plus = systematic_misalignment(lens, tolerances, np.full(1, zoom[i]), "in")
         minus = systematic_misalignment(lens, tolerances, np.full(1, zoom[i]), "out")
         pick = (sign > 0)[:, None, None]

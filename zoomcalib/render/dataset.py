@@ -19,7 +19,7 @@ Layout written by :func:`render_dataset`::
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 
@@ -99,6 +99,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
                    radiometry: Radiometry | None = None, seed: int = 0,
                    sensor: Sensor = DEFAULT_SENSOR, distance_mm: float = 2000.0,
                    fill: float = 0.55, through: str = "exact", supersample: int = 4,
+                   direction: str | Sequence[str] = "random",
                    progress: Callable[[int], None] | None = None) -> dict:
     """Render a multi-zoom calibration data set (layout in the module docstring).
 
@@ -109,6 +110,9 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         approach direction, play). None renders the nominal lens.
     through : {'exact', 'model'}
         Render through the exact ray-traced mapping, or through the fitted OpenCV model only.
+    direction : {'random', 'in', 'out'} or sequence of 'in' / 'out', one per step
+        Direction of the last zoom move before each step (sets the backlash side); a sequence
+        is written to ``steps.csv``.
 
     Returns
     -------
@@ -124,7 +128,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
     n_groups = len(lens.groups)
     if tolerances is not None:
-        draws = draw_misalignment(lens, tolerances, zoom, 1, mech_seed)
+        draws = draw_misalignment(lens, tolerances, zoom, 1, mech_seed, direction)
     else:
         draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
                              np.zeros((len(zoom), 1, n_groups, 2)))
@@ -155,7 +159,10 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
             "target": target.spec, "psf_sigma_px": views and float(view.sigma_px),
             "views": views,
         })
-        rows.append({"step": name, "zoom": float(z), "direction": "", "sequence": i,
+        rows.append({"step": name, "zoom": float(z),
+                     "direction": ("" if direction == "random" else direction
+                                   if isinstance(direction, str) else direction[i]),
+                     "sequence": i,
                      "efl_mm": em.lens_camera.efl_mm})
     write_csv(out / "steps.csv", rows, ["step", "zoom", "direction", "sequence", "efl_mm"])
     doc = {
