@@ -147,10 +147,13 @@ def target(pattern, dpi, out):
               help="Render through the exact ray-traced lens, or its fitted OpenCV model.")
 @click.option("--size", default="1280x960", show_default=True,
               help="Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels).")
+@click.option("--direction", default="random", show_default=True,
+              help="Direction of the last zoom move before each step (sets the backlash side): "
+                   "random, in, out, or one of in/out per step, comma-separated.")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
-           bits, through, size, seed, out):
+           bits, through, size, direction, seed, out):
     """Render calibration images through the (perturbed) zoom lens.
 
     Writes one subfolder per zoom step (OUT/zoom_XX/view_YY.png), OUT/steps.csv and
@@ -181,11 +184,20 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     except ValueError:
         raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
             from None
+    if "," in direction:
+        direction = [d.strip() for d in direction.split(",")]
+        if len(direction) != len(zoom) or not set(direction) <= {"in", "out"}:
+            raise click.BadParameter(f"give 'in' or 'out' for each of the {len(zoom)} steps",
+                                     param_hint="--direction")
+    elif direction not in ("random", "in", "out"):
+        raise click.BadParameter("must be random, in, out or a comma-separated list",
+                                 param_hint="--direction")
     optics = Optics(blur_px=blur, f_number=lens_.f_number, defocus_mm=defocus)
     radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
     with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
         doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
-                             sensor=sensor, through=through, progress=bar.update)
+                             sensor=sensor, through=through, direction=direction,
+                             progress=bar.update)
     for st in doc["steps"]:
         cam = st["camera"]
         click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "
@@ -455,7 +467,9 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     d = run.diagnosis
     doc = d.to_dict()
     if d.pitch_fit:
-        click.echo(f"pixel pitch fitted: {d.pitch_mm:.5g} +- {d.pitch_fit['sd_mm']:.2g} mm")
+        click.echo(f"pixel pitch fitted: {d.pitch_mm:.5g} +- {d.pitch_fit['sd_mm']:.2g} mm"
+                   + (" (at an end of the admissible range: not determined by the data)"
+                      if d.pitch_fit["at_range_end"] else ""))
     b, e = doc["baseline"], doc["extended"]
     click.echo(f"{'model':<28s} {'rms px':>8s} {'chi2/dof':>9s} {'cv_rms px':>10s}")
     click.echo(f"{'baseline':<28s} {b['rms_px']:8.3f} {b['chi2_dof']:9.2f} {b['cv_rms_px']:10.3f}")

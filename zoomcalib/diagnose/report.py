@@ -131,6 +131,9 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
     if diag.pitch_fit:
         pitch += (f" (fitted: ± {diag.pitch_fit['sd_mm']:.2g} mm, admissible "
                   f"{diag.pitch_fit['range_mm'][0]:.5g}-{diag.pitch_fit['range_mm'][1]:.5g} mm)")
+        if diag.pitch_fit["at_range_end"]:
+            pitch += (" **at an end of the admissible range: the data do not determine the "
+                      "pitch; give it with --pixel-pitch**")
     efl = t.fx * diag.pitch_mm
     lines += [f"- {t.n} rows, {len(np.unique(t.zoom_groups()))} zoom settings; lens "
               f"`{diag.response.lens.name}`, moving groups {', '.join(diag.response.groups)}",
@@ -138,7 +141,10 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
               f"(lens states {diag.z.min():.3f}-{diag.z.max():.3f})",
               f"- noise per row: measurement {'sigmas from the table' if t.has_sd else 'unknown'}"
               f" with the lens model's play scatter, RMS {doc['noise']['rms_sigma_px']:.3g} px "
-              f"(play alone {doc['noise']['rms_play_px']:.3g} px)", ""]
+              f"(play alone {doc['noise']['rms_play_px']:.3g} px)"
+              + ("" if t.has_sd else "; without measured sigmas chi2/dof is not a goodness "
+                 "of fit, but BIC (noise scale profiled out) and cv_rms still compare models"),
+              ""]
     b, e = doc["baseline"], doc["extended"]
     lines += ["| model | rms [px] | chi2/dof | held-out-step cv_rms [px] | parameters |",
               "|---|---|---|---|---|",
