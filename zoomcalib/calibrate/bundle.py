@@ -484,6 +484,48 @@ def _precision(modes, target_sigma_mm: float, warp_sigma_mm: float | None) -> np
     return (P - B @ B.T) / target_sigma_mm**2 + B @ (Ti @ Ti.T) @ B.T / warp_sigma_mm**2
 
 
+@dataclass
+class _ShapePrior:
+    """The shape prior's precision in factored form, ``Lambda = a I + U D U^T`` (3n, 3n).
+
+    Rotating it by ``I (x) R`` only rotates the few columns of ``U``, which makes the rotated
+    block of the free coordinates cheap (``shape_precision`` has ``k = 10`` columns).
+    """
+
+    a: float
+    U: np.ndarray  # shape (3n, k)
+    D: np.ndarray  # shape (k, k)
+
+    @classmethod
+    def dense(cls, Lam: np.ndarray) -> _ShapePrior:
+        return cls(0.0, np.eye(len(Lam)), np.asarray(Lam, dtype=float))
+
+    @classmethod
+    def from_modes(cls, modes, target_sigma_mm: float,
+                   warp_sigma_mm: float | None) -> _ShapePrior:
+        """The factored form of :func:`_precision`."""
+        Q, B, Ti = modes
+        a = 1.0 / target_sigma_mm**2
+        if warp_sigma_mm is None:
+            return cls(a, Q, -a * np.eye(Q.shape[1]))
+        k = Q.shape[1]
+        D = np.zeros((k + 3, k + 3))
+        D[:k, :k] = -a * np.eye(k)
+        D[k:, k:] = -a * np.eye(3) + (Ti @ Ti.T) / warp_sigma_mm**2
+        return cls(a, np.hstack([Q, B]), D)
+
+    def matvec(self, d: np.ndarray) -> np.ndarray:
+        return self.a * d + self.U @ (self.D @ (self.U.T @ d))
+
+    def rotated(self, R: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``[(I (x) R) Lambda (I (x) R)^T][idx, idx]``."""
+        n3, k = self.U.shape
+        Ur = (R @ self.U.reshape(n3 // 3, 3, k)).reshape(n3, k)[idx]
+        out = Ur @ self.D @ Ur.T
+        out.ravel()[:: len(idx) + 1] += self.a
+        return out
+
+
 def _rotate_precision(Lam: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``(I (x) R) Lam (I (x) R)^T``: a (3n, 3n) precision of point-major coordinates, rotated."""
     n = Lam.shape[0] // 3
@@ -564,6 +606,8 @@ class _Problem:
         self.X0 = X0
         # shape prior: precision Lam (3n, 3n, 1/mm^2) of the deviation from the nominal board
         # aligned on the current points; cost weight sig2 = sigma_px^2
+        if isinstance(Lam, np.ndarray):
+            Lam = _ShapePrior.dense(Lam)
         self.Lam = Lam if (Lam is not None and nx) else None
         self.sig2 = sig2
         # dense (view, point) grid when at least a third of it is observed
@@ -603,7 +647,7 @@ class _Problem:
         F = float(np.einsum("ij,ij->", r, r))
         if self.Lam is not None:
             d = self.shape_deviation(s.X)[0].ravel()
-            F += self.sig2 * float(d @ self.Lam @ d)
+            F += self.sig2 * float(d @ self.Lam.matvec(d))
         return F
 
     def normal_equations(self, s: _State):
@@ -632,9 +676,9 @@ class _Problem:
             gx = gx.ravel()
             if self.Lam is not None:
                 d, sc, Rs = self.shape_deviation(s.X)
-                gx += (self.sig2 / sc) * ((self.Lam @ d.ravel()).reshape(n, 3) @ Rs.T).ravel()
-                U[nc:, nc:] = (self.sig2 / sc**2) * _rotate_precision(self.Lam, Rs)[
-                    np.ix_(self.free_idx, self.free_idx)]
+                gx += (self.sig2 / sc) * ((self.Lam.matvec(d.ravel())).reshape(n, 3)
+                                          @ Rs.T).ravel()
+                U[nc:, nc:] = (self.sig2 / sc**2) * self.Lam.rotated(Rs, self.free_idx)
             U.ravel()[self.ux_dst] += Uxx.ravel()[self.ux_src]
             f = self.free_idx
             U[:nc, nc:] = Ucx.transpose(1, 0, 2).reshape(nc, 3 * n)[:, f]
@@ -704,6 +748,15 @@ class _Problem:
         return t
 
 
+def _inverse_from_cholesky(c: np.ndarray) -> np.ndarray:
+    """``A^-1`` from the upper Cholesky factor of ``A`` (``scipy.linalg.cho_factor``), by
+    LAPACK ``potri``: a third of the work of solving against the identity."""
+    inv, info = scipy.linalg.lapack.dpotri(c, lower=0)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"potri failed (info {info})")
+    return np.triu(inv) + np.triu(inv, 1).T
+
+
 def _schur_solve(U, W, V, g, gp, lam):
     """Solve the damped normal equations by eliminating the poses.
 
@@ -742,7 +795,8 @@ def _schur_solve(U, W, V, g, gp, lam):
 
 def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: float,
                          lam: float = 1e-10):
-    """Minimise ``prob.cost`` from ``s``; returns the state, the iterations and the cost.
+    """Minimise ``prob.cost`` from ``s``; returns the state, the iterations, the cost and, when
+    converged, the normal equations of the last linearisation (else None).
 
     Gauss-Newton steps damped as in Nielsen's rule ([4]): after a step with gain ratio ``rho``
     (actual over predicted decrease) ``lam *= max(1/3, 1 - (2 rho - 1)^3)``, after a rejected
@@ -752,8 +806,10 @@ def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: fl
     F = prob.cost(s)
     nu = 2.0
     it = 0
+    ne = None
     for it in range(1, max_iterations + 1):  # noqa: B007
-        U, W, V, g, gp, _ = prob.normal_equations(s)
+        ne = prob.normal_equations(s)
+        U, W, V, g, gp, _ = ne
         done = False
         for _ in range(30):
             sol = _schur_solve(U, W, V, g, gp, lam)
@@ -782,7 +838,8 @@ def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: fl
             done = True
         if done:
             break
-    return s, it, F
+    # the normal equations of the last linearisation, good for the covariance when converged
+    return s, it, F, (ne if done else None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -843,6 +900,12 @@ def _cam_map(model: str, fix_aspect: bool, aspect: float) -> tuple[np.ndarray, l
     return np.array(cols).T, names
 
 
+#: iterations of the initial cv2.calibrateCamera; our flat-target LM finishes the job
+INIT_ITERATIONS = 5
+#: starting damping of the flat-target LM after that start
+FLAT_LAMBDA = 1e-3
+
+
 def _initial_camera(image_size, X0: np.ndarray, ids_list, pts_list, fix_aspect: bool):
     """Camera (12,) and poses from ``cv2.calibrateCamera``, standard model, nominal target."""
     objp = [X0[i].astype(np.float32) for i in ids_list]
@@ -858,7 +921,7 @@ def _initial_camera(image_size, X0: np.ndarray, ids_list, pts_list, fix_aspect: 
     try:
         _, K, d, rv, tv = cv2.calibrateCamera(
             objp, imgp, tuple(int(v) for v in image_size), K, None, flags=flags,
-            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 10, 2.2e-16))
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, INIT_ITERATIONS, 2.2e-16))
     except cv2.error as exc:
         raise ValueError(f"the initial cv2.calibrateCamera failed ({exc.err}); the views may be "
                          "degenerate (e.g. all fronto-parallel)") from exc
@@ -1055,15 +1118,18 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     modes = _shape_modes(X0) if refine_target else None
     Lam = None
     if refine_target and target_sigma_mm is not None:
-        Lam = _precision(modes, target_sigma_mm, warp_sigma_mm)
+        Lam = _ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
     no_pts = np.zeros((n, 3), bool)
 
     def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
         s = slice(None) if sel is None else sel
         return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
 
+    last: dict = {}
+
     def lm(prob: _Problem, st: _State, lam: float = 1e-10) -> tuple[_State, int]:
-        st, it, _ = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        st, it, _, ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        last["prob"], last["ne"] = prob, ne
         return st, it
 
     iterations: dict[str, int] = {}
@@ -1074,10 +1140,10 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         # rational model has bad local minima (f 10 % off on the figueroa set)
         std_map, _ = _cam_map("standard", fix_aspect, cam[0] / cam[1])
         std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
-        state, iterations["flat_standard"], _ = _levenberg_marquardt(
+        state, iterations["flat_standard"], _, _ = _levenberg_marquardt(
             std_prob, state, min(max_iterations, 10), tol, 1e-3)
     flat_prob = problem(0.0, no_pts)
-    state, iterations["flat"] = lm(flat_prob, state, lam=1e-3)
+    state, iterations["flat"] = lm(flat_prob, state, lam=FLAT_LAMBDA)
     flat_state = state.copy()
     sigma_px = _robust_sigma(flat_prob.residuals(state))
     # ---- stage 3: target released -------------------------------------------------------
@@ -1104,11 +1170,15 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         state, iterations[f"reject{rounds}"] = lm(prob, state)
     if refine_target and not inlier.all():
         # the flat-target fit (for the guard's comparison) on the same inliers
-        flat_state, iterations["flat_inliers"] = lm(
-            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state)
+        flat_state, iterations["flat_inliers"], _, _ = _levenberg_marquardt(
+            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
 
     # ---- stage 5: covariance ------------------------------------------------------------
-    U, W, V, _, _, r = prob.normal_equations(state)
+    # a converged LM's last linearisation is at the solution to within its final (tiny) step
+    ne = last.get("ne") if last.get("prob") is prob else None
+    U, W, V = (ne if ne is not None else prob.normal_equations(state))[:3]
+    U = U.copy()
+    r = prob.residuals(state)
     dof = 2 * prob.N - prob.n_unknowns
     s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
     nc, f = prob.nc, prob.free_idx
@@ -1116,7 +1186,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     if prob.Lam is not None:
         # N = J^T J + s^2 Lambda on the point block (the solve used sigma_px^2 Lambda)
         _, sc, Rs = prob.shape_deviation(state.X)
-        lam_f = _rotate_precision(Lam, Rs)[np.ix_(f, f)] / sc**2
+        lam_f = prob.Lam.rotated(Rs, f) / sc**2
         U[nc:, nc:] += (s2 - sigma_px**2) * lam_f
         prior = np.zeros_like(U)
         prior[nc:, nc:] = s2 * lam_f
@@ -1130,26 +1200,32 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                          f"{np.sqrt(np.mean(r**2) * 2):.3g} px): the data do not determine "
                          "the unknowns, or the adjustment diverged from a poor start (pass "
                          "K0/dist0)") from exc
-    Sinv = scipy.linalg.cho_solve(cf, np.eye(len(U)), check_finite=False)
-    cov_y = s2 * Sinv  # posterior: includes the prior's allowance for an irregular board
-    cov_post = cov_y
+    Sinv = _inverse_from_cholesky(cf[0])
+    # posterior (includes the prior's allowance for an irregular board), camera and points
+    cov_post_cam = s2 * Sinv[:nc, :nc]
+    cov_cam, cov_pts = cov_post_cam, s2 * Sinv[nc:, nc:]
     if prior is not None:
         # Repeatability of the estimate for this board (sandwich): the marginal of
-        # s^2 N^-1 (J^T J) N^-1 over camera and points is s^2 S^-1 (S - P) S^-1 (the prior P
-        # touches only the points; S is the Schur complement over the poses).
-        S = U - Gf.T @ Gf
-        cov_y = s2 * Sinv @ (S - prior) @ Sinv
-        cov_y = 0.5 * (cov_y + cov_y.T)
+        # s^2 N^-1 (J^T J) N^-1 over camera and points is s^2 S^-1 (S - P) S^-1 =
+        # s^2 (S^-1 - S^-1 P S^-1); the prior P touches only the points (S is the Schur
+        # complement over the poses), so only S^-1[:, x] P_xx S^-1[x, :] is needed, and of it
+        # only the camera and the point blocks.
+        Px = prior[nc:, nc:]
+        Sxx, Scx = Sinv[nc:, nc:], Sinv[:nc, nc:]
+        M = Sxx @ Px                                   # (nx, nx)
+        cov_pts = s2 * (Sxx - M @ Sxx)
+        cov_pts = 0.5 * (cov_pts + cov_pts.T)
+        cov_cam = s2 * (Sinv[:nc, :nc] - Scx @ Px @ Scx.T)
     # poses: Cov(p) / s^2 = V^-1 + H S^-1 H^T with H = V^-1 W^T; Cov(y, p) / s^2 = -S^-1 H^T
     Vinv = iL.transpose(0, 2, 1) @ iL
     Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
     HS = Hf @ Sinv
     pose_var = s2 * (np.einsum("vii->vi", Vinv).ravel() + np.einsum("ij,ij->i", HS, Hf))
     pose_sd = np.sqrt(pose_var).reshape(m, 6)
-    cam_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_y[:nc, :nc], cam_map))
+    cam_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_cam, cam_map))
     nd = 5 if model == "standard" else 8
     sd = {name: float(cam_sd[k]) for k, name in enumerate(CAMERA_NAMES[:4 + nd])}
-    post_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_post[:nc, :nc], cam_map))
+    post_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_post_cam, cam_map))
 
     cam = state.cam
     K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
@@ -1169,7 +1245,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     if refine_target:
         obj_pts = state.X.copy()
         cov_x = np.zeros((3 * n, 3 * n))
-        cov_x[np.ix_(f, f)] = cov_y[nc:, nc:]
+        cov_x[np.ix_(f, f)] = cov_pts
         obj_sd = np.sqrt(np.diag(cov_x)).reshape(n, 3)
         info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_x)
         info["guard"] = _guard(modes, X0, obj_pts, cov_x, flat_state.cam, cam, sd)
