@@ -517,13 +517,46 @@ class _ShapePrior:
     def matvec(self, d: np.ndarray) -> np.ndarray:
         return self.a * d + self.U @ (self.D @ (self.U.T @ d))
 
+    def rotated_columns(self, R: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``[(I (x) R) U][idx]``: the rotated precision is ``a I + U_r D U_r^T``."""
+        n3, k = self.U.shape
+        return (R @ self.U.reshape(n3 // 3, 3, k)).reshape(n3, k)[idx]
+
     def rotated(self, R: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """``[(I (x) R) Lambda (I (x) R)^T][idx, idx]``."""
-        n3, k = self.U.shape
-        Ur = (R @ self.U.reshape(n3 // 3, 3, k)).reshape(n3, k)[idx]
+        Ur = self.rotated_columns(R, idx)
         out = Ur @ self.D @ Ur.T
         out.ravel()[:: len(idx) + 1] += self.a
         return out
+
+
+@dataclass
+class _PointCovariance:
+    """Covariance of the free point coordinates, ``C = s2 (S - c S (a I + G' D G'^T) S)``
+    kept as ``S`` (nx, nx), ``G = S U_r`` (nx, k) and the scalars, so that its diagonal and its
+    products with a few vectors cost O(nx^2) instead of forming ``C`` (O(nx^3)).
+
+    ``S`` is the points' block of the inverse reduced normal matrix, ``c (a I + U_r D U_r^T)``
+    the shape prior's precision on them (``c = 0``: no prior)."""
+
+    S: np.ndarray
+    s2: float
+    ca: float = 0.0
+    G: np.ndarray | None = None
+    cD: np.ndarray | None = None
+
+    def diag(self) -> np.ndarray:
+        d = np.einsum("ii->i", self.S) - self.ca * np.einsum("ij,ij->i", self.S, self.S)
+        if self.G is not None:
+            d = d - np.einsum("ij,ij->i", self.G @ self.cD, self.G)
+        return self.s2 * d
+
+    def __matmul__(self, V: np.ndarray) -> np.ndarray:
+        SV = self.S @ V
+        out = SV - self.ca * (self.S @ SV)
+        if self.G is not None:
+            out = out - self.G @ (self.cD @ (self.G.T @ V))
+        return self.s2 * out
 
 
 def _rotate_precision(Lam: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -1182,14 +1215,14 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     dof = 2 * prob.N - prob.n_unknowns
     s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
     nc, f = prob.nc, prob.free_idx
-    prior = None  # s^2 Lambda on the free point coordinates, (ny, ny)
+    Urf = None  # the shape prior on the free points: (a I + Urf D Urf^T) / sc^2
     if prob.Lam is not None:
         # N = J^T J + s^2 Lambda on the point block (the solve used sigma_px^2 Lambda)
         _, sc, Rs = prob.shape_deviation(state.X)
-        lam_f = prob.Lam.rotated(Rs, f) / sc**2
-        U[nc:, nc:] += (s2 - sigma_px**2) * lam_f
-        prior = np.zeros_like(U)
-        prior[nc:, nc:] = s2 * lam_f
+        Urf = prob.Lam.rotated_columns(Rs, f)
+        lam_f = Urf @ prob.Lam.D @ Urf.T
+        lam_f.ravel()[:: len(f) + 1] += prob.Lam.a
+        U[nc:, nc:] += (s2 - sigma_px**2) / sc**2 * lam_f
     try:
         iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
         G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
@@ -1203,19 +1236,19 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     Sinv = _inverse_from_cholesky(cf[0])
     # posterior (includes the prior's allowance for an irregular board), camera and points
     cov_post_cam = s2 * Sinv[:nc, :nc]
-    cov_cam, cov_pts = cov_post_cam, s2 * Sinv[nc:, nc:]
-    if prior is not None:
+    cov_cam, cov_pts = cov_post_cam, _PointCovariance(Sinv[nc:, nc:], s2)
+    if Urf is not None:
         # Repeatability of the estimate for this board (sandwich): the marginal of
         # s^2 N^-1 (J^T J) N^-1 over camera and points is s^2 S^-1 (S - P) S^-1 =
-        # s^2 (S^-1 - S^-1 P S^-1); the prior P touches only the points (S is the Schur
-        # complement over the poses), so only S^-1[:, x] P_xx S^-1[x, :] is needed, and of it
-        # only the camera and the point blocks.
-        Px = prior[nc:, nc:]
+        # s^2 (S^-1 - S^-1 P S^-1); the prior P = c (a I + Urf D Urf^T) (c = s^2 / sc^2)
+        # touches only the points (S is the Schur complement over the poses), so only the
+        # camera and point blocks of S^-1[:, x] P S^-1[x, :] are needed.
+        c = s2 / sc**2
         Sxx, Scx = Sinv[nc:, nc:], Sinv[:nc, nc:]
-        M = Sxx @ Px                                   # (nx, nx)
-        cov_pts = s2 * (Sxx - M @ Sxx)
-        cov_pts = 0.5 * (cov_pts + cov_pts.T)
-        cov_cam = s2 * (Sinv[:nc, :nc] - Scx @ Px @ Scx.T)
+        cD = c * prob.Lam.D
+        cov_pts = _PointCovariance(Sxx, s2, c * prob.Lam.a, Sxx @ Urf, cD)
+        ScU = Scx @ Urf
+        cov_cam = s2 * (Sinv[:nc, :nc] - c * prob.Lam.a * (Scx @ Scx.T) - ScU @ cD @ ScU.T)
     # poses: Cov(p) / s^2 = V^-1 + H S^-1 H^T with H = V^-1 W^T; Cov(y, p) / s^2 = -S^-1 H^T
     Vinv = iL.transpose(0, 2, 1) @ iL
     Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
@@ -1244,11 +1277,11 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     obj_pts = obj_sd = None
     if refine_target:
         obj_pts = state.X.copy()
-        cov_x = np.zeros((3 * n, 3 * n))
-        cov_x[np.ix_(f, f)] = cov_pts
-        obj_sd = np.sqrt(np.diag(cov_x)).reshape(n, 3)
-        info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_x)
-        info["guard"] = _guard(modes, X0, obj_pts, cov_x, flat_state.cam, cam, sd)
+        var = np.zeros(3 * n)
+        var[f] = np.clip(cov_pts.diag(), 0.0, None)
+        obj_sd = np.sqrt(var).reshape(n, 3)
+        info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_pts, f)
+        info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam, sd)
         g = info["guard"]
         if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
             warnings.warn(f"the refined target departs from a smoothly warped board by "
@@ -1317,24 +1350,27 @@ def _initial_poses(cam: np.ndarray, X0: np.ndarray, ids_list, pts_list):
     return rv, tv
 
 
-def _guard(modes, X0: np.ndarray, X: np.ndarray, cov_x: np.ndarray, cam_flat: np.ndarray,
-           cam: np.ndarray, sd: dict) -> dict:
+def _guard(modes, X0: np.ndarray, X: np.ndarray, cov_x: _PointCovariance, free: np.ndarray,
+           cam_flat: np.ndarray, cam: np.ndarray, sd: dict) -> dict:
     """Deformation of the refined target split into similarity, smooth warp and the irregular
     rest, and the camera's shift from the flat-target fit.
 
     ``irregular_noise_rms_mm`` is ``sqrt(trace(P C P) / 3n)``: the RMS the irregular part
     would have from the noise alone (``C`` the covariance of the points, ``P`` the projector on
-    the irregular deformations)."""
+    the irregular deformations, in the nominal frame; ``C`` is given for the ``free``
+    coordinates of the point-major (3n,) vector, the others are held)."""
     n = len(X0)
     Q, B, Ti = modes
     # deviation from the nominal board aligned on X, in the nominal frame (gauge-independent)
     sc, Rs, t = fit_similarity(X0, X)
     d = ((((X - t) @ Rs) / sc) - X0).ravel()
-    cov_x = _rotate_precision(cov_x, Rs.T) / sc**2
     d = d - Q @ (Q.T @ d)
     irr = d - B @ (B.T @ d)
-    P_irr = np.eye(3 * n) - Q @ Q.T - B @ B.T
-    noise2 = max(float(np.einsum("ij,ij->", P_irr, cov_x)), 0.0) / (3 * n)  # tr(P C P) = tr(P C)
+    # tr(P C_nom) with C_nom = (I (x) Rs^T) C (I (x) Rs) / sc^2 and P = I - Q Q^T - B B^T:
+    # tr(C) - tr(M^T C M) with M = (I (x) Rs) [Q B], rotated once instead of C
+    M = (Rs @ np.hstack([Q, B]).reshape(n, 3, -1)).reshape(3 * n, -1)[free]
+    trace = float(np.sum(cov_x.diag()) - np.einsum("ij,ij->", M, cov_x @ M)) / sc**2
+    noise2 = max(trace, 0.0) / (3 * n)  # tr(P C P) = tr(P C)
     g = {"flat_fx": float(cam_flat[0]), "flat_fy": float(cam_flat[1]),
          "flat_cx": float(cam_flat[2]), "flat_cy": float(cam_flat[3]),
          "warp_amplitude_mm": [float(a) for a in Ti @ (B.T @ d)],
@@ -1346,12 +1382,14 @@ def _guard(modes, X0: np.ndarray, X: np.ndarray, cov_x: np.ndarray, cam_flat: np
     return g
 
 
-def _flatness(X: np.ndarray, cov_x: np.ndarray) -> tuple[float, float]:
+def _flatness(X: np.ndarray, cov_x: _PointCovariance, free: np.ndarray
+              ) -> tuple[float, float]:
     r"""RMS distance of points from their best-fit plane, and its linearised 1-sigma.
 
     With plane normal ``n`` (smallest singular vector of the centred points) and signed
     distances ``d_j``, ``phi = sqrt(mean d_j^2)``; since the plane minimises ``sum d_j^2``,
-    ``d phi / d X_j = d_j n / (n_pts phi)`` and ``sd(phi)^2 = g^T C g``.
+    ``d phi / d X_j = d_j n / (n_pts phi)`` and ``sd(phi)^2 = g^T C g`` (``C`` over the
+    ``free`` coordinates; the others are held).
     """
     c = X - X.mean(0)
     _, _, Vt = np.linalg.svd(c, full_matrices=False)
@@ -1361,5 +1399,6 @@ def _flatness(X: np.ndarray, cov_x: np.ndarray) -> tuple[float, float]:
     if phi == 0:
         return 0.0, 0.0
     gvec = (d[:, None] * nrm[None, :] / (len(X) * phi)).ravel()
-    return phi, float(np.sqrt(max(gvec @ cov_x @ gvec, 0.0)))
+    gf = gvec[free]
+    return phi, float(np.sqrt(max(gf @ (cov_x @ gf), 0.0)))
 
