@@ -45,6 +45,8 @@ def parse_args():
     ap.add_argument("--repeat", type=int, default=5, help="timed runs per row (best is kept)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                     help="seeds of the synthetic 20 x 88 sets (one row group each)")
+    ap.add_argument("--profile", action="store_true",
+                    help="only profile 20 default bundle calls on the seed-0 set (cProfile)")
     ap.add_argument("--blas-threads", type=int, default=1,
                     help="BLAS threads for numpy/scipy (0: leave the environment alone)")
     return ap.parse_args()
@@ -139,6 +141,20 @@ def main():
           f"OpenCV {cv2.__version__}; BLAS threads "
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'default')}, OpenCV threads "
           f"{cv2.getNumThreads()}; best of {args.repeat}")
+    if args.profile:
+        import cProfile
+        import pstats
+
+        obs = synthetic(0)
+        calibrate_bundle(obs)
+        prof = cProfile.Profile()
+        prof.enable()
+        for _ in range(20):
+            calibrate_bundle(obs)
+        prof.disable()
+        print("20 calls of calibrate_bundle on the seed-0 synthetic set:")
+        pstats.Stats(prof).sort_stats("tottime").print_stats(12)
+        return
     print(f"{'case':10s} {'backend':44s} {'time s':>8s} {'ratio':>6s} {'fx':>9s} {'fy':>9s} "
           f"{'cx':>9s} {'cy':>9s}  notes")
 

@@ -36,7 +36,7 @@ def test_predicted_uncertainty_matches_the_spread(sets, backend):
     n = len(sets)
     # The sample sd of n draws has a relative standard error of 1 / sqrt(2 (n - 1)); the mean
     # of n draws sits within 1 / sqrt(n) sd of the truth. Bands of 3 standard errors: with 100
-    # sets that is 21 % and 0.3 sigma (the 15 % and 0.2 sigma are 2.1 and 2 standard
+    # sets that is 21 % and 0.3 sigma (the required 15 % and 0.2 sigma are 2.1 and 2 standard
     # errors there); with CI's 24 sets, 44 % and 0.61 sigma.
     band = 3 / np.sqrt(2 * (n - 1))
     bias_band = 3 / np.sqrt(n)

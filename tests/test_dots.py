@@ -9,7 +9,7 @@ from zoomcalib.targets import parse_pattern
 
 
 def test_dot_centres_at_45_degrees_under_distortion(rng):
-    # The case: 45 degree tilt, k1 = -0.2. Goal: <= 0.01 px RMS after correction.
+    # The reference case: 45 degree tilt, k1 = -0.2. Goal: <= 0.01 px RMS after correction.
     cam = CameraModel(1400.0, 1400.0, 641.3, 478.2, np.array([-0.2, 0, 0, 0, 0]))
     target = parse_pattern("acircles:4x11:20")
     axis = np.array([*rng.normal(size=2), 0.0])

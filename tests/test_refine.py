@@ -29,7 +29,7 @@ from zoomcalib.detect.refine import (
 
 SS = 32  # sub-samples per pixel axis
 SIGMA = 0.7  # Gaussian PSF sd, px
-NOISE = 2.0 / 255.0  # the issue's noise level on a 0..1 scale
+NOISE = 2.0 / 255.0  # the reference noise level on a 0..1 scale
 PATCH = 17  # corner patch side, px: an 11 x 11 window plus room for a 1 px initial error
 CENTRE = PATCH // 2
 
@@ -189,7 +189,7 @@ def test_noise_free_corners_exact(rng):
 
 
 def test_noisy_corners_unbiased_and_efficient(rng):
-    # 400 corners at the issue's noise (2/255, Gaussian, float image), blur 0.7 px, 11 x 11.
+    # 400 corners at the reference noise (2/255, Gaussian, float image), blur 0.7 px, 11 x 11.
     # Statistics: for a 2-D Gaussian error the squared radial error is ~exponential, so the mean
     # of 400 has a relative sd of 1/sqrt(400) = 5 %, i.e. 2.5 % on the RMS; the bounds 0.85 and
     # 1.25 x CRLB are > 6 sd away. The per-axis mean has sd ~ 0.0042 / sqrt(400) ~ 2e-4 px, so
@@ -306,7 +306,7 @@ def test_dots_noise_free(rng):
 
 
 def test_dots_noisy_efficient(rng):
-    # 80 dots at the issue's noise 2/255: the ellipse-centre CRLB is ~0.005 px here, so the
+    # 80 dots at the reference noise 2/255: the ellipse-centre CRLB is ~0.005 px here, so the
     # 0.01 px limit is ~2x the bound; the RMS of 80 radial errors has a ~6 % sampling sd, so
     # 1.3 x the bound is ~5 sd.
     img, truth, axes, angle, contrast = _dot_mosaic(rng, 80, noise=NOISE)
@@ -327,7 +327,7 @@ def test_dots_noisy_efficient(rng):
 # ---------------------------------------------------------------------------------------------
 # Cramér-Rao bound
 # ---------------------------------------------------------------------------------------------
-def test_crlb_scales_with_noise_and_matches_issue():
+def test_crlb_scales_with_noise_and_matches_reference():
     ang = np.array([[0.0, np.pi / 2], [0.4, 1.5], [1.0, 3.0]])
     b1 = corner_crlb(SIGMA, 1e-3, 0.9, ang)
     b3 = corner_crlb(SIGMA, 3e-3, 0.9, ang)
@@ -336,9 +336,9 @@ def test_crlb_scales_with_noise_and_matches_issue():
     # ... and inversely with contrast
     np.testing.assert_allclose(corner_crlb(SIGMA, 1e-3, 0.45, ang).radial_rms,
                                2.0 * b1.radial_rms, rtol=1e-12)
-    # the issue: noise 2/255, contrast ~1, blur 0.7 px, 11 x 11 window, 8-bit: ~0.0075 px
-    issue = corner_crlb(SIGMA, NOISE, 1.0, [0.0, np.pi / 2], 5, quant_step=1 / 255)
-    assert abs(float(issue.radial_rms) / 0.0075 - 1.0) < 0.3
+    # the reference: noise 2/255, contrast ~1, blur 0.7 px, 11 x 11 window, 8-bit: ~0.0075 px
+    ref = corner_crlb(SIGMA, NOISE, 1.0, [0.0, np.pi / 2], 5, quant_step=1 / 255)
+    assert abs(float(ref.radial_rms) / 0.0075 - 1.0) < 0.3
     db = dot_crlb(SIGMA, 1e-3, 0.9, [[6.0, 4.0], [8.0, 8.0]], [0.3, 0.0])
     np.testing.assert_allclose(dot_crlb(SIGMA, 2e-3, 0.9, [[6.0, 4.0], [8.0, 8.0]],
                                         [0.3, 0.0]).radial_rms, 2 * db.radial_rms, rtol=1e-12)

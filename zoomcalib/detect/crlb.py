@@ -136,17 +136,17 @@ def corner_crlb(
 
     Notes
     -----
-    At the project issue's setting (noise 2/255 on a 0..1 scale, contrast 1, blur 0.7 px,
+    At the reference setting (noise 2/255 on a 0..1 scale, contrast 1, blur 0.7 px,
     11 x 11 window, 8-bit) this gives 0.0060 px radial for a square-on corner (0.0059 without
     the quantisation term, 0.0051 with the edges at 45 deg to the pixel grid, whose diagonals
-    are longer; 0.0061 with the corner half a pixel off-centre in both axes). The issue quotes
+    are longer; 0.0061 with the corner half a pixel off-centre in both axes). The requirement quotes
     about 0.0075 px, 25 % more, which is what this model gives for contrast 0.8 (e.g. black 0.1,
     white 0.9: 0.0075), blur 1.0-1.1 px (0.0073-0.0077) or a 7 x 7 window (0.0080); a fixed or
     fitted blur makes no difference (point symmetry).
 
     Examples
     --------
-    The issue's setting: noise 2/255, contrast 1, blur 0.7 px, 11 x 11 window, square corner:
+    The reference setting: noise 2/255, contrast 1, blur 0.7 px, 11 x 11 window, square corner:
 
     >>> b = corner_crlb(0.7, 2 / 255, 1.0, [0.0, np.pi / 2], window=5)
     >>> round(float(b.radial_rms), 4)
