@@ -163,3 +163,10 @@ def test_cli_writes_the_contract(tmp_path):
     res = CliRunner().invoke(main, ["diagnose", str(tmp_path / "short.csv"), "--out", str(out)])
     assert res.exit_code != 0 and "short.csv: missing column cy" in res.output
     assert "Traceback" not in res.output
+    # a folder that holds no zoom-step images
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    res = CliRunner().invoke(main, ["diagnose", str(empty), "--pattern", "chessboard:9x6:25",
+                                    "--out", str(out)])
+    assert res.exit_code != 0 and "empty" in res.output and res.exception is not None
+    assert isinstance(res.exception, SystemExit)

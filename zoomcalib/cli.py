@@ -454,10 +454,19 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     if os.path.isdir(input_path) and pattern:
         _parse_target(pattern)
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
+    n_images = 0
+    if os.path.isdir(input_path):
+        from .calibrate.io import zoom_steps
+        from .detect import image_files
+
+        try:
+            n_images = sum(len(image_files(d)) for _, d, _, _ in zoom_steps(input_path))
+        except (ValueError, FileNotFoundError) as exc:
+            raise click.BadParameter(str(exc), param_hint="INPUT") from None
     messages = []
     try:
-        with click.progressbar(length=0, label="calibrating", file=sys.stderr,
-                               hidden=not os.path.isdir(input_path)) as bar:
+        with click.progressbar(length=n_images, label="detecting", file=sys.stderr,
+                               hidden=n_images == 0) as bar:
             run = diagnose_input(input_path, out, lens_rx, pixel_pitch, tol, pattern, backends,
                                  workers or os.cpu_count() or 1, bar.update, messages.append)
     except (FocalRangeError, ValueError, FileNotFoundError) as exc:
