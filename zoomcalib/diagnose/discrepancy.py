@@ -328,7 +328,7 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
     -------
     dict with ``pitch_mm``, ``sd_mm``, ``range_mm``, ``at_range_end``.
     """
-    lo, hi = response.pitch_range(table.fx)
+    lo, hi = response.pitch_range(table.fx, table.source)
     grid = np.geomspace(lo, hi, n_grid) if hi > lo else np.array([lo])
     groups = table.zoom_groups()
     terms = baseline_terms(response.groups, locked_tilt)

@@ -114,13 +114,13 @@ class LensResponse:
                 f"--pixel-pitch, or fit it with --pixel-pitch auto")
         return np.interp(np.clip(efl, lo, hi), self.efl_grid, self.zoom_grid)
 
-    def pitch_range(self, fx_px: np.ndarray) -> tuple[float, float]:
+    def pitch_range(self, fx_px: np.ndarray, source: str = "table") -> tuple[float, float]:
         """Pixel pitches (mm) at which every measured focal length lies in the lens's range."""
         fx = np.asarray(fx_px, dtype=float)
         lo, hi = self.efl_grid[0] / fx.min(), self.efl_grid[-1] / fx.max()
         if lo > hi:
             raise FocalRangeError(
-                f"measured zoom ratio {fx.max() / fx.min():.2f} exceeds lens "
+                f"{source}: measured zoom ratio {fx.max() / fx.min():.2f} exceeds lens "
                 f"{self.lens.name!r}'s {self.efl_grid[-1] / self.efl_grid[0]:.2f}: no pixel "
                 f"pitch fits; is it the right lens?")
         return float(lo), float(hi)
