@@ -116,6 +116,21 @@ def _fmt_params(params: dict, sds: dict) -> str:
     return ", ".join(f"{k} = {v:.4g} ± {sds[k]:.2g}" for k, v in params.items()) or "-"
 
 
+def _polar(params: dict) -> str:
+    """Magnitude and direction of (x, y) parameter pairs, e.g. ``compensator: 50.2 um at
+    211 deg`` (direction measured from +x towards +y, image convention)."""
+    out = []
+    for kx, vx in params.items():
+        if "_x_" not in kx:
+            continue
+        ky = kx.replace("_x_", "_y_", 1)
+        if ky in params:
+            name, unit = kx.split("_x_", 1)
+            ang = np.degrees(np.arctan2(params[ky], vx)) % 360.0
+            out.append(f"{name}: {np.hypot(vx, params[ky]):.4g} {unit} at {ang:.0f} deg")
+    return "; ".join(out)
+
+
 def report_markdown(diag: Diagnosis, doc: dict) -> str:
     """A short human report of the diagnosis."""
     t = diag.table
@@ -156,6 +171,8 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
     if diag.extended is not None:
         lines += ["Extension parameters (1-sigma scaled by chi2/dof): "
                   + _fmt_params(e["params"], e["params_sd"]), ""]
+        if _polar(e["params"]):
+            lines += ["As magnitude and direction: " + _polar(e["params"]) + ".", ""]
     lines += ["## Candidates", "", "| cause | variant | delta BIC | cv_rms [px] | parameters |",
               "|---|---|---|---|---|"]
     for c in doc["candidates"]:
