@@ -170,3 +170,15 @@ def test_cli_writes_the_contract(tmp_path):
                                     "--out", str(out)])
     assert res.exit_code != 0 and "empty" in res.output and res.exception is not None
     assert isinstance(res.exception, SystemExit)
+
+
+def test_causes_the_table_cannot_test_are_skipped(response):
+    rows, _ = synthetic_zoom_table(LENS, None, np.random.default_rng(11))
+    bare = [{k: v for k, v in r.items() if k not in ("direction", "sequence")} for r in rows]
+    diag = diagnose_table(ZoomTable.from_rows(bare), response)
+    assert set(diag.skipped) == {"backlash", "thermal_drift", "focus_shift"}
+    assert {c.cause for c in diag.candidates} == {"axis_tilt", "cam_harmonic", "static_decenter"}
+    # the locked tilt of each moving group adds two columns per group to the baseline
+    with_tilt = diagnose_table(ZoomTable.from_rows(rows), response, locked_tilt=True)
+    assert len(with_tilt.baseline.params) == len(diag.baseline.params) + 2 * len(response.groups)
+    assert with_tilt.cause == "none"
