@@ -70,6 +70,16 @@ def executions(log: Path) -> list[str]:
     return log.read_text(encoding="utf-8").split() if log.exists() else []
 
 
+def resume_setup(tmp_path: Path, seed: int) -> tuple[Path, Path, list[Task], dict]:
+    """Log file, cache folder, 8 counting tasks and their results from one uninterrupted run
+    (whose log is then cleared)."""
+    log = tmp_path / "log.txt"
+    tasks = counting_tasks(log)
+    uninterrupted = run_tasks(tasks, seed=seed, workers=1)
+    log.unlink()
+    return log, tmp_path / "cache", tasks, uninterrupted
+
+
 # --------------------------------------------------------------------------------------------
 # Seeds
 
@@ -178,11 +188,7 @@ def test_bad_scheduler_type():
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_resume_runs_only_unfinished_tasks(tmp_path, workers):
-    log = tmp_path / "log.txt"
-    cache = tmp_path / "cache"
-    tasks = counting_tasks(log)
-    uninterrupted = run_tasks(tasks, seed=3, workers=1)
-    log.unlink()
+    log, cache, tasks, uninterrupted = resume_setup(tmp_path, seed=3)
 
     first = run_tasks(tasks[:4], seed=3, workers=workers, cache_dir=cache)  # the "interrupted" run
     assert sorted(executions(log)) == ["t0", "t1", "t2", "t3"]
@@ -199,11 +205,7 @@ def test_resume_runs_only_unfinished_tasks(tmp_path, workers):
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_resume_after_real_interruption(tmp_path, workers):
-    log = tmp_path / "log.txt"
-    cache = tmp_path / "cache"
-    tasks = counting_tasks(log)
-    uninterrupted = run_tasks(tasks, seed=4, workers=1)
-    log.unlink()
+    log, cache, tasks, uninterrupted = resume_setup(tmp_path, seed=4)
 
     def interrupt_after_three(done, total):
         if done == 3:
