@@ -117,7 +117,9 @@ def observations_from_detections(detections: Iterable[Detection], target: Target
     -------
     Observations
         One view per image that was detected with at least ``min_points`` points, in input
-        order, ``names`` the images' file names. Failed images are skipped.
+        order, ``names`` the images' file names. Failed images are skipped, and so are points
+        whose refinement fell back to the initial detector (``Detection.fallback``); their
+        number is ``Observations.n_fallback``.
 
     Raises
     ------
@@ -127,10 +129,11 @@ def observations_from_detections(detections: Iterable[Detection], target: Target
     """
     target = parse_pattern(target) if isinstance(target, str) else target
     n = target.n_points
-    views, names = [], []
+    views, names, n_fallback = [], [], 0
     size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
     for d in detections:
-        if not d.ok or len(d.ids) < min_points:
+        keep = ~d.fallback if d.ok else np.zeros(0, bool)
+        if not d.ok or np.count_nonzero(keep) < min_points:
             continue
         if d.image_size != (0, 0):
             if size is None:
@@ -145,14 +148,17 @@ def observations_from_detections(detections: Iterable[Detection], target: Target
                              f"points ({target.spec})")
         if len(np.unique(ids)) != len(ids):
             raise ValueError(f"{d.file}: repeated point ids")
-        views.append((ids.copy(), np.asarray(d.points, np.float64).reshape(-1, 2).copy()))
+        points = np.asarray(d.points, np.float64).reshape(-1, 2)
+        views.append((ids[keep].copy(), points[keep].copy()))
         names.append(d.file)
+        n_fallback += int(np.count_nonzero(~keep))
     if size is None:
         if not views:
             size = (0, 0)
         else:
             raise ValueError("image size unknown: pass image_size (the detections carry none)")
-    return Observations(np.asarray(target.object_points, np.float64).copy(), views, size, names)
+    return Observations(np.asarray(target.object_points, np.float64).copy(), views, size, names,
+                        n_fallback)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -30,12 +30,15 @@ class Observations:
         (width, height), px.
     names : list of str
         One name per view (image file).
+    n_fallback : int
+        Detected points left out because their refinement fell back to the initial detector.
     """
 
     object_points: np.ndarray
     views: list[tuple[np.ndarray, np.ndarray]]
     image_size: tuple[int, int]
     names: list[str] = field(default_factory=list)
+    n_fallback: int = 0
 
     @property
     def n_views(self) -> int:

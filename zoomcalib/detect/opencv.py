@@ -5,9 +5,15 @@ Pixel convention (OpenCV's, used for every point here): the centre of the top-le
 
 Methods (``METHODS``) and the target kinds they fit:
 
+``"model"``
+    OpenCV's detector finds the points, a fit of the blurred, pixel-integrated pattern places
+    them (:mod:`zoomcalib.detect.refine`; at the Cramér-Rao bound on rendered boards). Every
+    target kind. Default for chessboards. A point whose fit fails keeps the detector's position
+    and is flagged in ``Detection.fallback``.
 ``"sb"``
-    ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY | CALIB_CB_NORMALIZE_IMAGE``,
-    retried with ``CALIB_CB_EXHAUSTIVE``. Chessboards. Default for chessboards.
+    ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``, retried with
+    ``CALIB_CB_EXHAUSTIVE``. Chessboards. ``CALIB_CB_NORMALIZE_IMAGE`` is not used: on rendered
+    boards it makes the corners 4x worse (``benchmarks/bench_detect_flags.py``).
 ``"classic"``
     ``cv2.findChessboardCorners`` (adaptive threshold, normalised image) and
     ``cv2.cornerSubPix`` (half-window ``win``, default 5, i.e. an 11 x 11 window). Chessboards.
@@ -92,7 +98,7 @@ METHODS: dict[str, tuple[str, ...]] = {
 
 #: Target kind -> the method used when none is given.
 DEFAULT_METHODS: dict[str, str] = {
-    "chessboard": "sb",
+    "chessboard": "model",
     "circles": "circles",
     "acircles": "circles",
     "charuco": "charuco",
@@ -123,6 +129,9 @@ class Detection:
         Detection method used (a key of ``METHODS``).
     image_size : (int, int)
         Image width and height, pixels; (0, 0) when the image could not be read.
+    fallback : (K,) ndarray of bool
+        True where the method's own refinement failed for that point and it holds the initial
+        detector's position instead (``model`` only); calibration leaves such points out.
     """
 
     file: str
@@ -131,12 +140,19 @@ class Detection:
     error: str | None = None
     method: str = ""
     image_size: tuple[int, int] = (0, 0)
+    fallback: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
         self.ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)
         if len(self.ids) != len(self.points):
             raise ValueError(f"{self.file}: {len(self.points)} points but {len(self.ids)} ids")
+        if self.fallback is None:
+            self.fallback = np.zeros(len(self.points), dtype=bool)
+        self.fallback = np.asarray(self.fallback, dtype=bool).reshape(-1)
+        if len(self.fallback) != len(self.points):
+            raise ValueError(f"{self.file}: {len(self.points)} points but "
+                             f"{len(self.fallback)} fallback flags")
         self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
 
     @property
@@ -144,10 +160,19 @@ class Detection:
         """True when the image gave points and no error."""
         return self.error is None and len(self.points) > 0
 
+    @property
+    def n_fallback(self) -> int:
+        """Points whose refinement failed (see ``fallback``)."""
+        return int(np.count_nonzero(self.fallback))
+
     def to_dict(self) -> dict:
-        """The detections-file entry ``{"file", "points", "ids", "error"}``, plain Python types."""
-        return {"file": self.file, "points": self.points.tolist(),
-                "ids": [int(i) for i in self.ids], "error": self.error}
+        """The detections-file entry ``{"file", "points", "ids", "error"[, "fallback"]}``, plain
+        Python types; ``fallback`` (one bool per point) only when a point fell back."""
+        entry = {"file": self.file, "points": self.points.tolist(),
+                 "ids": [int(i) for i in self.ids], "error": self.error}
+        if self.n_fallback:
+            entry["fallback"] = [bool(b) for b in self.fallback]
+        return entry
 
     @classmethod
     def from_dict(cls, entry: dict, method: str = "",
@@ -156,7 +181,8 @@ class Detection:
         when it has them."""
         return cls(str(entry["file"]), np.asarray(entry.get("points") or [], float),
                    np.asarray(entry.get("ids") or [], np.int64), entry.get("error"),
-                   str(entry.get("method", method)), tuple(entry.get("image_size", image_size)))
+                   str(entry.get("method", method)), tuple(entry.get("image_size", image_size)),
+                   entry.get("fallback"))
 
 
 def default_method(target: Target) -> str:
@@ -360,7 +386,7 @@ def _normalise_order(points: np.ndarray, target: Target, grey: np.ndarray) -> np
 def _detect_sb(grey8: np.ndarray, best: np.ndarray, target: Target,
                exhaustive_retry: bool = True):
     size = tuple(target.pattern_size)
-    flags = cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
+    flags = cv2.CALIB_CB_ACCURACY  # NORMALIZE_IMAGE costs accuracy (module docstring)
     ok, corners = cv2.findChessboardCornersSB(grey8, size, flags=flags)
     if not ok and exhaustive_retry:
         ok, corners = cv2.findChessboardCornersSB(grey8, size,
@@ -517,8 +543,8 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     Chessboard and ChArUco corners: blurred X-junction fit in a ``(2 window + 1)^2`` window
     (shrunk to 0.45 x the corner spacing). Dots: blurred-ellipse fit; the result is the
     centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
-    see :func:`zoomcalib.detect.dots.dot_centre_bias`). Corners whose fit did not converge keep
-    OpenCV's position.
+    see :func:`zoomcalib.detect.dots.dot_centre_bias`). Points whose fit did not converge keep
+    OpenCV's position and are returned flagged (the third element, True where a point fell back).
     """
     from .refine import refine_corners, refine_dots
 
@@ -535,7 +561,7 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
         return found
     pts, ids = found
     if len(pts) < 2:
-        return pts, ids
+        return pts, ids, np.ones(len(pts), bool)  # nothing to fix the window size: not refined
     img = best.astype(np.float64)
     spacing = _min_spacing(pts)
     if target.kind in ("circles", "acircles"):
@@ -548,7 +574,7 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
         res = refine_corners(img, pts, window=w, sigma=sigma)
         refined = res.points
     out = np.where(res.converged[:, None], refined, pts)
-    return out, ids
+    return out, ids, ~res.converged
 
 
 _DETECTORS = {"sb": _detect_sb, "classic": _detect_classic, "circles": _detect_circles,
@@ -622,8 +648,8 @@ def detect_image(image_or_path: str | os.PathLike | np.ndarray, target: Target |
                          method=method, image_size=size)
     if isinstance(found, str):
         return Detection(label, error=f"{label}: {found}", method=method, image_size=size)
-    points, ids = found
-    return Detection(label, points, ids, None, method, size)
+    points, ids, *fallback = found
+    return Detection(label, points, ids, None, method, size, fallback[0] if fallback else None)
 
 
 def image_files(folder: str | os.PathLike) -> list[Path]:
@@ -735,7 +761,9 @@ def write_detections(path: str | os.PathLike, detections: Iterable[Detection],
 
     ``{"pattern": SPEC, "images": [{"file", "points", "ids", "error"}, ...]}``, one entry per
     image, points in pixels (OpenCV convention), one image per line. Each entry also carries
-    ``method`` and ``image_size`` ([w, h]); readers that do not know them can ignore them.
+    ``method`` and ``image_size`` ([w, h]), and ``fallback`` (one bool per point) when a point's
+    refinement failed and it kept the initial detector's position; readers that do not know
+    these keys can ignore them (a reader that ignores ``fallback`` uses less accurate points).
     The file is written to a temporary name and renamed, so it is never left half written.
     """
     path = Path(path)

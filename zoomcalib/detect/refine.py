@@ -227,7 +227,7 @@ def _xj_eval(
     h, k = u1 * inv_s, u2 * inv_s
     r_ = rho[e]
     nh, nk = ndtr(h), ndtr(k)
-    g = nh + nk - 2.0 * (nh * nk + _sheppard(h, k, r_, None))
+    g = nh + nk - 2.0 * (nh * nk + _sheppard_by_rho(h, k, r_))
     pix = g @ wts  # (K, M)
     f = b[:, None] + a[:, None] * pix
     if not jacobian:
@@ -251,6 +251,19 @@ def _xj_eval(
     jac[..., 5] = 1.0
     jac[..., 6] = av * (-(gh * h + gk * k) @ wts) * dlogs[:, None]
     return f, jac
+
+
+def _sheppard_by_rho(h: np.ndarray, k: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """:func:`~zoomcalib.imaging._sheppard` with the quadrature order chosen per corner (the
+    first axis), so one corner with nearly parallel edges does not raise every corner's cost."""
+    counts = _rho_node_counts(np.abs(rho.reshape(len(rho), -1)[:, 0]))
+    if np.all(counts == counts[0]):
+        return _sheppard(h, k, rho, int(counts[0]))
+    out = np.empty(np.broadcast_shapes(h.shape, k.shape))
+    for n in np.unique(counts):
+        sel = counts == n
+        out[sel] = _sheppard(h[sel], k[sel], rho[sel], int(n))
+    return out
 
 
 def xjunction_image(
@@ -779,86 +792,140 @@ def refine_corners(
     if isinstance(sigma, str) and sigma != "shared":
         raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
     K = pts.shape[0]
-    if sigma == "shared":
-        first = refine_corners(img, pts, window, None, pixel_model=pixel_model, n_sub=n_sub,
-                               max_iter=max_iter, tol=tol, chunk=chunk)
-        good = first.converged & np.isfinite(first.sigma)
-        s_shared = float(np.median(first.sigma[good])) if np.any(good) else 1.0
-        return refine_corners(img, first.points, window, s_shared, pixel_model=pixel_model,
-                              n_sub=n_sub, max_iter=max_iter, tol=tol, chunk=chunk)
     out = RefineResult(
         points=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
         rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan), contrast=np.full(K, np.nan),
         offset=np.full(K, np.nan), sigma=np.full(K, np.nan), n_iter=np.zeros(K, int),
     )
-    for start in range(0, K, chunk):
-        sl = slice(start, min(start + chunk, K))
-        _refine_chunk(img, pts[sl], window, sigma, pixel_model, n_sub, max_iter, tol, out, sl)
+    chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
+              for s in range(0, K, chunk)]
+    gaussian_only = pixel_model == "gaussian"
+    if sigma == "shared":
+        # Stage 1 fits the blur per corner with the cheap pixel model; stage 2 fixes the median.
+        for c in chunks:
+            c.fit(None, "gaussian", 1, max_iter, tol if gaussian_only else 1e-3)
+        fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
+        good = np.isfinite(fitted)
+        sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
+        for c in chunks:
+            c.drop_sigma(sigma)
+    elif not gaussian_only:
+        for c in chunks:
+            c.fit(sigma, "gaussian", 1, max_iter, 1e-3)
+    for c in chunks:
+        if gaussian_only:
+            c.fit(sigma, "gaussian", 1, max_iter, tol)
+        else:
+            c.fit(sigma, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(sigma)),
+                  max_iter, tol)
+        c.store(out, sigma)
     return out
 
 
-def _refine_chunk(img, pts, window, sigma, pixel_model, n_sub, max_iter, tol, out, sl):
-    data, wts, origin = _extract(img, pts, window)
-    xy = _window_grid(window)
-    local = pts - origin
-    n = pts.shape[0]
-    fit_sigma = sigma is None
-    s_fixed = np.full(n, 1.0 if sigma is None else float(sigma))
-    # pixels outside the image take the mean of the inside ones (no false edge at the border)
-    fill = (data * wts).sum(1, keepdims=True) / np.maximum(wts.sum(1, keepdims=True), 1.0)
-    angles = _initial_angles(np.where(wts > 0, data, fill), window, local)
-    p0 = np.column_stack([local, angles, np.ones(n), np.zeros(n)])
-    pix, _ = _xj_eval(p0, s_fixed, xy, "gaussian", 1, jacobian=False)
-    p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
-    if fit_sigma:
-        p0 = np.column_stack([p0, np.log(s_fixed)])
-    n_par = p0.shape[1]
+def _rho_node_counts(rho_abs: np.ndarray) -> np.ndarray:
+    """Gauss-Legendre order of Sheppard's integral per corner (as ``imaging._n_rho_nodes``)."""
+    return np.where(rho_abs <= 0.75, 6, np.where(rho_abs <= 0.9, 10, 16))
 
-    def make_fun(model: PixelModel):
-        def fun(p, idx):
-            s = np.exp(p[:, 6]) if fit_sigma else s_fixed[idx]
-            f, jac = _xj_eval(p[:, :6], s, xy, model, n_sub or 1)
+
+@dataclass
+class _CornerChunk:
+    """The windows of a batch of corners and the state of their fit, carried across stages.
+
+    ``p`` holds ``(cx, cy, alpha1, alpha2, a, b[, log sigma])`` in window coordinates (origin at
+    the pixel ``origin``); ``lm`` is the last stage's Levenberg-Marquardt output.
+    """
+
+    data: np.ndarray
+    weights: np.ndarray
+    origin: np.ndarray
+    window: int
+    where: slice
+    p: np.ndarray
+    lm: _LMOut | None = None
+    n_iter: np.ndarray | None = None
+
+    @classmethod
+    def start(cls, img: np.ndarray, pts: np.ndarray, window: int, where: slice) -> _CornerChunk:
+        """Windows around ``pts``, edge angles from the gradient histogram, ``a, b`` linear."""
+        data, wts, origin = _extract(img, pts, window)
+        local = pts - origin
+        n = len(pts)
+        # pixels outside the image take the mean of the inside ones (no false edge at the border)
+        fill = (data * wts).sum(1, keepdims=True) / np.maximum(wts.sum(1, keepdims=True), 1.0)
+        angles = _initial_angles(np.where(wts > 0, data, fill), window, local)
+        p0 = np.column_stack([local, angles, np.ones(n), np.zeros(n)])
+        pix, _ = _xj_eval(p0, np.ones(n), _window_grid(window), "gaussian", 1, jacobian=False)
+        p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
+        return cls(data, wts, origin, window, where, p0, None, np.zeros(n, int))
+
+    def fit(self, sigma: float | None, model: PixelModel, n_sub: int, max_iter: int,
+            tol: float) -> None:
+        """One Levenberg-Marquardt stage; ``sigma=None`` fits ``log sigma`` per corner."""
+        xy = _window_grid(self.window)
+        fit_sigma = sigma is None
+        p = self.p
+        if fit_sigma and p.shape[1] == 6:
+            p = np.column_stack([p, np.zeros(len(p))])  # log sigma = 0: sigma starts at 1 px
+        n_par = p.shape[1]
+
+        def fun(q, idx):
+            s = np.exp(q[:, 6]) if fit_sigma else np.full(len(q), float(sigma))
+            f, jac = _xj_eval(q[:, :6], s, xy, model, n_sub)
             return f, jac[..., :n_par]
 
-        return fun
+        def valid(q):
+            ok = np.all(np.abs(q[:, :2]) < self.window, axis=1)
+            if fit_sigma:
+                ok &= (q[:, 6] > np.log(0.05)) & (q[:, 6] < np.log(self.window))
+            return ok
 
-    def valid(p):
-        ok = np.all(np.abs(p[:, :2]) < window, axis=1)
-        if fit_sigma:
-            ok &= (p[:, 6] > np.log(0.05)) & (p[:, 6] < np.log(window))
-        return ok
+        self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
+                              valid=valid)
+        self.p = self.lm.p
+        self.n_iter = self.n_iter + self.lm.n_iter
 
-    stage1 = pixel_model == "quadrature"
-    lm = _batched_lm(make_fun("gaussian"), p0, data, wts, max_iter=max_iter,
-                     tol=1e-3 if stage1 else tol, valid=valid)
-    if stage1:
-        n_iter = lm.n_iter
-        if n_sub is None:
-            s_est = np.exp(lm.p[:, 6]) if fit_sigma else s_fixed
-            n_sub = auto_n_sub(float(np.min(s_est, initial=np.inf)))
-        lm = _batched_lm(make_fun("quadrature"), lm.p, data, wts, max_iter=max_iter, tol=tol,
-                         valid=valid)
-        lm.n_iter = lm.n_iter + n_iter
-    cov, rms = _covariance(lm, wts, n_par)
-    p = _normalise_xj(lm.p)
-    sig = np.exp(p[:, 6]) if fit_sigma else s_fixed
-    d_ang = np.abs(np.sin(p[:, 2] - p[:, 3]))
-    ok = (
-        lm.converged
-        & np.all(np.abs(p[:, :2]) < window - 1, axis=1)
-        & (np.abs(p[:, 4]) > 5.0 * rms)
-        & (d_ang > np.sin(np.deg2rad(10.0)))
-        & np.all(np.isfinite(cov.reshape(n, -1)), axis=1)
-    )
-    out.points[sl] = p[:, :2] + origin
-    out.cov[sl] = cov
-    out.converged[sl] = ok
-    out.rms[sl] = rms
-    out.angles[sl] = p[:, 2:4]
-    out.contrast[sl] = p[:, 4]
-    out.offset[sl] = p[:, 5]
-    out.sigma[sl] = sig
-    out.n_iter[sl] = lm.n_iter
+    def sigma_fitted(self) -> np.ndarray:
+        """Per-corner fitted blur, px; NaN where the stage did not converge."""
+        return np.where(self.lm.converged, np.exp(self.p[:, 6]), np.nan)
+
+    def drop_sigma(self, sigma: float) -> None:
+        """Fix the blur for the next stage (``a, b`` refitted for it)."""
+        self.p = self.p[:, :6].copy()
+        pix, _ = _xj_eval(self.p, np.full(len(self.p), sigma), _window_grid(self.window),
+                          "gaussian", 1, jacobian=False)
+        self.p[:, 4], self.p[:, 5] = _linear_ab(pix, self.data, self.weights)
+
+    def smallest_sigma(self, sigma: float | None) -> float:
+        """The smallest blur of the batch, for the pixel quadrature's order."""
+        if sigma is not None:
+            return float(sigma)
+        fitted = self.sigma_fitted()
+        return float(np.nanmin(fitted)) if np.any(np.isfinite(fitted)) else 1.0
+
+    def store(self, out: RefineResult, sigma: float | None) -> None:
+        """Write the fit into ``out`` with the acceptance tests of :func:`refine_corners`."""
+        n_par = self.p.shape[1]
+        cov, rms = _covariance(self.lm, self.weights, n_par)
+        p = _normalise_xj(self.p)
+        sig = np.exp(p[:, 6]) if sigma is None else np.full(len(p), float(sigma))
+        d_ang = np.abs(np.sin(p[:, 2] - p[:, 3]))
+        ok = (
+            self.lm.converged
+            & np.all(np.abs(p[:, :2]) < self.window - 1, axis=1)
+            & (np.abs(p[:, 4]) > 5.0 * rms)
+            & (d_ang > np.sin(np.deg2rad(10.0)))
+            & np.all(np.isfinite(cov.reshape(len(p), -1)), axis=1)
+        )
+        sl = self.where
+        out.points[sl] = p[:, :2] + self.origin
+        out.cov[sl] = cov
+        out.converged[sl] = ok
+        out.rms[sl] = rms
+        out.angles[sl] = p[:, 2:4]
+        out.contrast[sl] = p[:, 4]
+        out.offset[sl] = p[:, 5]
+        out.sigma[sl] = sig
+        out.n_iter[sl] = self.n_iter
 
 
 # ----------------------------------------------------------------------------------------------
