@@ -1,0 +1,615 @@
+r"""Zoom-wide calibration: every zoom step of one camera in one least-squares adjustment.
+
+Why
+---
+At the long end of a zoom the views of a board are nearly fronto-parallel and the field of view
+is narrow: one step's images hardly separate the principal point and the distortion from the
+poses, so a per-step calibration trades them freely (principal points 100 px apart between two
+halves of one step, each with a few px of sigma). The steps are not independent, though: they see
+the same board, and the principal point and the distortion of a zoom lens move smoothly with
+the focal length. This module estimates all steps together.
+
+Model
+-----
+Step ``s`` has intrinsics ``theta_s = (fx, fy, cx, cy, k1, k2, p1, p2, k3)`` (OpenCV's pinhole
+and Brown-Conrady model, pixels in OpenCV's convention); each view ``v`` its pose
+``Rt_cam_board = (rvec_v, tvec_v)``. The board is one surface for every view of every step:
+
+.. math::
+
+    X_j = X^0_j + e_z \sum_m a_m \phi_m(x_j, y_j),\qquad
+    \phi_m = P_k(\tilde x) P_l(\tilde y),\quad 2 \le k + l \le d,
+
+the nominal flat points ``X^0`` plus a smooth height (paper waviness) in Legendre products of
+the normalised board coordinates (degree 0 and 1 are left out: a piston and a tilt are a change
+of pose). The amplitudes ``a_m`` (mm) carry a weak zero-mean prior of sd ``board_prior_mm``.
+
+The smoothness prior ties each parameter ``q`` of ``cx, cy, k1, k2, p1, p2, k3`` across zoom:
+with ``u_s = log fx_s`` (from the per-step start) and the steps sorted by ``u``, the second
+divided differences
+
+.. math::
+
+    (D q)_i = 2\left[\frac{q_{i+2} - q_{i+1}}{u_{i+2} - u_{i+1}}
+              - \frac{q_{i+1} - q_i}{u_{i+1} - u_i}\right] / (u_{i+2} - u_i)
+    \sim N(0, \tau_q^2)
+
+(a path that is linear in log focal length costs nothing). ``tau_q`` is estimated from the data
+by restricted maximum likelihood from the per-step estimates ``q_hat_s`` and their sigmas
+(:func:`prior_strength`). ``fx`` and ``fy`` are free per step.
+
+The cost is ``sum_s sum_obs |uv_obs - uv(theta_s, pose_v, X_j)|^2 / sigma_s^2 + |D q / tau|^2 +
+|a / board_prior|^2``, ``sigma_s`` each step's image noise per coordinate, re-estimated from
+the residuals (observations beyond 5 sigma are rejected and the fit repeated). It is minimised by
+Levenberg-Marquardt on the sparse Jacobian. The covariance of every parameter is the posterior
+``(J^T J)^{-1}`` of the whole problem (prior rows included), so a long-end step's sigma includes
+what it borrows from its neighbours.
+
+Which distortion terms a step supports is chosen by held-out views (:func:`select_distortion`):
+two-fold cross-validation over the step's views with OpenCV, the simplest term set whose held-out
+error is within 1 % of the best.
+
+References: Zheng, Wang & Huang, ISPRS J. Photogramm. 2015 (zoom/focus models of the intrinsics
+in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (1995)
+(systematic, repeatable principal-point motion of up to 90 px).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+from .bundle import project_jacobian
+from .opencv_backend import calibrate_opencv
+from .result import CalibrationResult, Observations
+
+__all__ = ["PARAMS", "SMOOTHED", "DISTORTION_SETS", "ZoomWideResult", "calibrate_zoom_wide",
+           "select_distortion", "prior_strength", "second_difference", "board_height_modes"]
+
+#: Per-step intrinsics of the adjustment, in this order.
+PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: Parameters tied across zoom by the smoothness prior.
+SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: Distortion term sets, simplest first.
+DISTORTION_SETS: dict[str, tuple[str, ...]] = {
+    "none": (), "k1": ("k1",), "k1k2": ("k1", "k2"), "k1k2p": ("k1", "k2", "p1", "p2"),
+    "k1k2p1p2k3": ("k1", "k2", "p1", "p2", "k3"),
+}
+_FIX_FLAGS = {"k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3}
+_OUTLIER_SIGMA = 5.0
+
+
+# ----------------------------------------------------------------------------------------------
+# building blocks
+
+
+def board_height_modes(points: np.ndarray, max_degree: int = 4) -> np.ndarray:
+    """Height modes ``phi_m`` of a board, ``(n, M)``: Legendre products of total degree 2..d.
+
+    ``points`` (n, 3) board frame; coordinates normalised to [-1, 1] over the board's extent.
+    """
+    xy = np.asarray(points, float)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    t = 2.0 * (xy - lo) / np.maximum(hi - lo, 1e-12) - 1.0
+    cols = [np.polynomial.legendre.legval(t[:, 0], np.eye(k + 1)[k])
+            * np.polynomial.legendre.legval(t[:, 1], np.eye(d - k + 1)[d - k])
+            for d in range(2, max_degree + 1) for k in range(d + 1)]
+    return np.column_stack(cols) if cols else np.zeros((len(xy), 0))
+
+
+def second_difference(u: np.ndarray) -> np.ndarray:
+    """``(n - 2, n)`` second divided differences over increasing abscissae ``u`` (module doc)."""
+    u = np.asarray(u, float)
+    n = len(u)
+    D = np.zeros((max(n - 2, 0), n))
+    for i in range(n - 2):
+        h0, h1, h2 = u[i + 1] - u[i], u[i + 2] - u[i + 1], u[i + 2] - u[i]
+        D[i, i:i + 3] = 2.0 * np.array([1.0 / (h0 * h2), -1.0 / (h0 * h1), 1.0 / (h1 * h2)])
+    return D
+
+
+def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
+    """Restricted maximum-likelihood ``tau`` of the second-difference prior.
+
+    Model: ``q_hat = q + e``, ``e ~ N(0, diag sd^2)``, ``D q ~ N(0, tau^2 I)`` with a flat prior
+    on the straight lines in ``u`` (the null space of ``D``). With ``N`` an orthonormal basis
+    orthogonal to ``[1, u]``, ``y = N^T q_hat ~ N(0, tau^2 (D N)^{-1} (D N)^{-T} + N^T S N)``;
+    ``tau`` maximises that likelihood over a log grid.
+
+    Returns
+    -------
+    tau : float
+        In units of ``q`` per ``u^2``; ``inf`` with fewer than 3 steps (no prior).
+    at_bound : bool
+        The maximum lies at the grid's lower end: the data are as smooth as their noise shows.
+    """
+    values, sd, u = (np.asarray(a, float) for a in (values, sd, u))
+    n = len(values)
+    if n < 3:
+        return float("inf"), False
+    sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
+    L = np.column_stack([np.ones(n), u - u.mean()])
+    N = scipy.linalg.null_space(L.T)  # (n, n - 2)
+    B = np.linalg.inv(second_difference(u) @ N)
+    y = N.T @ values
+    noise = N.T @ (sd[:, None] ** 2 * N)
+    shape = B @ B.T
+    scale = max(float(np.std(values)) / max(np.ptp(u), 1e-9) ** 2, 1e-12)
+    grid = scale * np.logspace(-6, 4, 201)
+    loglik = [_gauss_loglik(y, t * t * shape + noise) for t in grid]
+    best = int(np.argmax(loglik))
+    return float(grid[best]), best == 0
+
+
+def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
+    c, low = scipy.linalg.cho_factor(cov)
+    return float(-np.sum(np.log(np.diag(c))) - 0.5 * y @ scipy.linalg.cho_solve((c, low), y))
+
+
+def _subset(obs: Observations, keep: np.ndarray) -> Observations:
+    return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
+                        [obs.names[i] for i in keep] if obs.names else [])
+
+
+def _distortion_flags(terms: tuple[str, ...]) -> int:
+    flags = 0 if {"p1", "p2"} & set(terms) else cv2.CALIB_ZERO_TANGENT_DIST
+    for k, bit in _FIX_FLAGS.items():
+        if k not in terms:
+            flags |= bit
+    return flags
+
+
+def held_out_error(obs: Observations, terms: tuple[str, ...]) -> float:
+    """Mean squared reprojection error (px^2 per point) of held-out views, two folds (even and
+    odd views): intrinsics from one half with ``terms`` free, each view of the other half
+    placed by ``cv2.solvePnP`` with those intrinsics."""
+    flags = _distortion_flags(terms)
+    idx = np.arange(obs.n_views)
+    total, count = 0.0, 0
+    for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
+        res = calibrate_opencv(_subset(obs, train), flags=flags)
+        for i in test:
+            ids, pts = obs.views[i]
+            obj = obs.object_points[ids].astype(np.float64)
+            ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
+            if not ok:
+                continue
+            proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
+            total += float(np.sum((proj.reshape(-1, 2) - pts) ** 2))
+            count += len(pts)
+    return total / max(count, 1)
+
+
+def select_distortion(obs: Observations, tolerance: float = 0.01
+                      ) -> tuple[tuple[str, ...], dict[str, float]]:
+    """The simplest distortion term set whose held-out error (:func:`held_out_error`) is within
+    ``tolerance`` (relative) of the best; all five terms when the step has fewer than 6 views.
+
+    Returns the chosen terms and the held-out mean squared error of every set tried (px^2).
+    """
+    if obs.n_views < 6:
+        return DISTORTION_SETS["k1k2p1p2k3"], {}
+    errors = {}
+    for name, terms in DISTORTION_SETS.items():
+        try:
+            errors[name] = held_out_error(obs, terms)
+        except (ValueError, RuntimeError):
+            errors[name] = float("inf")
+    best = min(errors.values())
+    name = next(n for n in DISTORTION_SETS if errors[n] <= best * (1.0 + tolerance))
+    return DISTORTION_SETS[name], errors
+
+
+# ----------------------------------------------------------------------------------------------
+# the joint problem
+
+
+@dataclass
+class _Step:
+    """One zoom step's observations, flattened: ``view`` (N,) index into the step's views,
+    ``point`` (N,) board point ids, ``uv`` (N, 2) px; ``inlier`` (N,) bool."""
+
+    name: str
+    view: np.ndarray
+    point: np.ndarray
+    uv: np.ndarray
+    n_views: int
+    inlier: np.ndarray
+    sigma: float = 1.0
+
+    @classmethod
+    def from_observations(cls, name: str, obs: Observations, sigma: float) -> _Step:
+        view = np.concatenate([np.full(len(ids), i) for i, (ids, _) in enumerate(obs.views)])
+        point = np.concatenate([ids for ids, _ in obs.views]).astype(np.int64)
+        uv = np.concatenate([pts for _, pts in obs.views]).astype(np.float64)
+        return cls(name, view, point, uv, obs.n_views, np.ones(len(view), bool), sigma)
+
+
+@dataclass
+class _State:
+    """Unknowns: ``cams`` (S, 9) in ``PARAMS`` order, ``modes`` (M,) mm, ``rvecs``/``tvecs``
+    (V, 3) for the views of all steps, step after step."""
+
+    cams: np.ndarray
+    modes: np.ndarray
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+
+    def vector(self, free: np.ndarray) -> np.ndarray:
+        """The unknowns in column order (``free`` (S, 9) selects the free intrinsics)."""
+        return np.concatenate([self.cams[free], self.modes,
+                               np.column_stack([self.rvecs, self.tvecs]).ravel()])
+
+
+class _ZoomProblem:
+    """Residuals and sparse Jacobian of the zoom-wide cost (module docstring).
+
+    Columns: the free intrinsics of every step (``free`` (S, 9) bool), then the board modes,
+    then six pose columns per view. Rows: two per inlier observation (scaled by ``1/sigma_s``),
+    then the smoothness rows ``D q / tau_q``, then ``a / board_prior``.
+    """
+
+    def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
+                 free: np.ndarray, order: np.ndarray, u: np.ndarray, tau: dict[str, float],
+                 board_prior_mm: float):
+        self.steps, self.board, self.phi = steps, board, modes_basis
+        self.free, self.order, self.u, self.tau = free, order, u, tau
+        self.board_prior = board_prior_mm
+        self.cam_col = np.full(free.shape, -1)
+        self.cam_col[free] = np.arange(int(free.sum()))
+        self.n_cam = int(free.sum())
+        self.n_modes = modes_basis.shape[1]
+        self.view_start = np.cumsum([0] + [s.n_views for s in steps])
+        self.n_unknowns = self.n_cam + self.n_modes + 6 * int(self.view_start[-1])
+        self.prior_rows = self._prior_rows()
+
+    def _prior_rows(self) -> scipy.sparse.csr_matrix:
+        rows = []
+        for name in SMOOTHED:
+            j = PARAMS.index(name)
+            steps = [s for s in self.order if self.free[s, j]]
+            tau = self.tau.get(name, np.inf)
+            if len(steps) < 3 or not np.isfinite(tau):
+                continue
+            D = second_difference(self.u[steps]) / tau
+            block = np.zeros((len(D), self.n_unknowns))
+            block[:, self.cam_col[steps, j]] = D
+            rows.append(block)
+        if self.n_modes:
+            block = np.zeros((self.n_modes, self.n_unknowns))
+            block[:, self.n_cam:self.n_cam + self.n_modes] = np.eye(self.n_modes) / self.board_prior
+            rows.append(block)
+        if not rows:
+            return scipy.sparse.csr_matrix((0, self.n_unknowns))
+        return scipy.sparse.csr_matrix(np.vstack(rows))
+
+    def points(self, modes: np.ndarray) -> np.ndarray:
+        """The board's 3-D points (n, 3) for height amplitudes ``modes``."""
+        X = self.board.copy()
+        X[:, 2] += self.phi @ modes
+        return X
+
+    def evaluate(self, state: _State, jacobian: bool = True):
+        """Weighted residuals (model minus observed, over sigma) and, optionally, the Jacobian."""
+        X = self.points(state.modes)
+        res, rows, cols, vals = [], [], [], []
+        row0 = 0
+        for s, step in enumerate(self.steps):
+            v0, v1 = self.view_start[s], self.view_start[s + 1]
+            sel = step.inlier
+            cam = np.concatenate([state.cams[s], np.zeros(3)])
+            out = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X,
+                                   step.view[sel], step.point[sel], jacobian=jacobian)
+            uv = out[0] if jacobian else out
+            res.append(((uv - step.uv[sel]) / step.sigma).ravel())
+            if jacobian:
+                self._jacobian_entries(s, step, out[1:], row0, rows, cols, vals)
+            row0 += 2 * int(sel.sum())
+        r = np.concatenate(res)
+        x = state.vector(self.free)
+        prior = self.prior_rows @ x
+        r = np.concatenate([r, prior])
+        if not jacobian:
+            return r
+        J = scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                     np.concatenate(cols))), shape=(row0, self.n_unknowns))
+        return r, scipy.sparse.vstack([J, self.prior_rows], format="csr")
+
+    def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals):
+        Jc, Jp, Jx = jac
+        sel = step.inlier
+        n = int(sel.sum())
+        row = row0 + np.arange(2 * n).reshape(n, 2)
+        w = 1.0 / step.sigma
+        free = np.flatnonzero(self.free[s])
+        pose_col = (self.n_cam + self.n_modes + 6 * (self.view_start[s] + step.view[sel]))
+        blocks = [(Jc[:, :, free], np.broadcast_to(self.cam_col[s, free], (n, len(free)))),
+                  (Jp, pose_col[:, None] + np.arange(6))]
+        if self.n_modes:
+            blocks.append((Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :],
+                           np.broadcast_to(self.n_cam + np.arange(self.n_modes),
+                                           (n, self.n_modes))))
+        for block, col in blocks:
+            k = block.shape[2]
+            rows.append(np.repeat(row, k, axis=1).ravel())
+            cols.append(np.repeat(col[:, None, :], 2, axis=1).ravel())
+            vals.append((block * w).ravel())
+
+    def apply(self, state: _State, delta: np.ndarray) -> _State:
+        cams = state.cams.copy()
+        cams[self.free] += delta[:self.n_cam]
+        modes = state.modes + delta[self.n_cam:self.n_cam + self.n_modes]
+        pose = delta[self.n_cam + self.n_modes:].reshape(-1, 6)
+        return _State(cams, modes, state.rvecs + pose[:, :3], state.tvecs + pose[:, 3:])
+
+
+@dataclass
+class _Solve:
+    state: _State
+    cost: float
+    iterations: int
+    converged: bool
+    stop_reason: str
+
+
+def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int = 50,
+                         tol: float = 1e-10) -> _Solve:
+    """Marquardt-scaled LM on the dense normal equations of the sparse Jacobian. Stops when the
+    relative decrease of the cost falls below ``tol`` (``"tolerance"``), at the iteration cap,
+    or when the damping passes 1e12 without a decrease (``"damping limit"``)."""
+    r, J = prob.evaluate(state)
+    cost = float(r @ r)
+    lam = 1e-4
+    for it in range(1, max_iterations + 1):
+        A = (J.T @ J).toarray()
+        g = J.T @ r
+        dA = np.diag(A).copy()
+        while True:
+            try:
+                c = scipy.linalg.cho_factor(A + np.diag(lam * (dA + 1e-12 * dA.max())))
+                delta = -scipy.linalg.cho_solve(c, g)
+            except np.linalg.LinAlgError:
+                delta = None
+            if delta is not None:
+                trial = prob.apply(state, delta)
+                r_t = prob.evaluate(trial, jacobian=False)
+                cost_t = float(r_t @ r_t)
+                if np.isfinite(cost_t) and cost_t <= cost:
+                    break
+            lam *= 10.0
+            if lam > 1e12:
+                return _Solve(state, cost, it, False, "damping limit")
+        decrease = (cost - cost_t) / max(cost, 1e-300)
+        state, cost = trial, cost_t
+        lam = max(lam / 10.0, 1e-12)
+        if decrease < tol:
+            return _Solve(state, cost, it, True, "tolerance")
+        r, J = prob.evaluate(state)
+    return _Solve(state, cost, max_iterations, False, "iteration cap")
+
+
+# ----------------------------------------------------------------------------------------------
+# the adjustment
+
+
+@dataclass
+class ZoomWideResult:
+    """What :func:`calibrate_zoom_wide` found.
+
+    Attributes
+    ----------
+    results : dict of str to CalibrationResult
+        Per step, ``backend = "zoom-wide"``: intrinsics, ``sd`` (posterior 1-sigma of the joint
+        problem), per-view RMS, poses, rejected observations, and the common board's points.
+    covariance : (P, P) ndarray
+        Posterior covariance of all per-step intrinsics, ``columns`` names them.
+    columns : list of (str, str)
+        ``(step, parameter)`` of each row of ``covariance``.
+    board_modes, board_modes_sd : (M,) ndarray
+        Height amplitudes of the board (mm) and their sigmas.
+    tau : dict of str to float
+        Estimated prior strength per smoothed parameter (units per (log px)^2); ``inf`` = none.
+    terms : dict of str to tuple
+        Distortion terms chosen per step.
+    held_out : dict of str to dict
+        Held-out mean squared error (px^2) per step and term set.
+    converged : bool
+    stop_reason : str
+    iterations : int
+    """
+
+    results: dict[str, CalibrationResult]
+    covariance: np.ndarray
+    columns: list[tuple[str, str]]
+    board_modes: np.ndarray
+    board_modes_sd: np.ndarray
+    tau: dict[str, float]
+    terms: dict[str, tuple[str, ...]]
+    held_out: dict[str, dict[str, float]] = field(default_factory=dict)
+    converged: bool = False
+    stop_reason: str = ""
+    iterations: int = 0
+
+
+def _initial(observations: Mapping[str, Observations], select: bool):
+    """Per step: chosen terms, their held-out errors and an OpenCV calibration with them."""
+    terms, held, init = {}, {}, {}
+    for name, obs in observations.items():
+        if select:
+            terms[name], held[name] = select_distortion(obs)
+        else:
+            terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
+        init[name] = calibrate_opencv(obs, flags=_distortion_flags(terms[name]))
+    return terms, held, init
+
+
+def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.ndarray, list]:
+    cams = np.array([[r.fx, r.fy, r.cx, r.cy, *(list(r.dist[:5]) + [0.0] * 5)[:5]]
+                     for r in init.values()])
+    # PARAMS order is k1, k2, p1, p2, k3: the same as OpenCV's first five terms
+    free = np.array([[p in ("fx", "fy", "cx", "cy") or p in terms[s] for p in PARAMS]
+                     for s in init])
+    cams[:, 4:][~free[:, 4:]] = 0.0
+    rvecs = np.concatenate([r.rvecs for r in init.values()])
+    tvecs = np.concatenate([r.tvecs for r in init.values()])
+    sds = [[r.sd.get(p, np.nan) for p in PARAMS] for r in init.values()]
+    return _State(cams, np.zeros(0), rvecs, tvecs), free, sds
+
+
+def _estimate_tau(cams: np.ndarray, sds, free: np.ndarray, order: np.ndarray, u: np.ndarray
+                  ) -> tuple[dict[str, float], dict[str, bool]]:
+    tau, at_bound = {}, {}
+    sds = np.asarray(sds, float)
+    for name in SMOOTHED:
+        j = PARAMS.index(name)
+        steps = [s for s in order if free[s, j]]
+        if len(steps) < 3:
+            continue
+        tau[name], at_bound[name] = prior_strength(cams[steps, j], sds[steps, j], u[steps])
+    return tau, at_bound
+
+
+def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
+    """Re-estimate each step's noise sigma and its inliers; True when anything changed."""
+    X = prob.points(state.modes)
+    changed = False
+    for s, step in enumerate(prob.steps):
+        v0, v1 = prob.view_start[s], prob.view_start[s + 1]
+        cam = np.concatenate([state.cams[s], np.zeros(3)])
+        uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
+                              step.point, jacobian=False)
+        err = np.linalg.norm(uv - step.uv, axis=1)
+        dof = max(2 * int(step.inlier.sum()) - 6 * step.n_views - int(free[s].sum()), 1)
+        sigma = float(np.sqrt(np.sum(err[step.inlier] ** 2) / dof))
+        inlier = err <= _OUTLIER_SIGMA * sigma
+        if abs(sigma - step.sigma) > 0.01 * step.sigma or np.any(inlier != step.inlier):
+            changed = True
+        step.sigma, step.inlier = sigma, inlier
+    return changed
+
+
+def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
+                        board_degree: int = 4, board_prior_mm: float = 1.0,
+                        max_rounds: int = 4) -> ZoomWideResult:
+    """Calibrate every zoom step of one camera together (module docstring).
+
+    Parameters
+    ----------
+    observations : mapping of step name to Observations
+        The same board (same ``object_points``, board frame, mm) at every step; at least 3
+        views per step (6 for the choice of distortion terms).
+    select : bool
+        Choose each step's distortion terms by held-out views; else all five are free.
+    board_degree : int
+        Highest total degree of the board's height modes (< 2: a flat board).
+    board_prior_mm : float
+        Prior sd of each height amplitude, mm.
+    max_rounds : int
+        Rounds of noise re-estimation and outlier rejection.
+
+    Returns
+    -------
+    ZoomWideResult
+
+    Raises
+    ------
+    ValueError
+        If the steps see different boards, or fewer than 2 steps are given.
+    """
+    names = list(observations)
+    if len(names) < 2:
+        raise ValueError(f"a zoom-wide calibration needs 2 or more steps, got {len(names)}")
+    board = np.asarray(observations[names[0]].object_points, float)
+    for n in names[1:]:
+        if not np.array_equal(observations[n].object_points, board):
+            raise ValueError(f"step {n}: another board than step {names[0]}'s")
+    terms, held, init = _initial(observations, select)
+    state, free, sds = _start(init, terms)
+    u = np.log(state.cams[:, 0])
+    order = np.argsort(u, kind="stable")
+    tau, tau_at_bound = _estimate_tau(state.cams, sds, free, order, u)
+    phi = (board_height_modes(board, board_degree) if board_degree >= 2
+           else np.zeros((len(board), 0)))
+    state.modes = np.zeros(phi.shape[1])
+    steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
+             for n in names]
+    prob = _ZoomProblem(steps, board, phi, free, order, u, tau, board_prior_mm)
+    total_iterations = 0
+    for _ in range(max_rounds):
+        solve = _levenberg_marquardt(prob, state)
+        state, total_iterations = solve.state, total_iterations + solve.iterations
+        if not _update_noise(prob, state, free):
+            break
+    else:
+        solve = _levenberg_marquardt(prob, state)
+        state, total_iterations = solve.state, total_iterations + solve.iterations
+    return _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
+
+
+def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
+    """``(J^T J)^{-1}`` of the weighted problem (prior rows included), all unknowns."""
+    _, J = prob.evaluate(state)
+    A = (J.T @ J).toarray()
+    c = scipy.linalg.cho_factor(A)
+    return scipy.linalg.cho_solve(c, np.eye(len(A)))
+
+
+def _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, iterations
+            ) -> ZoomWideResult:
+    cov = _posterior_covariance(prob, state)
+    if np.any(np.diag(cov) <= 0):
+        raise RuntimeError("zoom-wide covariance is not positive definite")
+    X = prob.points(state.modes)
+    n_cam, n_modes = prob.n_cam, prob.n_modes
+    columns = [(prob.steps[s].name, PARAMS[j]) for s, j in zip(*np.nonzero(prob.free),
+                                                               strict=True)]
+    results = {}
+    for s, step in enumerate(prob.steps):
+        results[step.name] = _step_result(prob, s, state, cov, X, init[step.name], terms, tau)
+        results[step.name].info.update({
+            "converged": solve.converged, "stop_reason": solve.stop_reason,
+            "held_out_mse_px2": held.get(step.name, {}),
+            "tau_at_lower_bound": dict(tau_at_bound),
+        })
+    modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
+    return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
+                          {k: float(v) for k, v in tau.items()}, terms, held, solve.converged,
+                          solve.stop_reason, iterations)
+
+
+def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: np.ndarray,
+                 init: CalibrationResult, terms, tau) -> CalibrationResult:
+    step = prob.steps[s]
+    v0, v1 = prob.view_start[s], prob.view_start[s + 1]
+    fx, fy, cx, cy, *dist = state.cams[s]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    cols = prob.cam_col[s]
+    sd = {p: float(np.sqrt(cov[cols[j], cols[j]])) if cols[j] >= 0 else 0.0
+          for j, p in enumerate(PARAMS)}
+    cam = np.concatenate([state.cams[s], np.zeros(3)])
+    uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
+                          step.point, jacobian=False)
+    e2 = np.sum((uv - step.uv) ** 2, axis=1)
+    per_view = np.array([np.sqrt(e2[(step.view == v) & step.inlier].mean())
+                         for v in range(step.n_views)])
+    rejected = [(int(v), int(p)) for v, p in zip(step.view[~step.inlier],
+                                                  step.point[~step.inlier], strict=True)]
+    intr = cols[cols >= 0]
+    sub = cov[np.ix_(intr, intr)]
+    corr = sub / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))
+    info = {"mode": "zoom-wide", "distortion_terms": list(terms[step.name]),
+            "fixed": [p for j, p in enumerate(PARAMS) if cols[j] < 0],
+            "noise_sigma_px": step.sigma, "tau": {k: float(v) for k, v in tau.items()},
+            "correlation": corr,
+            "correlation_names": [PARAMS[j] for j in np.flatnonzero(cols >= 0)],
+            "sd_kind": "posterior of the zoom-wide problem",
+            "views": list(init.info.get("views", []))}
+    return CalibrationResult("zoom-wide", K, np.asarray(dist, float), sd,
+                             float(np.sqrt(e2[step.inlier].mean())), per_view,
+                             state.rvecs[v0:v1].copy(), state.tvecs[v0:v1].copy(), rejected,
+                             X.copy(), None, info)
