@@ -324,6 +324,9 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     if not run.results:
         raise click.ClickException("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")
+    if run.partial:  # exit code 3: some steps or backends are missing from the results
+        click.echo(run.partial_message())
+        click.get_current_context().exit(3)
 
 
 @main.command()
