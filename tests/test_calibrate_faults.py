@@ -288,3 +288,14 @@ def test_calibrate_exits_3_naming_the_dropped_step(tmp_path):
     assert res.exit_code == 3, res.output
     assert "partial" in res.output and "zoom_2" in res.output.splitlines()[-1]
     assert (out / "calibration.json").exists()
+
+
+def test_output_folder_inside_a_flat_image_folder_is_not_a_step(tmp_path):
+    # `zoomcalib calibrate .` run from inside the image folder: OUT (with its figures) is a
+    # subfolder of the images, and must not turn the folder into a zoom set on the rerun
+    cam = _camera_a(tmp_path / "a", 7)
+    out = cam / "zoomcalib-calibration"
+    _calibrate(cam, out)
+    assert list(out.glob("residuals_*.png"))
+    run, _ = _calibrate(cam, out)
+    assert list(run.results) == ["."] and len(run.observations["."].names) == 7

@@ -3,7 +3,7 @@
 - :func:`step_file_stems`: file names for the zoom steps that no two steps share;
 - :func:`detect_with_cache`: detections reused only for images whose content (size and
   BLAKE2b hash) and detection settings (pattern, method, options, zoomcalib and OpenCV
-  versions) are unchanged;
+  versions, digest of the detection code) are unchanged;
 - :func:`keep_majority_size`: an image of another size than most of its step is left out,
   named, instead of dropping the step;
 - :func:`clear_previous_outputs` and :func:`write_manifest`: each run owns its output folder;
@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 
 from .. import __version__
+from .. import detect as detect_package
 from ..detect import detect_folder, read_detections, write_detections
 from ..detect.opencv import Detection, default_method
 from ..io import read_json
@@ -120,13 +121,24 @@ def image_fingerprints(files: Iterable[Path]) -> list[dict]:
             for f in files]
 
 
+def _detector_code_digest() -> str:
+    """BLAKE2b (64-bit, hex) of the source files of ``zoomcalib.detect``: a change of the
+    detection code between releases also invalidates cached detections."""
+    h = hashlib.blake2b(digest_size=8)
+    for f in sorted(Path(detect_package.__file__).parent.glob("*.py")):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def detection_settings(target: Target, method: str | None, options: Mapping | None = None
                        ) -> dict:
     """Everything besides the images that changes the detections: pattern, method (the
-    target's default resolved), method options, zoomcalib and OpenCV versions."""
+    target's default resolved), method options, zoomcalib and OpenCV versions and the
+    detection code's digest."""
     return {"pattern": target.spec, "method": method or default_method(target),
             "options": dict(options or {}), "zoomcalib": __version__,
-            "opencv": cv2.__version__}
+            "detector_code": _detector_code_digest(), "opencv": cv2.__version__}
 
 
 def _fingerprint_key(fp: Mapping) -> tuple:

@@ -535,10 +535,18 @@ def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
     return out
 
 
+def _is_output_folder(folder: Path) -> bool:
+    """True for a calibrate job's output folder (its figures are images, not a zoom step)."""
+    return (folder / "calibration.json").is_file() or (folder / "manifest.json").is_file()
+
+
 def _step_subfolders(root: Path) -> list[Path]:
-    """The subfolders of ``root`` that hold images (hidden ones skipped), in natural order."""
+    """The subfolders of ``root`` that hold images, in natural order; hidden folders and the
+    calibrate job's output folders (holding ``calibration.json`` or ``manifest.json``, e.g.
+    ``zoomcalib-calibration`` when the job is run from inside the image folder) are skipped."""
     return sorted((p for p in root.iterdir()
-                   if p.is_dir() and not p.name.startswith(".") and image_files(p)),
+                   if p.is_dir() and not p.name.startswith(".") and not _is_output_folder(p)
+                   and image_files(p)),
                   key=lambda p: _natural_key(p.name))
 
 
@@ -552,8 +560,8 @@ def ignored_top_images(folder: str | os.PathLike) -> list[Path]:
 def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None, dict]]:
     """The zoom steps of an image folder (DESIGN.md section 4).
 
-    * ``DIR`` has subfolders that hold images (hidden ones skipped): every such subfolder is a
-      step, named after
+    * ``DIR`` has subfolders that hold images (hidden ones and the calibrate job's own output
+      folders skipped): every such subfolder is a step, named after
       the subfolder, in natural name order (``zoom_2`` before ``zoom_10``). Its zoom comes from
       ``DIR/steps.csv`` (columns ``step`` = subfolder name, ``zoom``; optional ``direction``
       ``in``/``out``, ``sequence``, ``focus``, ``temperature``), else from the one number in the
