@@ -287,7 +287,8 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
     else the images' EXIF focal length. Writes OUT/calibration.json and .yml, and for zoom sets
     OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
-    OUT/detections/, so a rerun (or an interrupted run) does not detect again.
+    OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
+    again. Exit code 3: a partial result (a step dropped, or a backend failed on a step).
     """
     import os
 
