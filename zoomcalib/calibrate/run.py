@@ -257,14 +257,16 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
     meta = {"folder": str(folder), "pattern": pattern, "model": model, "backends": list(backends),
             "method": method, "failures": run.failures, "partial": run.partial_message(),
-            "detection_settings": settings, "detections": provenance,
+            "detection_settings": settings,
+            "detections": {s: {k: v for k, v in p.items() if k != "images"}
+                           for s, p in provenance.items()},
             "left_out": run.left_out, "ignored_images": run.ignored}
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
     if zoom_set and rows:
         run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
-        known = [r for r in rows if np.isfinite(r["zoom"])]
+        known = [_zoom_model_row(r) for r in rows if np.isfinite(r["zoom"])]
         if len(known) >= 4:
             from ..zoom import ZoomModel
 
@@ -289,6 +291,13 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
 # ----------------------------------------------------------------------------------------------
 # helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+
+
+def _zoom_model_row(row: dict) -> dict:
+    """A table row as the zoom model is fitted from: without the distortion terms' 1-sigma
+    columns, so the distortion curves are fitted with equal weights as before those columns
+    were written (fx, fy, cx, cy stay weighted by theirs)."""
+    return {k: v for k, v in row.items() if not k.startswith(("sd_k", "sd_p"))}
 
 
 def _drop(run: CalibrateRun, step: str, why: str, log: Callable[[str], None]) -> None:
