@@ -48,10 +48,11 @@ MANIFEST = "manifest.json"
 
 #: Files the calibrate job writes in ``OUT`` (glob patterns relative to it); a run removes the
 #: ones it does not write itself.
-OWN_FILE_PATTERNS: tuple[str, ...] = (
+_OWN_FILES: tuple[str, ...] = (
     "calibration.json", "calibration.yml", "zoom_calibration.csv", "zoom_model.json",
     "principal_point_path.png", "focal_length.png", "residuals_*.png", MANIFEST,
-    "*.tmp", "detections/*.json", "detections/*.tmp")
+    "detections/*.json")
+OWN_FILE_PATTERNS: tuple[str, ...] = _OWN_FILES + tuple(f"{p}.tmp" for p in _OWN_FILES)
 
 _UNSAFE = re.compile(r"[^\w.-]")  # \w: Unicode letters, digits and "_"
 _MAX_STEM_BYTES = 120
