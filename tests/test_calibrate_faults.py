@@ -299,3 +299,20 @@ def test_output_folder_inside_a_flat_image_folder_is_not_a_step(tmp_path):
     assert list(out.glob("residuals_*.png"))
     run, _ = _calibrate(cam, out)
     assert list(run.results) == ["."] and len(run.observations["."].names) == 7
+
+
+def test_files_listed_by_the_previous_manifest_are_removed_and_nothing_outside(tmp_path):
+    from zoomcalib.calibrate.guards import clear_previous_outputs
+
+    out = tmp_path / "out"
+    (out / "detections").mkdir(parents=True)
+    for name in ("zoom_joint.json", "calibration.json", "detections/a.json",
+                 "detections/b.json", "residuals_x.png", "keep.txt"):
+        (out / name).write_text("x")
+    (tmp_path / "outside.txt").write_text("x")
+    (out / "manifest.json").write_text(json.dumps(
+        {"files": ["zoom_joint.json", "../outside.txt", str(tmp_path / "outside.txt")]}))
+    clear_previous_outputs(out, keep=["detections/a.json"], protect=[out / "residuals_x.png"])
+    left = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert left == {"detections/a.json", "residuals_x.png", "keep.txt"}
+    assert (tmp_path / "outside.txt").exists()
