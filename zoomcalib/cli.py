@@ -287,7 +287,8 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
     else the images' EXIF focal length. Writes OUT/calibration.json and .yml, and for zoom sets
     OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
-    OUT/detections/, so a rerun (or an interrupted run) does not detect again.
+    OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
+    again. Exit code 3: a partial result (a step dropped, or a backend failed on a step).
     """
     import os
 
@@ -324,6 +325,9 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     if not run.results:
         raise click.ClickException("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")
+    if run.partial:  # exit code 3: some steps or backends are missing from the results
+        click.echo(run.partial_message())
+        click.get_current_context().exit(3)
 
 
 @main.command()

@@ -53,7 +53,9 @@ step ``zoom_3x`` is ``step_zoom_3x_opencv_K``. A flat folder (the single step ``
 ------------------------
 One row per step, columns :data:`ZOOM_TABLE_COLUMNS`, then those of
 :data:`ZOOM_TABLE_OPTIONAL` that any row knows. :func:`read_zoom_table` needs only
-:data:`ZOOM_TABLE_REQUIRED`.
+:data:`ZOOM_TABLE_REQUIRED`. The optional columns include ``backend`` (the backend whose
+result the row holds), the rational model's ``k4, k5, k6`` and the 1-sigma ``sd_k1 ...
+sd_k6`` of the distortion terms.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ __all__ = [
     "write_zoom_table",
     "yaml_prefix",
     "zoom_from_name",
+    "ignored_top_images",
     "zoom_steps",
 ]
 
@@ -93,11 +96,13 @@ ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
     "step", "zoom", "fx", "fy", "cx", "cy", "sd_fx", "sd_fy", "sd_cx", "sd_cy",
     "k1", "k2", "p1", "p2", "k3", "rms_px", "n_views")
 #: Columns written after those when any row knows them.
-ZOOM_TABLE_OPTIONAL: tuple[str, ...] = ("direction", "sequence", "focus", "temperature")
+ZOOM_TABLE_OPTIONAL: tuple[str, ...] = (
+    "direction", "sequence", "focus", "temperature", "backend", "k4", "k5", "k6",
+    "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6")
 #: Columns :func:`read_zoom_table` cannot do without.
 ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
 
-_TEXT_COLUMNS = ("step", "direction")
+_TEXT_COLUMNS = ("step", "direction", "backend")
 _INT_COLUMNS = ("n_views", "sequence")
 
 
@@ -371,9 +376,9 @@ def read_zoom_table(path: str | os.PathLike) -> list[dict]:
     Returns
     -------
     list of dict
-        One dict per row, in file order, with every column of the file: ``step`` and
-        ``direction`` as str, ``n_views`` and ``sequence`` as int, other known columns as float
-        (None when empty), unknown columns as float when numeric, else str.
+        One dict per row, in file order, with every column of the file: ``step``,
+        ``direction`` and ``backend`` as str, ``n_views`` and ``sequence`` as int, other
+        known columns as float (None when empty), unknown columns as float when numeric, else str.
 
     Raises
     ------
@@ -530,18 +535,41 @@ def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
     return out
 
 
+def _is_output_folder(folder: Path) -> bool:
+    """True for a calibrate job's output folder (its figures are images, not a zoom step)."""
+    return (folder / "calibration.json").is_file() or (folder / "manifest.json").is_file()
+
+
+def _step_subfolders(root: Path) -> list[Path]:
+    """The subfolders of ``root`` that hold images, in natural order; hidden folders and the
+    calibrate job's output folders (holding ``calibration.json`` or ``manifest.json``, e.g.
+    ``zoomcalib-calibration`` when the job is run from inside the image folder) are skipped."""
+    return sorted((p for p in root.iterdir()
+                   if p.is_dir() and not p.name.startswith(".") and not _is_output_folder(p)
+                   and image_files(p)),
+                  key=lambda p: _natural_key(p.name))
+
+
+def ignored_top_images(folder: str | os.PathLike) -> list[Path]:
+    """The images directly in ``folder`` that :func:`zoom_steps` leaves out, because
+    ``folder`` has step subfolders (empty for a flat folder)."""
+    root = Path(folder)
+    return image_files(root) if _step_subfolders(root) else []
+
+
 def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None, dict]]:
     """The zoom steps of an image folder (DESIGN.md section 4).
 
-    * ``DIR`` holds images directly: one step named ``"."`` (any subfolders are ignored). Its
-      zoom is the ``"."`` row of ``DIR/steps.csv`` when there is one, else the images' EXIF
-      FocalLength, else None.
-    * Otherwise every subfolder that holds images (hidden ones skipped) is a step, named after
+    * ``DIR`` has subfolders that hold images (hidden ones and the calibrate job's own output
+      folders skipped): every such subfolder is a step, named after
       the subfolder, in natural name order (``zoom_2`` before ``zoom_10``). Its zoom comes from
       ``DIR/steps.csv`` (columns ``step`` = subfolder name, ``zoom``; optional ``direction``
       ``in``/``out``, ``sequence``, ``focus``, ``temperature``), else from the one number in the
       folder name (``zoom_3x`` -> 3, ``zoom_07`` -> 7), else from the median EXIF FocalLength
-      (mm) of its images, else None.
+      (mm) of its images, else None. Images directly in ``DIR`` are then not calibrated (a
+      printed target or a preview next to the steps); :func:`ignored_top_images` lists them.
+    * Otherwise ``DIR`` holds images directly: one step named ``"."``. Its zoom is the ``"."``
+      row of ``DIR/steps.csv`` when there is one, else the images' EXIF FocalLength, else None.
 
     When ``steps.csv`` exists it must list every step subfolder, and only those: a name that
     does not match is far more often a typo than an intended gap, and mixing zoom sources
@@ -571,7 +599,8 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
         raise FileNotFoundError(f"{root}: no such folder")
     csv_path = root / "steps.csv"
     table = _read_steps_csv(csv_path) if csv_path.is_file() else None
-    if image_files(root):
+    subdirs = _step_subfolders(root)
+    if not subdirs and image_files(root):
         zoom, extras = None, {"zoom_source": None}
         if table is not None and "." in table:
             zoom, extras = table["."]
@@ -581,9 +610,6 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
             if zoom is not None:
                 extras = {"zoom_source": "exif"}
         return [(".", root, zoom, extras)]
-    subdirs = sorted((p for p in root.iterdir()
-                      if p.is_dir() and not p.name.startswith(".") and image_files(p)),
-                     key=lambda p: _natural_key(p.name))
     if not subdirs:
         exts = ", ".join(IMAGE_EXTENSIONS)
         raise ValueError(f"{root}: no images ({exts}) in the folder or its subfolders")

@@ -3,22 +3,29 @@
 For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
 :func:`zoomcalib.calibrate.io.zoom_steps`) it writes to ``OUT``:
 
-- ``detections/<step>.json`` — the detections of each step (the detections contract); a rerun
-  reuses them when the step's image list is unchanged, so an interrupted run resumes with the
-  steps it had finished;
+- ``detections/<stem>.json`` — the detections of each step (the detections contract), with
+  the images' sizes and BLAKE2b hashes and the detection settings; a rerun reuses the
+  detections of the images whose content and settings are unchanged (and says so), so an
+  interrupted run resumes with the images it had finished. ``<stem>`` is the step name, made
+  safe and given a hash of the exact name when it had to be changed
+  (:func:`zoomcalib.calibrate.guards.step_file_stems`);
 - ``calibration.json`` and ``calibration.yml`` — per step and backend;
-- ``zoom_calibration.csv`` — one row per step (the bundle's values where it ran, else OpenCV's);
+- ``zoom_calibration.csv`` — one row per step, all from one backend (the bundle when it
+  calibrated every step, else OpenCV), named in its ``backend`` column;
 - ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
   (four or more steps with known zoom);
-- figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<step>.png``.
+- figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
+- ``manifest.json`` — the files this run wrote, the command and the inputs. A run first
+  removes the files an earlier run left (listed in its manifest, or named as this job names
+  its files), so the folder never mixes two runs.
 
-A step whose detection or calibration fails is reported and skipped; the others are kept.
+A step whose detection or calibration fails is reported and skipped (:attr:`CalibrateRun.dropped`);
+the others are kept. An image of another size than most of its step is left out and named.
 """
 
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,20 +33,36 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..detect import detect_folder, image_files, read_detections, write_detections
+from ..detect import image_files
 from ..targets import Target, parse_pattern
-from .io import write_calibration, write_zoom_table, zoom_steps
+from .guards import (
+    clear_previous_outputs,
+    detect_with_cache,
+    detection_settings,
+    keep_majority_size,
+    step_file_stems,
+    write_manifest,
+)
+from .io import ignored_top_images, write_calibration, write_zoom_table, zoom_steps
 from .opencv_backend import calibrate_opencv, observations_from_detections
 from .result import DIST_NAMES, CalibrationResult, Observations
 
-__all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "BACKENDS"]
+__all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "step_file_stems", "BACKENDS"]
 
 BACKENDS = ("opencv", "bundle")
 
 
 @dataclass
 class CalibrateRun:
-    """What a calibrate run produced."""
+    """What a calibrate run produced.
+
+    ``dropped`` lists the steps that gave no calibration, ``backend_failures`` the backends
+    that failed on a step that another backend calibrated; either makes the run
+    :attr:`partial`. ``reused`` counts, per step, the images whose cached detections were
+    reused; ``left_out`` names, per step, the images of another size than the step's;
+    ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
+    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems.
+    """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
     observations: dict[str, Observations] = field(default_factory=dict)
@@ -48,23 +71,28 @@ class CalibrateRun:
     files: list[Path] = field(default_factory=list)
     zoom_model: object | None = None
     holdout: dict | None = None
+    dropped: list[str] = field(default_factory=list)
+    backend_failures: dict[str, list[str]] = field(default_factory=dict)
+    reused: dict[str, int] = field(default_factory=dict)
+    left_out: dict[str, list[str]] = field(default_factory=dict)
+    ignored: list[str] = field(default_factory=list)
+    table_backend: dict[str, str] = field(default_factory=dict)
+    stems: dict[str, str] = field(default_factory=dict)
 
+    @property
+    def partial(self) -> bool:
+        """True when a step was dropped or a backend failed on a step."""
+        return bool(self.dropped or self.backend_failures)
 
-def _safe(step: str) -> str:
-    return "root" if step == "." else re.sub(r"[^A-Za-z0-9_.-]", "_", step)
-
-
-def _cached_detections(cache: Path, files: list[Path], pattern: str):
-    """Detections from ``cache`` when it was made for the same pattern and images."""
-    if not cache.exists():
-        return None
-    try:
-        spec, dets = read_detections(cache)
-    except (ValueError, OSError):
-        return None
-    if spec != pattern or [d.file for d in dets] != [f.name for f in files]:
-        return None
-    return dets
+    def partial_message(self) -> str:
+        """One line saying what is missing ('' when the run is complete)."""
+        parts = []
+        if self.dropped:
+            parts.append("steps dropped: " + ", ".join(self.dropped))
+        if self.backend_failures:
+            parts.append("backends failed: " + "; ".join(
+                f"{', '.join(b)} on {s}" for s, b in self.backend_failures.items()))
+        return "partial result (" + "; ".join(parts) + ")" if parts else ""
 
 
 def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.ndarray]:
@@ -131,12 +159,16 @@ def _calibrate(backend: str, obs: Observations, model: str,
 
 
 def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResult) -> dict:
+    """The ``zoom_calibration.csv`` row of one step: every distortion term the model has
+    (k1..k3 always, k4..k6 for the rational model) with its 1-sigma, and the backend."""
     row = {"step": step, "zoom": np.nan if zoom is None else zoom, "fx": res.fx, "fy": res.fy,
-           "cx": res.cx, "cy": res.cy}
+           "cx": res.cx, "cy": res.cy, "backend": res.backend}
     for k in ("fx", "fy", "cx", "cy"):
         row[f"sd_{k}"] = res.sd.get(k, np.nan)
-    for i, name in enumerate(DIST_NAMES[:5]):
+    n_terms = max(5, len(res.dist))
+    for i, name in enumerate(DIST_NAMES[:n_terms]):
         row[name] = float(res.dist[i]) if i < len(res.dist) else 0.0
+        row[f"sd_{name}"] = res.sd.get(name, np.nan)
     row["rms_px"] = res.rms_px
     row["n_views"] = len(res.per_view_rms_px)
     for k in ("direction", "sequence", "focus", "temperature"):
@@ -175,32 +207,32 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     """
     target: Target = parse_pattern(pattern)
     out = Path(out)
-    (out / "detections").mkdir(parents=True, exist_ok=True)
-    run = CalibrateRun()
     steps = zoom_steps(folder)
-    rows = []
-    for step, step_dir, zoom, extras in steps:
-        files = image_files(step_dir)
-        cache = out / "detections" / f"{_safe(step)}.json"
-        dets = _cached_detections(cache, files, pattern)
+    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps))
+    step_files = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
+    _start_output_folder(out, run, step_files)
+    _report_ignored(folder, run, log)
+    settings = detection_settings(target, method)
+    provenance: dict[str, dict] = {}
+    extras_of: dict[str, dict] = {}
+    for step, _, zoom, extras in steps:
+        files = step_files[step]
+        dets = _step_detections(out, step, files, target, settings, workers, progress, run,
+                                provenance, log)
+        dets = _same_size_images(step, dets, run, log)
         if dets is None:
-            dets = detect_folder(files, target, method, workers=workers, progress=progress)
-            write_detections(cache, dets, pattern)
-        elif progress is not None:
-            progress(len(files))
+            continue
         for d in dets:
             if d.error:
                 log(f"step {step}: skipped {d.error}")
         good = [d for d in dets if d.error is None]
         if not good:
-            run.failures.append(f"step {step}: no image with a detected target")
-            log(run.failures[-1])
+            _drop(run, step, "no image with a detected target", log)
             continue
         try:
             obs = observations_from_detections(good, target, good[0].image_size)
         except ValueError as exc:
-            run.failures.append(f"step {step}: {exc}")
-            log(run.failures[-1])
+            _drop(run, step, str(exc), log)
             continue
         run.observations[step] = obs
         run.zoom[step] = zoom
@@ -212,20 +244,29 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 msg = " ".join(str(exc).split())
                 run.failures.append(f"step {step}: backend {backend} failed: {msg}")
                 log(run.failures[-1])
+                run.backend_failures.setdefault(step, []).append(backend)
         if not step_results:
+            run.backend_failures.pop(step, None)
+            run.dropped.append(step)
             continue
         run.results[step] = step_results
-        best = step_results.get("bundle") or step_results["opencv"]
-        rows.append(_table_row(step, zoom, extras, best))
+        extras_of[step] = extras
+    run.table_backend = _table_backends(run, log)
+    rows = [_table_row(step, run.zoom[step], extras_of[step],
+                       run.results[step][run.table_backend[step]]) for step in run.results]
 
     meta = {"folder": str(folder), "pattern": pattern, "model": model, "backends": list(backends),
-            "method": method, "failures": run.failures}
+            "method": method, "failures": run.failures, "partial": run.partial_message(),
+            "detection_settings": settings,
+            "detections": {s: {k: v for k, v in p.items() if k != "images"}
+                           for s, p in provenance.items()},
+            "left_out": run.left_out, "ignored_images": run.ignored}
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
     if zoom_set and rows:
         run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
-        known = [r for r in rows if np.isfinite(r["zoom"])]
+        known = [_zoom_model_row(r) for r in rows if np.isfinite(r["zoom"])]
         if len(known) >= 4:
             from ..zoom import ZoomModel
 
@@ -242,7 +283,109 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 log(run.failures[-1])
     if run.results:
         run.files += _figures(run, out, zoom_set)
+    call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
+            "detection_settings": settings}
+    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
     return run
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+
+
+def _zoom_model_row(row: dict) -> dict:
+    """A table row as the zoom model is fitted from: without the distortion terms' 1-sigma
+    columns, so the distortion curves are fitted with equal weights as before those columns
+    were written (fx, fy, cx, cy stay weighted by theirs)."""
+    return {k: v for k, v in row.items() if not k.startswith(("sd_k", "sd_p"))}
+
+
+def _drop(run: CalibrateRun, step: str, why: str, log: Callable[[str], None]) -> None:
+    run.failures.append(f"step {step}: {why}")
+    run.dropped.append(step)
+    log(run.failures[-1])
+
+
+def _start_output_folder(out: Path, run: CalibrateRun, step_files: dict[str, list[Path]]
+                         ) -> None:
+    """Remove an earlier run's files from ``out`` (keeping this run's steps' detection
+    caches, which are keyed on the images), and make ``out/detections``."""
+    keep = [f"detections/{run.stems[s]}.json" for s in step_files]
+    inputs = [f for files in step_files.values() for f in files]
+    clear_previous_outputs(out, keep, inputs)
+    (out / "detections").mkdir(parents=True, exist_ok=True)
+
+
+def _report_ignored(folder: str | Path, run: CalibrateRun, log: Callable[[str], None]) -> None:
+    stray = ignored_top_images(folder)
+    if stray:
+        run.ignored = [p.name for p in stray]
+        log(f"{folder}: ignored {len(stray)} image{'s' if len(stray) > 1 else ''} next to the "
+            f"step subfolders ({', '.join(run.ignored)}); only the subfolders are calibrated")
+
+
+def _step_detections(out: Path, step: str, files: list[Path], target: Target, settings: dict,
+                     workers: int, progress, run: CalibrateRun, provenance: dict,
+                     log: Callable[[str], None]):
+    """The step's detections, from the cache for unchanged images; records and logs reuse."""
+    cache = out / "detections" / f"{run.stems[step]}.json"
+    dets, reused, prints = detect_with_cache(cache, files, target, settings, workers, progress)
+    provenance[step] = {"file": cache.relative_to(out).as_posix(), "reused": reused,
+                        "detected": len(files) - reused, "images": prints}
+    if reused:
+        run.reused[step] = reused
+        fresh = len(files) - reused
+        log(f"step {step}: reused the cached detections of {reused} unchanged image"
+            f"{'s' if reused > 1 else ''} ({cache})"
+            + (f"; detected {fresh} new or changed" if fresh else ""))
+    return dets
+
+
+def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[str], None]):
+    """The detections of the images of the step's majority size; the others are named and
+    left out. None (the step dropped) when no size has a majority."""
+    try:
+        kept, odd, size = keep_majority_size(dets)
+    except ValueError as exc:
+        _drop(run, step, str(exc), log)
+        return None
+    if odd:
+        run.left_out[step] = [d.file for d in odd]
+        names = ", ".join(f"{d.file} ({d.image_size[0]}x{d.image_size[1]})" for d in odd)
+        log(f"step {step}: left out {names}: not the step's image size {size[0]}x{size[1]} "
+            f"({len(kept)} of {len(dets)} images)")
+    return kept
+
+
+def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, str]:
+    """The backend of each step's table row and figures: one backend for every step, the
+    bundle when it calibrated every step, else OpenCV when it did; only when neither did do
+    the rows mix (each step's bundle result, else OpenCV's), which is logged."""
+    steps = list(run.results)
+    for backend in ("bundle", "opencv"):
+        if steps and all(backend in run.results[s] for s in steps):
+            if backend == "opencv" and any("bundle" in run.results[s] for s in steps):
+                failed = [s for s in steps if "bundle" not in run.results[s]]
+                log(f"the bundle failed on step{'s' if len(failed) > 1 else ''} "
+                    f"{', '.join(failed)}: the zoom table and figures use opencv for every "
+                    "step (the bundle's results stay in calibration.json)")
+            return {s: backend for s in steps}
+    chosen = {s: "bundle" if "bundle" in run.results[s] else next(iter(run.results[s]))
+              for s in steps}
+    if len(set(chosen.values())) > 1:
+        log("the zoom table mixes backends (no backend calibrated every step): "
+            + ", ".join(f"{s} {b}" for s, b in chosen.items()))
+    return chosen
+
+
+def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance: dict,
+                        call: dict) -> Path:
+    caches = [out / p["file"] for p in provenance.values() if (out / p["file"]).is_file()]
+    inputs = {"folder": str(folder), "ignored_images": run.ignored,
+              "steps": {step: {"folder": str(step_dir), "zoom": zoom,
+                               "images": provenance.get(step, {}).get("images", [])}
+                        for step, step_dir, zoom, _ in steps}}
+    return write_manifest(out, [*run.files, *caches], inputs, call)
 
 
 def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
@@ -254,7 +397,7 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
 
     files = []
     steps = list(run.results)
-    best = {s: run.results[s].get("bundle") or run.results[s]["opencv"] for s in steps}
+    best = {s: run.results[s][run.table_backend[s]] for s in steps}
     if zoom_set and len(steps) > 1:
         zoom = np.array([run.zoom[s] if run.zoom[s] is not None else i
                          for i, s in enumerate(steps)], dtype=float)
@@ -273,7 +416,7 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
         res = residual_vectors(best[s], obs)
         pts = [p for _, p in obs.views]
         files.append(plot_residuals(pts, res, obs.image_size,
-                                    out / f"residuals_{_safe(s)}.png",
+                                    out / f"residuals_{run.stems[s]}.png",
                                     title=f"step {s}: {best[s].backend}, rms "
                                           f"{best[s].rms_px:.3f} px"))
     return files

@@ -756,7 +756,7 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
 
 
 def write_detections(path: str | os.PathLike, detections: Iterable[Detection],
-                     spec: str | Target) -> Path:
+                     spec: str | Target, provenance: dict | None = None) -> Path:
     """Write a detections file (DESIGN.md section 4).
 
     ``{"pattern": SPEC, "images": [{"file", "points", "ids", "error"}, ...]}``, one entry per
@@ -764,7 +764,10 @@ def write_detections(path: str | os.PathLike, detections: Iterable[Detection],
     ``method`` and ``image_size`` ([w, h]), and ``fallback`` (one bool per point) when a point's
     refinement failed and it kept the initial detector's position; readers that do not know
     these keys can ignore them (a reader that ignores ``fallback`` uses less accurate points).
-    The file is written to a temporary name and renamed, so it is never left half written.
+    ``provenance`` (JSON-serialisable), when given, is written as a top-level
+    ``"provenance"`` key: what the detections were made from (the calibrate job keys its
+    detection cache on it). The file is written to a temporary name and renamed, so it is
+    never left half written.
     """
     path = Path(path)
     spec = spec.spec if isinstance(spec, Target) else str(spec)
@@ -774,8 +777,10 @@ def write_detections(path: str | os.PathLike, detections: Iterable[Detection],
         entry["method"] = d.method
         entry["image_size"] = list(d.image_size)
         lines.append(json.dumps(entry))
-    text = ('{"pattern": ' + json.dumps(spec) + ', "images": [\n'
-            + ",\n".join(lines) + "\n]}\n")
+    head = '{"pattern": ' + json.dumps(spec)
+    if provenance is not None:
+        head += ', "provenance": ' + json.dumps(provenance)
+    text = head + ', "images": [\n' + ",\n".join(lines) + "\n]}\n"
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)

@@ -41,6 +41,29 @@ def _column(rows: Sequence[Mapping], key: str) -> np.ndarray | None:
     return np.array([np.nan if v is None or v == "" else float(v) for v in vals])
 
 
+def _single_backend(rows: Sequence[Mapping], steps: list[str], source: str) -> str | None:
+    """The one backend named in the rows' ``backend`` column (None when no row names one).
+
+    Raises
+    ------
+    ValueError
+        One line naming ``source`` and the steps of each backend when the rows name several:
+        two backends' principal points differ by their own biases, which would read as a
+        zoom-dependent discrepancy.
+    """
+    by_backend: dict[str, list[str]] = {}
+    for step, r in zip(steps, rows, strict=True):
+        name = str(r.get("backend") or "").strip()
+        if name and name.lower() not in ("nan", "none"):
+            by_backend.setdefault(name, []).append(step)
+    if len(by_backend) > 1:
+        parts = "; ".join(f"{b}: step{'s' if len(s) > 1 else ''} {', '.join(s)}"
+                          for b, s in by_backend.items())
+        raise ValueError(f"{source}: mixed calibration backends ({parts}); keep one "
+                         "backend's rows (e.g. calibrate with --backend opencv)")
+    return next(iter(by_backend), None)
+
+
 @dataclass
 class ZoomTable:
     """Per-zoom calibration results.
@@ -60,6 +83,9 @@ class ZoomTable:
     step : list of str
     source : str
         Where the table came from (named in error messages).
+    backend : str or None
+        The calibration backend of every row (the table's ``backend`` column), None when the
+        table does not say. A table whose rows come from different backends is refused.
     """
 
     zoom: np.ndarray
@@ -75,6 +101,7 @@ class ZoomTable:
     temperature: np.ndarray | None = None
     step: list[str] = field(default_factory=list)
     source: str = "table"
+    backend: str | None = None
 
     @property
     def n(self) -> int:
@@ -133,7 +160,9 @@ class ZoomTable:
                                  f"other rows have it")
             extras[key] = col
         steps = [str(r.get("step", k)) for k, r in enumerate(rows)]
-        return cls(**req, **sds, direction=direction, step=steps, source=source, **extras)
+        backend = _single_backend(rows, steps, source)
+        return cls(**req, **sds, direction=direction, step=steps, source=source,
+                   backend=backend, **extras)
 
     def zoom_groups(self) -> np.ndarray:
         """(N,) int label of the distinct zoom setting of each row (for held-out-step CV)."""
