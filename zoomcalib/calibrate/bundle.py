@@ -1221,6 +1221,150 @@ def _convergence_summary(stages: dict[str, _Outcome], initialised: bool
     return out, not failed, (failed[0] if failed else checked[-1])["stop_reason"]
 
 
+def _initial_values(image_size, X0: np.ndarray, ids_list, pts_list, model: str, K0, dist0,
+                    rvecs0, tvecs0, fix_aspect: bool):
+    """Starting camera (12,) and poses (m, 3), (m, 3): from ``cv2.calibrateCamera`` when ``K0``
+    is None, else from ``K0``, ``dist0`` and the given poses (``cv2.solvePnP`` without them)."""
+    m = len(ids_list)
+    if K0 is None:
+        cam, rv0, tv0 = _initial_camera(image_size, X0, ids_list, pts_list, fix_aspect)
+    else:
+        cam = np.zeros(12)
+        K0 = np.asarray(K0, float)
+        cam[:4] = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+        if dist0 is not None:
+            d0 = np.ravel(dist0)
+            cam[4:4 + len(d0)] = d0
+        rv0 = tv0 = None
+    if model == "standard":
+        cam[9:] = 0.0
+    if rvecs0 is not None and tvecs0 is not None:
+        rv0 = np.asarray(rvecs0, float).reshape(m, 3).copy()
+        tv0 = np.asarray(tvecs0, float).reshape(m, 3).copy()
+    elif rv0 is None:
+        rv0, tv0 = _initial_poses(cam, X0, ids_list, pts_list)
+    return cam, rv0, tv0
+
+
+def _board_tilts_deg(rvecs: np.ndarray, min_tilt_deg: float) -> np.ndarray:
+    """(m,) angle between each board normal and the optical axis, deg; refuses the data when
+    every view is within ``min_tilt_deg`` of fronto-parallel."""
+    R0, _ = rodrigues(rvecs, False)
+    tilts = np.degrees(np.arccos(np.clip(np.abs(R0[:, 2, 2]), 0.0, 1.0)))
+    if tilts.max() < min_tilt_deg:
+        raise ValueError(f"all {len(tilts)} views are within {min_tilt_deg:g} deg of "
+                         f"fronto-parallel (largest board tilt {tilts.max():.2f} deg): the focal "
+                         "length and the target distance are not separable; add views with the "
+                         "board tilted by 15-45 deg")
+    return tilts
+
+
+def _warn_not_converged(stage_info: dict) -> None:
+    """``RuntimeWarning`` naming the stages (other than the capped starts) that stopped short."""
+    bad = [k for k, v in stage_info.items() if v["role"] != "start" and not v["converged"]]
+    warnings.warn(f"the bundle adjustment did not converge: stage{'s' * (len(bad) > 1)} "
+                  + ", ".join(f"{k} ({stage_info[k]['stop_reason']} after "
+                              f"{stage_info[k]['iterations']} iterations)" for k in bad)
+                  + "; the camera and its sd are not a minimum of the cost (raise "
+                  "max_iterations, or pass a better K0/dist0)", RuntimeWarning, stacklevel=4)
+
+
+def _warn_guard(g: dict, guard_warn_ratio: float) -> None:
+    """``RuntimeWarning`` when the refined target's irregular deformation exceeds
+    ``guard_warn_ratio`` times what the noise explains."""
+    if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
+        warnings.warn(f"the refined target departs from a smoothly warped board by "
+                      f"{g['irregular_rms_mm']:.3g} RMS, "
+                      f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
+                      "the noise explains: the free target points are likely absorbing "
+                      "lens-model misfit (or the target is worse than target_sigma_mm); "
+                      "consider a richer lens model or a smaller target_sigma_mm",
+                      RuntimeWarning, stacklevel=4)
+
+
+@dataclass
+class _Data:
+    """The flattened observations: view and point index, uv (px) and weight of each, the
+    numbers of views and points, and the nominal target (n, 3)."""
+
+    vi: np.ndarray
+    pi: np.ndarray
+    uv: np.ndarray
+    w: np.ndarray
+    m: int
+    n: int
+    X0: np.ndarray
+
+
+def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
+                  Lam: _ShapePrior | None, model: str, fix_aspect: bool, refine_target: bool,
+                  robust: bool, reject_sigma: float, max_iterations: int, tol: float):
+    """Stages 2-4 of the module docstring from the starting ``state``.
+
+    Returns the flat-target fit (on the final inliers), the solution, the final problem, the
+    inlier mask (N,), the per-stage :class:`_Outcome` and the normal equations of the final
+    solve's last linearisation when it converged (else None).
+    """
+    vi, pi, uv, w, m, n, X0 = (data.vi, data.pi, data.uv, data.w, data.m, data.n, data.X0)
+    no_pts = np.zeros((n, 3), bool)
+
+    def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
+        s = slice(None) if sel is None else sel
+        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
+
+    last: dict = {}
+    stages: dict[str, _Outcome] = {}
+
+    def lm(name: str, prob: _Problem, st: _State, lam: float = 1e-10) -> _State:
+        st, stages[name], ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        last["prob"], last["ne"] = prob, ne
+        return st
+
+    # ---- stage 2: target held at its nominal shape --------------------------------------
+    if model == "rational" and not np.any(state.cam[9:]):
+        # free k4..k6 only after some iterations of the 5-term model: from a poor start the
+        # rational model has bad local minima (f 10 % off on the figueroa set)
+        std_map, _ = _cam_map("standard", fix_aspect, state.cam[0] / state.cam[1])
+        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
+        state, stages["flat_standard"], _ = _levenberg_marquardt(
+            std_prob, state, min(max_iterations, WARM_START_ITERATIONS), tol, 1e-3)
+    flat_prob = problem(0.0, no_pts)
+    state = lm("flat", flat_prob, state, lam=FLAT_LAMBDA)
+    flat_state = state.copy()
+    sigma_px = _robust_sigma(flat_prob.residuals(state))
+    # ---- stage 3: target released -------------------------------------------------------
+    prob = flat_prob
+    if refine_target:
+        prob = problem(sigma_px, free_pts)
+        state = lm("target", prob, state)
+    # ---- stage 4: outliers; the prior's pixel sigma from the refined residuals ----------
+    N = len(vi)
+    inlier = np.ones(N, bool)
+    for rounds in range(1, 4):
+        r = (project_jacobian(state.cam, state.rvecs, state.tvecs, state.X, vi, pi,
+                              jacobian=False) - uv) * w[:, None]
+        sig = _robust_sigma(r)
+        new_out = readmit = np.zeros(N, bool)
+        if robust:
+            new_out, readmit = _outliers(np.hypot(r[:, 0], r[:, 1]) / sig, inlier, pi, n,
+                                         reject_sigma)
+        reweight = Lam is not None and abs(sig / sigma_px - 1.0) > 0.2
+        if not new_out.any() and not readmit.any() and not reweight:
+            break
+        inlier = (inlier & ~new_out) | readmit
+        sigma_px = sig
+        prob = problem(sigma_px, free_pts, np.flatnonzero(inlier))
+        state = lm(f"reject{rounds}", prob, state)
+    if refine_target and not inlier.all():
+        # the flat-target fit (for the guard's comparison) on the same inliers
+        flat_state, stages["flat_inliers"], _ = _levenberg_marquardt(
+            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
+
+    # a converged LM's last linearisation is at the solution to within its final (tiny) step
+    ne = last.get("ne") if last.get("prob") is prob else None
+    return flat_state, state, prob, inlier, stages, ne
+
+
 @_single_threaded_blas
 def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray | None = None,
                      dist0: np.ndarray | None = None, rvecs0: np.ndarray | None = None,
@@ -1372,94 +1516,21 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                          "target coordinates): add views, or set refine_target=False")
 
     # ---- stage 1: initial values and the fronto-parallel refusal ------------------------
-    if K0 is None:
-        cam, rv0, tv0 = _initial_camera(obs.image_size, X0, ids_list, pts_list, fix_aspect)
-        if fix_aspect:
-            cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
-    else:
-        cam = np.zeros(12)
-        K0 = np.asarray(K0, float)
-        cam[:4] = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
-        if dist0 is not None:
-            d0 = np.ravel(dist0)
-            cam[4:4 + len(d0)] = d0
-        rv0 = tv0 = None
-    if model == "standard":
-        cam[9:] = 0.0
-    if rvecs0 is not None and tvecs0 is not None:
-        rv0 = np.asarray(rvecs0, float).reshape(m, 3).copy()
-        tv0 = np.asarray(tvecs0, float).reshape(m, 3).copy()
-    elif rv0 is None:
-        rv0, tv0 = _initial_poses(cam, X0, ids_list, pts_list)
-    R0, _ = rodrigues(rv0, False)
-    tilts = np.degrees(np.arccos(np.clip(np.abs(R0[:, 2, 2]), 0.0, 1.0)))
-    if tilts.max() < min_tilt_deg:
-        raise ValueError(f"all {m} views are within {min_tilt_deg:g} deg of fronto-parallel "
-                         f"(largest board tilt {tilts.max():.2f} deg): the focal length and the "
-                         "target distance are not separable; add views with the board tilted "
-                         "by 15-45 deg")
+    cam, rv0, tv0 = _initial_values(obs.image_size, X0, ids_list, pts_list, model, K0, dist0,
+                                    rvecs0, tvecs0, fix_aspect)
+    if K0 is None and fix_aspect:
+        cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
+    tilts = _board_tilts_deg(rv0, min_tilt_deg)
 
     modes = _shape_modes(X0) if refine_target else None
     Lam = None
     if refine_target and target_sigma_mm is not None:
         Lam = _ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
-    no_pts = np.zeros((n, 3), bool)
-
-    def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
-        s = slice(None) if sel is None else sel
-        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
-
-    last: dict = {}
-    stages: dict[str, _Outcome] = {}
-
-    def lm(name: str, prob: _Problem, st: _State, lam: float = 1e-10) -> _State:
-        st, stages[name], ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
-        last["prob"], last["ne"] = prob, ne
-        return st
-
-    # ---- stage 2: target held at its nominal shape --------------------------------------
-    state = _State(cam, rv0, tv0, X0.copy())
-    if model == "rational" and not np.any(cam[9:]):
-        # free k4..k6 only after some iterations of the 5-term model: from a poor start the
-        # rational model has bad local minima (f 10 % off on the figueroa set)
-        std_map, _ = _cam_map("standard", fix_aspect, cam[0] / cam[1])
-        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
-        state, stages["flat_standard"], _ = _levenberg_marquardt(
-            std_prob, state, min(max_iterations, WARM_START_ITERATIONS), tol, 1e-3)
-    flat_prob = problem(0.0, no_pts)
-    state = lm("flat", flat_prob, state, lam=FLAT_LAMBDA)
-    flat_state = state.copy()
-    sigma_px = _robust_sigma(flat_prob.residuals(state))
-    # ---- stage 3: target released -------------------------------------------------------
-    prob = flat_prob
-    if refine_target:
-        prob = problem(sigma_px, free_pts)
-        state = lm("target", prob, state)
-    # ---- stage 4: outliers; the prior's pixel sigma from the refined residuals ----------
-    inlier = np.ones(N, bool)
-    for rounds in range(1, 4):
-        r = (project_jacobian(state.cam, state.rvecs, state.tvecs, state.X, vi, pi,
-                              jacobian=False) - uv) * w[:, None]
-        sig = _robust_sigma(r)
-        new_out = readmit = np.zeros(N, bool)
-        if robust:
-            new_out, readmit = _outliers(np.hypot(r[:, 0], r[:, 1]) / sig, inlier, pi, n,
-                                         reject_sigma)
-        reweight = Lam is not None and abs(sig / sigma_px - 1.0) > 0.2
-        if not new_out.any() and not readmit.any() and not reweight:
-            break
-        inlier = (inlier & ~new_out) | readmit
-        sigma_px = sig
-        prob = problem(sigma_px, free_pts, np.flatnonzero(inlier))
-        state = lm(f"reject{rounds}", prob, state)
-    if refine_target and not inlier.all():
-        # the flat-target fit (for the guard's comparison) on the same inliers
-        flat_state, stages["flat_inliers"], _ = _levenberg_marquardt(
-            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
+    flat_state, state, prob, inlier, stages, ne = _solve_stages(
+        _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), cam_map, free_pts,
+        Lam, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations, tol)
 
     # ---- stage 5: covariance ------------------------------------------------------------
-    # a converged LM's last linearisation is at the solution to within its final (tiny) step
-    ne = last.get("ne") if last.get("prob") is prob else None
     cov = _covariances(prob, state, ne, cam_names, m)
     nd = 5 if model == "standard" else 8
     sd_names = CAMERA_NAMES[:4 + nd]
@@ -1471,12 +1542,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     pose_sd_post = cov.pose_sd("posterior")
     stage_info, converged, stop_reason = _convergence_summary(stages, K0 is None)
     if not converged:
-        bad = [k for k, v in stage_info.items() if v["role"] != "start" and not v["converged"]]
-        warnings.warn(f"the bundle adjustment did not converge: stage{'s' * (len(bad) > 1)} "
-                      + ", ".join(f"{k} ({stage_info[k]['stop_reason']} after "
-                                  f"{stage_info[k]['iterations']} iterations)" for k in bad)
-                      + "; the camera and its sd are not a minimum of the cost (raise "
-                      "max_iterations, or pass a better K0/dist0)", RuntimeWarning, stacklevel=3)
+        _warn_not_converged(stage_info)
 
     cam = state.cam
     K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
@@ -1506,15 +1572,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         obj_sd = np.sqrt(var).reshape(n, 3)
         info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_pts, f)
         info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam, sd)
-        g = info["guard"]
-        if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
-            warnings.warn(f"the refined target departs from a smoothly warped board by "
-                          f"{g['irregular_rms_mm']:.3g} RMS, "
-                          f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
-                          "the noise explains: the free target points are likely absorbing "
-                          "lens-model misfit (or the target is worse than target_sigma_mm); "
-                          "consider a richer lens model or a smaller target_sigma_mm",
-                          RuntimeWarning, stacklevel=3)
+        _warn_guard(info["guard"], guard_warn_ratio)
     if return_covariance:
         info["parameter_names"] = cov.names
         info["covariance_repeatability"] = cov.full("repeatability")
