@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
+from zoomcalib.calibrate import bundle
 from zoomcalib.calibrate.bundle import (
     _cam_map,
     _Problem,
@@ -205,6 +206,7 @@ def test_recovers_camera_within_predicted_sigma(synthetic):
         warnings.simplefilter("error")                 # clean data: no guard warning
         res = calibrate_bundle(obs)
     assert res.backend == "bundle"
+    assert res.converged and res.info["stop_reason"] == "tolerance"
     assert set(res.sd) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
     for name in ("fx", "fy", "cx", "cy"):
         assert abs(getattr(res, name) - truth(name)) < 4 * res.sd[name], name
@@ -302,16 +304,11 @@ def test_gauge_choice_changes_only_a_similarity():
         assert abs(a.info["flatness_mm"] - b.info["flatness_mm"]) < 1e-3
 
 
-def test_covariance_is_the_inverse_of_the_dense_normal_matrix():
-    """``info['covariance']`` against s^2 (J^T J + s^2 Lambda)^-1 built from a dense Jacobian."""
-    rng = np.random.default_rng(21)
-    X0 = grid_board(6, 5, 30.0)
-    obs = observe(rng, random_poses(rng, 6, X0, distance_mm=(350, 450)), bowed(X0, 0.5), X0)
-    # the covariance comes from the last linearisation, one (converged) step before the
-    # solution; a tight tol makes that step negligible so the algebra can be compared exactly
-    res = calibrate_bundle(obs, robust=False, return_covariance=True, tol=1e-11)
+def dense_normal_matrix(res, obs, X0):
+    """``J^T J`` (dense Jacobian at the solution, columns as ``info['parameter_names']``) and
+    the shape prior's precision on the free coordinates, rotated like the refined target."""
     names = res.info["parameter_names"]
-    m, n = len(obs.views), len(X0)
+    n = len(X0)
     vi = np.concatenate([np.full(len(i), v) for v, (i, _) in enumerate(obs.views)])
     pi = np.concatenate([i for i, _ in obs.views])
     cam = np.zeros(12)
@@ -327,25 +324,52 @@ def test_covariance_is_the_inverse_of_the_dense_normal_matrix():
     base = 9 + len(free_x)
     for i in range(len(vi)):
         J[2 * i:2 * i + 2, base + 6 * vi[i]:base + 6 * vi[i] + 6] = Jp[i]
-    s2 = res.info["sigma_px"] ** 2
-    # the prior's precision, rotated like the refined target relative to the nominal
-    _, Rs, _ = fit_similarity(X0, res.object_points)
-    sc = fit_similarity(X0, res.object_points)[0]
+    sc, Rs, _ = fit_similarity(X0, res.object_points)
     lam = shape_precision(X0, 0.01, 2.0).reshape(n, 3, n, 3)
     lam = np.einsum("ac,jckd,bd->jakb", Rs, lam, Rs).reshape(3 * n, 3 * n) / sc**2
     idx = [3 * j + a for j, a in free_x]
-    N = J.T @ J
-    N[9:base, 9:base] += s2 * lam[np.ix_(idx, idx)]
-    dense = s2 * np.linalg.inv(N)
-    cov = res.info["covariance"]
-    assert cov.shape == (9 + len(free_x) + 6 * m,) * 2
-    assert np.abs(cov - dense).max() < 1e-6 * np.abs(np.diag(dense)).max()
-    assert np.isclose(np.sqrt(cov[0, 0]), res.info["sd_with_target_prior"]["fx"])
-    # the reported sd is the repeatability (sandwich) s^2 N^-1 J^T J N^-1, from the same dense J
-    Ninv = np.linalg.inv(N)
-    sandwich = s2 * Ninv @ (J.T @ J) @ Ninv
-    for k, name in enumerate(("fx", "fy", "cx", "cy")):
-        assert np.isclose(np.sqrt(sandwich[k, k]), res.sd[name], rtol=1e-6)
+    P = np.zeros((len(names), len(names)))
+    P[9:base, 9:base] = lam[np.ix_(idx, idx)]
+    return J.T @ J, P
+
+
+def test_covariance_is_the_inverse_of_the_dense_normal_matrix():
+    """Both named covariances against a dense Jacobian: ``N = J^T J + sigma_p^2 Lambda`` with
+    the prior weight ``sigma_p`` of the final solve; posterior ``s^2 N^-1``, repeatability
+    ``s^2 N^-1 J^T J N^-1``; ``sd``, the pose sigmas and ``object_points_sd`` are the
+    repeatability's, ``sd_posterior`` the posterior's."""
+    rng = np.random.default_rng(21)
+    X0 = grid_board(6, 5, 30.0)
+    obs = observe(rng, random_poses(rng, 6, X0, distance_mm=(350, 450)), bowed(X0, 0.5), X0)
+    # the covariance comes from the last linearisation, one (converged) step before the
+    # solution; a tight tol makes that step negligible so the algebra can be compared exactly
+    res = calibrate_bundle(obs, robust=False, return_covariance=True, tol=1e-11)
+    assert res.info["sd_kind"] == "repeatability"
+    JtJ, P = dense_normal_matrix(res, obs, X0)
+    s2, sp2 = res.info["sigma_px"] ** 2, res.info["prior_sigma_px"] ** 2
+    # the prior weight is the MAD sigma of the residuals, not the rms-based s
+    assert abs(sp2 / s2 - 1) > 1e-3
+    Ninv = np.linalg.inv(JtJ + sp2 * P)
+    posterior, repeatability = s2 * Ninv, s2 * Ninv @ JtJ @ Ninv
+    m = len(obs.views)
+    for kind, dense in (("posterior", posterior), ("repeatability", repeatability)):
+        cov = res.info[f"covariance_{kind}"]
+        assert cov.shape == (9 + int(np.sum(res.object_points_sd > 0)) + 6 * m,) * 2
+        assert np.abs(cov - dense).max() < 1e-6 * np.abs(np.diag(dense)).max(), kind
+    sd_rep, sd_post = np.sqrt(np.diag(repeatability)), np.sqrt(np.diag(posterior))
+    names = res.info["parameter_names"]
+    for k, name in enumerate(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")):
+        assert np.isclose(sd_rep[k], res.sd[name], rtol=1e-6), name
+        assert np.isclose(sd_post[k], res.info["sd_posterior"][name], rtol=1e-6), name
+    # the prior makes the two kinds differ: the check above tells them apart
+    assert np.max(np.abs(sd_post[:9] / sd_rep[:9] - 1)) > 1e-3
+    pose = [names.index(f"view{v}.{p}") for v in range(m) for p in ("rx", "ry", "rz")]
+    assert np.allclose(sd_rep[pose], res.info["rvecs_sd"].ravel(), rtol=1e-6)
+    assert np.allclose(sd_post[pose], res.info["rvecs_sd_posterior"].ravel(), rtol=1e-6)
+    pts = [k for k, s in enumerate(names) if s[0] == "X"]
+    got = [res.object_points_sd[int(names[k][1:].split(".")[0]), "xyz".index(names[k][-1])]
+           for k in pts]
+    assert np.allclose(sd_rep[pts], got, rtol=1e-6)
 
 
 def test_outlier_is_rejected_and_reported(synthetic):
@@ -357,6 +381,38 @@ def test_outlier_is_rejected_and_reported(synthetic):
     assert res.info["n_observations"] == obs.n_observations - 1
     for name in ("fx", "fy", "cx", "cy"):
         assert abs(getattr(res, name) - truth(name)) < 4 * res.sd[name], name
+
+
+def test_solver_that_cannot_step_reports_the_damping_limit(synthetic, monkeypatch):
+    """Every damped system made unsolvable: each LM stage gives up after its trial steps and
+    says so; the result is marked as not converged and a warning is raised."""
+    _, _, obs = synthetic
+    monkeypatch.setattr(bundle, "_schur_solve", lambda *args: None)
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        res = calibrate_bundle(obs)
+    assert not res.converged and res.info["stop_reason"] == "damping limit"
+    assert res.info["stages"]["flat"] == {**res.info["stages"]["flat"], "iterations": 1,
+                                          "converged": False, "stop_reason": "damping limit"}
+    assert res.to_dict()["converged"] is False
+
+
+@pytest.mark.parametrize("index, name", [(2, "cx"), (9 + 5, "X2.z")])
+def test_negative_variance_raises_naming_the_parameter(synthetic, monkeypatch, index, name):
+    """A covariance with a negative diagonal entry (here made so on purpose) must stop the
+    calibration with the parameter's name, not be clipped to 0 or become NaN. Index 2 of the
+    inverse reduced normal matrix is cx; 9 + 5 the sixth free target coordinate, X2.z (point 0
+    is held by the gauge, points 1 and 2 are free)."""
+    _, _, obs = synthetic
+    inverse = bundle._inverse_from_cholesky
+
+    def broken(c):
+        out = inverse(c)
+        out[index, index] = -out[index, index]
+        return out
+
+    monkeypatch.setattr(bundle, "_inverse_from_cholesky", broken)
+    with pytest.raises(ValueError, match=rf"variance of {name} is -"):
+        calibrate_bundle(obs)
 
 
 def test_fix_aspect_keeps_square_pixels(synthetic):
@@ -447,6 +503,10 @@ def test_figueroa_guarded_bundle_reproduces_mrcal():
         free = calibrate_bundle(obs, model="rational", weights=w, robust=False,
                                 target_sigma_mm=None)
     assert free.cy - MRCAL_WARP[3] > 5.0
+    for res in (flat, guarded, free):
+        assert res.converged and res.info["stop_reason"] == "tolerance"
+        assert all(st["converged"] for st in res.info["stages"].values()
+                   if st["role"] != "start")
     g_free, g = free.info["guard"], guarded.info["guard"]
     assert g_free["irregular_rms_mm"] > 5 * g["irregular_rms_mm"]
 
@@ -458,9 +518,30 @@ def test_figueroa_default_bundle_stays_near_mrcal():
     0.2 % of mrcal's warped-board value, 4 x closer than calibrateCameraRO's 0.8 % (measured:
     447 rejected, fx 2075.6 = +0.08 %, cy 1998.6)."""
     obs, w = figueroa()
-    with pytest.warns(RuntimeWarning):
+    with pytest.warns(RuntimeWarning) as record:
         res = calibrate_bundle(obs, model="rational", weights=w)
+    assert not any("did not converge" in str(r.message) for r in record)
+    assert res.converged and res.info["stop_reason"] == "tolerance"
+    assert [k for k, st in res.info["stages"].items() if not st["converged"]] == [
+        "initial", "flat_standard"]                     # the two capped starts only
     assert len(res.dist) == 8 and "k6" in res.sd
     assert 0 < len(res.rejected) < 0.05 * obs.n_observations
     assert abs(res.fx / MRCAL_WARP[0] - 1) < 2e-3 and abs(res.fy / MRCAL_WARP[1] - 1) < 2e-3
     assert abs(res.cx - MRCAL_WARP[2]) < 3 and abs(res.cy - MRCAL_WARP[3]) < 3
+
+
+@pytest.mark.filterwarnings("ignore:the refined target departs")
+def test_figueroa_iteration_cap_is_reported():
+    """Three iterations per stage leave the rational fit far from the minimum (fx more than
+    10 % off mrcal's); the result must say so: not converged, stopped by the iteration cap,
+    with a warning naming the stages."""
+    obs, w = figueroa()
+    with pytest.warns(RuntimeWarning, match=r"did not converge.*flat \(iteration cap after 3"):
+        res = calibrate_bundle(obs, model="rational", weights=w, robust=False, max_iterations=3)
+    assert abs(res.fx / MRCAL_WARP[0] - 1) > 0.1            # the wrong result being flagged
+    assert res.converged is False and res.info["converged"] is False
+    assert res.info["stop_reason"] == "iteration cap"
+    stages = res.info["stages"]
+    assert stages["flat"]["iterations"] == 3 and stages["flat"]["stop_reason"] == "iteration cap"
+    assert stages["target"]["converged"] is False
+    assert json.loads(json.dumps(res.to_dict()))["converged"] is False

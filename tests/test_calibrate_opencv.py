@@ -20,6 +20,7 @@ import pytest
 
 from zoomcalib.calibrate.io import read_calibration, write_calibration, yaml_prefix
 from zoomcalib.calibrate.opencv_backend import (
+    _stationarity,
     calibrate_opencv,
     calibrate_opencv_ro,
     default_fixed_point,
@@ -175,6 +176,63 @@ def test_rational_model_and_schur_bit(zc_obs, zc_result):
     np.testing.assert_allclose(rb.K, zc_result.K, atol=1e-3)
 
 
+# ----------------------------------------------------------------------------------------------
+# convergence and uncertainties
+
+
+def test_convergence_is_checked_at_the_solution(zc_obs, zc_result):
+    """OpenCV does not say why it stopped; the backend re-evaluates the Gauss-Newton step at the
+    solution. The default run is at the minimum; one iteration from OpenCV's initial guess is
+    not, and must say so (measured: fx 552.4 against 532.8, rms 1.18 px, a step of 36 sigma
+    left; the default run's step is 1e-7 sigma)."""
+    assert zc_result.converged and zc_result.info["stop_reason"] == "tolerance"
+    assert zc_result.info["convergence_check"]["step_sigma"] < 0.05
+    assert zc_result.info["sd_kind"] == "repeatability"
+    one = calibrate_opencv(zc_obs, criteria=(cv2.TERM_CRITERIA_COUNT, 1, 0))
+    assert not one.converged and one.info["stop_reason"] == "not stationary"
+    assert one.info["convergence_check"]["step_sigma"] > 1.0
+    assert one.info["convergence_check"]["criteria"]["max_count"] == 1
+    assert json.loads(json.dumps(one.to_dict()))["converged"] is False
+
+
+def test_stationarity_measures_the_distance_to_the_minimum(zc_obs, zc_result):
+    """fx moved by 5 of its 1-sigma from OpenCV's minimum, everything else kept: the step back
+    is at least 5 sigma long (5 sd / the conditional sigma of fx, which is <= sd)."""
+    r = zc_result
+    obj = [np.asarray(zc_obs.object_points[ids], np.float32) for ids, _ in zc_obs.views]
+    img = [np.asarray(p, np.float32) for _, p in zc_obs.views]
+    at_min = _stationarity(obj, img, r.K, r.dist, r.rvecs, r.tvecs, 0, 5)
+    K = r.K.copy()
+    K[0, 0] += 5 * r.sd["fx"]
+    moved = _stationarity(obj, img, K, r.dist, r.rvecs, r.tvecs, 0, 5)
+    assert at_min < 0.05 and 4.5 < moved, (at_min, moved)
+
+
+@pytest.mark.parametrize("where, name", [("pose", "left03.jpg.tx"), ("camera", "cx")])
+def test_invalid_opencv_sd_is_flagged_or_refused(zc_obs, monkeypatch, where, name):
+    """OpenCV's 1-sigmas are square roots of its covariance's diagonal; a NaN (negative
+    variance, made so here on purpose) is never passed on silently: a pose's is listed in
+    ``info['sd_invalid']`` with a warning, a camera parameter's stops the calibration."""
+    original = cv2.calibrateCameraExtended
+
+    def broken(*args, **kwargs):
+        rms, K, dist, rv, tv, sdi, sde, per_view = original(*args, **kwargs)
+        if where == "camera":
+            sdi[2] = np.nan
+        else:
+            sde[6 * 2 + 3] = np.nan                 # third view, tx
+        return rms, K, dist, rv, tv, sdi, sde, per_view
+
+    monkeypatch.setattr(cv2, "calibrateCameraExtended", broken)
+    if where == "camera":
+        with pytest.raises(RuntimeError, match=f"1-sigma of {name} is not a number"):
+            calibrate_opencv(zc_obs)
+    else:
+        with pytest.warns(RuntimeWarning, match="no valid 1-sigma"):
+            res = calibrate_opencv(zc_obs)
+        assert res.info["sd_invalid"] == [name]
+
+
 def test_observations_skip_failures_and_check_sizes():
     t = parse_pattern(SPEC)
     pts = np.random.default_rng(0).uniform(0, 600, (54, 2))
@@ -233,6 +291,7 @@ def test_calibrate_ro_refines_target(zc_obs, zc_result):
     assert r.rms_px < zc_result.rms_px
     assert r.info["dropped_views"] == [] and len(r.per_view_rms_px) == 13
     assert r.rms_px == pytest.approx(r.info["opencv_rms_px"], rel=1e-5)
+    assert r.converged and r.info["convergence_check"]["step_sigma"] < 0.05
 
 
 def test_calibrate_ro_guess_and_partial_views(zc_obs):

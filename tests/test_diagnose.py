@@ -12,8 +12,8 @@ import pytest
 from click.testing import CliRunner
 
 from zoomcalib.cli import main
-from zoomcalib.diagnose.discrepancy import diagnose_table
-from zoomcalib.diagnose.model import FocalRangeError, LensResponse
+from zoomcalib.diagnose.discrepancy import diagnose_table, fit_terms
+from zoomcalib.diagnose.model import Context, FocalRangeError, LensResponse, offset_term
 from zoomcalib.diagnose.synthetic import HIDDEN_CAUSES, synthetic_zoom_table
 from zoomcalib.diagnose.table import ZoomTable
 from zoomcalib.io import read_json, write_csv
@@ -105,6 +105,7 @@ def test_pixel_pitch_auto_recovers_the_pitch(response):
     diag = diagnose_table(ZoomTable.from_rows(inner), response, tol, fit_pitch=True)
     fit = diag.pitch_fit
     assert not fit["at_range_end"]
+    assert fit["converged"] and fit["stop_reason"] == "grid minimum"
     assert abs(fit["pitch_mm"] - pitch) < 3 * fit["sd_mm"], (fit, pitch)
     assert fit["sd_mm"] < 0.15 * pitch
 
@@ -182,3 +183,20 @@ def test_causes_the_table_cannot_test_are_skipped(response):
     with_tilt = diagnose_table(ZoomTable.from_rows(rows), response, locked_tilt=True)
     assert len(with_tilt.baseline.params) == len(diag.baseline.params) + 2 * len(response.groups)
     assert with_tilt.cause == "none"
+
+
+def test_fits_report_whether_every_parameter_is_determined(response):
+    """A linear fit is solved in one step; it reaches the minimum of every parameter only when
+    the columns are independent. The diagnosis' fits are; the same column block twice is not
+    (rank 2 of 4), and the fit says so instead of returning a minimum-norm split."""
+    rows, _ = synthetic_zoom_table(LENS, None, np.random.default_rng(12))
+    table = ZoomTable.from_rows(rows)
+    diag = diagnose_table(table, response)
+    assert diag.converged and diag.baseline.stop_reason == "exact"
+    assert diag.baseline.rank == len(diag.baseline.params)
+    doc = diag.to_dict()
+    assert doc["converged"] is True and doc["baseline"]["converged"] is True
+    ctx = Context.build(table, response.state_of_focal(table.fx), response)
+    twice = fit_terms((offset_term(), offset_term()), ctx, np.ones(table.n), table.zoom_groups())
+    assert twice.rank == 2 and not twice.converged
+    assert twice.summary()["stop_reason"] == "rank deficient"

@@ -108,17 +108,37 @@ cut, and rejection would otherwise eat the field edges); (5) covariance.
 
 Covariance
 ----------
-With ``N = J^T J + s^2 \Lambda_R`` at the solution (free parameters only; ``Lambda_R`` the
-rotated prior precision) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} - n_{unknowns})``, the
-reported covariance of the camera and the target points is the repeatability of the estimate for
-this board, ``C = s^2 N^{-1} J^T J N^{-1}`` (its marginal ``s^2 S^{-1} (S - P) S^{-1}`` with
-``S`` the Schur complement over the poses and ``P = s^2 Lambda_R``): the spread of the estimates
-over noise draws. The posterior ``s^2 N^{-1}``, which also counts the prior's allowance for an
-irregular board, is larger; its camera 1-sigmas are in ``info['sd_with_target_prior']``.
-Without the prior the two agree. The 1-sigma of every intrinsic and distortion term is in ``sd``, of
-every target coordinate in ``object_points_sd`` (0 for the gauge-fixed ones), of the poses in
-``info['rvecs_sd']``, ``info['tvecs_sd']``; the whole matrix on request
-(``return_covariance=True``).
+Two kinds are computed, from ``N = J^T J + \sigma_p^2 \Lambda_R`` at the solution (free
+parameters only; ``Lambda_R`` the rotated prior precision, ``sigma_p`` the pixel sigma that
+weighted the prior in the final solve, ``info['prior_sigma_px']``, so that ``N`` is the normal
+matrix of the cost actually minimised) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} -
+n_{unknowns})`` (``info['sigma_px']`` is ``s``):
+
+- the **repeatability** ``s^2 N^{-1} J^T J N^{-1}`` (sandwich; its marginal over camera and
+  points ``s^2 S^{-1} (S - P) S^{-1}`` with ``S`` the Schur complement over the poses and
+  ``P`` the prior's block): the spread of the estimates over noise draws for this board;
+- the **posterior** ``s^2 N^{-1}``, which also counts the prior's allowance for an irregular
+  board, and is larger.
+
+Without the prior the two are equal. Every 1-sigma the result reports by default is the
+repeatability (``info['sd_kind'] = 'repeatability'``): ``sd`` (intrinsics and distortion),
+``object_points_sd`` (0 for the gauge-fixed coordinates), ``info['rvecs_sd']``,
+``info['tvecs_sd']``, ``flatness_sd_mm`` and the guard's noise level. The posterior's are in
+``info['sd_posterior']``, ``info['rvecs_sd_posterior']``, ``info['tvecs_sd_posterior']``; the
+whole matrices on request (``return_covariance=True``) as ``info['covariance_repeatability']``
+and ``info['covariance_posterior']``. A variance that comes out negative (beyond rounding:
+:data:`VARIANCE_ROUNDING` of the posterior variance) raises a ``ValueError`` naming the
+parameter; none is clipped.
+
+Convergence
+-----------
+Each LM stage records how it stopped in ``info['stages']`` (``iterations``, ``converged``,
+``stop_reason``: ``'tolerance'``, ``'iteration cap'`` or ``'damping limit'``, ``role``,
+``cost_px2``). ``info['converged']`` (and ``CalibrationResult.converged``) is True only when
+every stage but the two capped by design (``role='start'``: the initial ``cv2.calibrateCamera``
+and the rational model's 5-term warm start) converged; ``info['stop_reason']`` is the first
+failing stage's reason, else ``'tolerance'``. A result that did not converge also raises a
+``RuntimeWarning`` naming the stages.
 
 References
 ----------
@@ -826,25 +846,52 @@ def _schur_solve(U, W, V, g, gp, lam):
     return dy, dp, float(pred)
 
 
+#: why an LM stage stopped: a converged stop, and the two that are not
+STOP_TOLERANCE = "tolerance"
+STOP_ITERATION_CAP = "iteration cap"
+STOP_DAMPING_LIMIT = "damping limit"
+#: rejected trial steps (each raising the damping) after which a stage gives up
+MAX_REJECTED_STEPS = 30
+
+
+@dataclass
+class _Outcome:
+    """How one LM stage ended: iterations used, whether it converged and why it stopped."""
+
+    iterations: int
+    stop_reason: str
+    cost: float
+
+    @property
+    def converged(self) -> bool:
+        return self.stop_reason == STOP_TOLERANCE
+
+
 def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: float,
                          lam: float = 1e-10):
-    """Minimise ``prob.cost`` from ``s``; returns the state, the iterations, the cost and, when
+    """Minimise ``prob.cost`` from ``s``; returns the state, the :class:`_Outcome` and, when
     converged, the normal equations of the last linearisation (else None).
 
     Gauss-Newton steps damped as in Nielsen's rule ([4]): after a step with gain ratio ``rho``
     (actual over predicted decrease) ``lam *= max(1/3, 1 - (2 rho - 1)^3)``, after a rejected
-    step ``lam *= nu, nu *= 2``. Stops when the predicted decrease, or the decrease achieved by
-    an accepted step, is below ``tol`` x cost.
+    step ``lam *= nu, nu *= 2``. Stops with ``stop_reason``:
+
+    - ``'tolerance'`` (converged): the predicted decrease, or the decrease achieved by an
+      accepted step, is below ``tol`` x cost;
+    - ``'damping limit'``: :data:`MAX_REJECTED_STEPS` trial steps in a row failed (no
+      decrease, or a non-positive-definite system) however strongly damped;
+    - ``'iteration cap'``: ``max_iterations`` linearisations without either.
     """
     F = prob.cost(s)
     nu = 2.0
     it = 0
     ne = None
+    reason = STOP_ITERATION_CAP
     for it in range(1, max_iterations + 1):  # noqa: B007
         ne = prob.normal_equations(s)
         U, W, V, g, gp, _ = ne
         done = False
-        for _ in range(30):
+        for _ in range(MAX_REJECTED_STEPS):
             sol = _schur_solve(U, W, V, g, gp, lam)
             if sol is not None:
                 dy, dp, pred = sol
@@ -868,11 +915,14 @@ def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: fl
             lam = max(lam, 1e-9) * nu
             nu *= 2.0
         else:
-            done = True
-        if done:
+            reason = STOP_DAMPING_LIMIT
             break
+        if done:
+            reason = STOP_TOLERANCE
+            break
+    out = _Outcome(it, reason, float(F))
     # the normal equations of the last linearisation, good for the covariance when converged
-    return s, it, F, (ne if done else None)
+    return s, out, (ne if out.converged else None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -935,6 +985,8 @@ def _cam_map(model: str, fix_aspect: bool, aspect: float) -> tuple[np.ndarray, l
 
 #: iterations of the initial cv2.calibrateCamera; our flat-target LM finishes the job
 INIT_ITERATIONS = 6
+#: iterations of the 5-term model before the rational model's k4..k6 are freed
+WARM_START_ITERATIONS = 10
 #: starting damping of the flat-target LM after that start
 FLAT_LAMBDA = 1e-3
 
@@ -983,6 +1035,334 @@ def _outliers(z: np.ndarray, inlier: np.ndarray, pi: np.ndarray, n: int, k: floa
 def _robust_sigma(r: np.ndarray) -> float:
     """1.4826 x median absolute residual component: sigma of Gaussian residuals."""
     return float(1.4826 * np.median(np.abs(r)))
+
+
+#: A repeatability variance is a posterior variance less a positive semi-definite term, so it
+#: can fall below zero by rounding only: by at most this fraction of that posterior variance.
+VARIANCE_ROUNDING = 1e-9
+
+
+def _checked_variances(var: np.ndarray, ref: np.ndarray, names, what: str) -> np.ndarray:
+    """``var`` with its rounding-level negatives set to 0; raises on a real negative variance.
+
+    ``ref`` is the (non-negative) variance ``var`` was computed from (the posterior one for a
+    repeatability variance, ``var`` itself for a posterior one); ``names[i]`` names entry ``i``.
+
+    Raises
+    ------
+    ValueError
+        Naming the first parameter whose variance is not finite or below
+        ``-VARIANCE_ROUNDING * |ref|``: the covariance is not positive semi-definite.
+    """
+    var = np.asarray(var, dtype=float)
+    bad = ~np.isfinite(var) | (var < -VARIANCE_ROUNDING * np.abs(ref))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"the {what} variance of {names[i]} is {var[i]:.3g} "
+                         f"({int(bad.sum())} of {len(var)} parameters affected): the covariance "
+                         "is not positive semi-definite, the normal equations are too badly "
+                         "conditioned at the solution to give uncertainties")
+    return np.where(var < 0.0, 0.0, var)
+
+
+def _parameter_names(cam_names, free_idx: np.ndarray, m: int) -> list[str]:
+    """Names of the unknowns in the order of the covariance: camera, free target coordinates,
+    poses (``cam.fx``, ``X12.z``, ``view3.rx`` ...)."""
+    fj, fk = np.divmod(free_idx, 3)
+    return ([f"cam.{c}" for c in cam_names]
+            + [f"X{j}.{'xyz'[k]}" for j, k in zip(fj, fk, strict=True)]
+            + [f"view{v}.{p}" for v in range(m) for p in ("rx", "ry", "rz", "tx", "ty", "tz")])
+
+
+@dataclass
+class _Covariances:
+    r"""Both kinds of covariance of the final solve's unknowns (module docstring).
+
+    With ``N = J^T J + P`` the normal matrix of the cost the final solve minimised (``P`` the
+    shape prior's block, at the prior weight that solve used) and ``s2`` the residual variance:
+    ``'posterior'`` is ``s2 N^-1`` and ``'repeatability'`` the sandwich
+    ``s2 N^-1 J^T J N^-1 = s2 (N^-1 - N^-1 P N^-1)``; without a prior they are equal. ``N^-1``
+    is held through the Schur complement over the poses: ``Sinv = S^-1`` (camera and points),
+    ``Hf = V^-1 W^T`` (6m, ny), ``Vinv`` (m, 6, 6) and ``RH = R^-T Hf^T`` (``S = R^T R``).
+    The prior on the free points is ``ca I + Urf cD Urf^T`` (``ca = 0``, ``Urf = None``: none).
+    """
+
+    s2: float
+    nc: int
+    Sinv: np.ndarray
+    Hf: np.ndarray
+    Vinv: np.ndarray
+    RH: np.ndarray
+    names: list[str]
+    ca: float = 0.0
+    Urf: np.ndarray | None = None
+    cD: np.ndarray | None = None
+
+    @property
+    def points(self) -> _PointCovariance:
+        """Repeatability covariance of the free target coordinates, as an operator."""
+        Sxx = self.Sinv[self.nc:, self.nc:]
+        if self.Urf is None:
+            return _PointCovariance(Sxx, self.s2)
+        return _PointCovariance(Sxx, self.s2, self.ca, Sxx @ self.Urf, self.cD)
+
+    def _prior_term(self, A: np.ndarray, B: np.ndarray | None = None) -> np.ndarray:
+        """``A P B^T`` / s2 for rows ``A``, ``B`` of ``N^-1[:, x]`` (x: the free points)."""
+        B = A if B is None else B
+        AU, BU = A @ self.Urf, B @ self.Urf
+        return self.ca * (A @ B.T) + AU @ self.cD @ BU.T
+
+    def _prior_diag(self, A: np.ndarray) -> np.ndarray:
+        """``diag(A P A^T)`` / s2."""
+        AU = A @ self.Urf
+        return self.ca * np.einsum("ij,ij->i", A, A) + np.einsum("ij,ij->i", AU @ self.cD, AU)
+
+    def camera_sd(self, cam_map: np.ndarray, kind: str) -> np.ndarray:
+        """(12,) 1-sigma of ``CAMERA_NAMES`` through ``cam_map`` (12, nc); ``kind``
+        ``'repeatability'`` or ``'posterior'``."""
+        nc = self.nc
+        post = self.s2 * self.Sinv[:nc, :nc]
+        post_var = np.einsum("ij,jk,ik->i", cam_map, post, cam_map)
+        var = _checked_variances(post_var, post_var, CAMERA_NAMES, "posterior")
+        if kind == "repeatability" and self.Urf is not None:
+            rep = post - self.s2 * self._prior_term(self.Sinv[:nc, nc:])
+            var = _checked_variances(np.einsum("ij,jk,ik->i", cam_map, rep, cam_map),
+                                     post_var, CAMERA_NAMES, "repeatability")
+        return np.sqrt(var)
+
+    def pose_sd(self, kind: str) -> np.ndarray:
+        """(m, 6) 1-sigma of ``rvec, tvec`` per view: ``Cov(p) / s2 = V^-1 + H S^-1 H^T``."""
+        names = self.names[len(self.Sinv):]
+        post = self.s2 * (np.einsum("vii->vi", self.Vinv).ravel()
+                          + np.einsum("ij,ij->j", self.RH, self.RH))
+        var = _checked_variances(post, post, names, "posterior")
+        if kind == "repeatability" and self.Urf is not None:
+            rep = post - self.s2 * self._prior_diag(self.Hf @ self.Sinv[:, self.nc:])
+            var = _checked_variances(rep, post, names, "repeatability")
+        return np.sqrt(var).reshape(-1, 6)
+
+    def point_variances(self) -> np.ndarray:
+        """Repeatability variances of the free target coordinates."""
+        nc = self.nc
+        post = self.s2 * np.einsum("ii->i", self.Sinv[nc:, nc:])
+        names = self.names[nc:len(self.Sinv)]
+        _checked_variances(post, post, names, "posterior")
+        return _checked_variances(self.points.diag(), post, names, "repeatability")
+
+    def full(self, kind: str) -> np.ndarray:
+        """The whole matrix over ``names`` (camera, free points, poses)."""
+        HS = self.Hf @ self.Sinv
+        cov_pp = self.Hf @ HS.T
+        for v in range(len(self.Vinv)):
+            cov_pp[6 * v:6 * v + 6, 6 * v:6 * v + 6] += self.Vinv[v]
+        out = self.s2 * np.block([[self.Sinv, -HS.T], [-HS, cov_pp]])
+        if kind == "repeatability" and self.Urf is not None:
+            Nx = np.vstack([self.Sinv[:, self.nc:], -HS[:, self.nc:]])   # N^-1[:, x]
+            out -= self.s2 * self._prior_term(Nx)
+        return out
+
+
+def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covariances:
+    """Covariances at the solution ``state`` of ``prob``, from the normal equations ``ne`` of
+    its last linearisation (None: linearised afresh). The prior's weight is the problem's own
+    (``prob.sig2``), so ``N`` is the normal matrix of the cost that was minimised."""
+    U, W, V = (ne if ne is not None else prob.normal_equations(state))[:3]
+    r = prob.residuals(state)
+    dof = 2 * prob.N - prob.n_unknowns
+    s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
+    try:
+        iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
+        G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
+        Gf = G.reshape(6 * m, -1)
+        cf = scipy.linalg.cho_factor(U - Gf.T @ Gf, check_finite=False)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("the normal equations are singular at the solution (rms "
+                         f"{np.sqrt(np.mean(r**2) * 2):.3g} px): the data do not determine "
+                         "the unknowns, or the adjustment diverged from a poor start (pass "
+                         "K0/dist0)") from exc
+    Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
+    cov = _Covariances(
+        s2=s2, nc=prob.nc, Sinv=_inverse_from_cholesky(cf[0]), Hf=Hf,
+        Vinv=iL.transpose(0, 2, 1) @ iL,
+        RH=scipy.linalg.solve_triangular(cf[0], Hf.T, trans="T", check_finite=False),
+        names=_parameter_names(cam_names, prob.free_idx, m))
+    if prob.Lam is not None:
+        # the prior block of N is c (a I + Urf D Urf^T), c = sig2 / sc^2 (normal_equations)
+        _, sc, Rs = prob.shape_deviation(state.X)
+        c = prob.sig2 / sc**2
+        cov.ca, cov.Urf = c * prob.Lam.a, prob.Lam.rotated_columns(Rs, prob.free_idx)
+        cov.cD = c * prob.Lam.D
+    return cov
+
+
+def _convergence_summary(stages: dict[str, _Outcome], initialised: bool
+                         ) -> tuple[dict, bool, str]:
+    """Per-stage ``iterations``, ``converged``, ``stop_reason``, ``role``, ``cost_px2``; whether
+    the result converged and why its solve stopped.
+
+    Roles: ``'start'`` (starting values only, capped by design: the initial
+    ``cv2.calibrateCamera`` and the rational model's 5-term warm start), ``'result'`` (the
+    solves the camera comes from) and ``'guard'`` (the flat-target fit the guard compares
+    with). The result converged when every stage but the ``'start'`` ones did; the reason given
+    is that of the first stage that did not, else of the last stage.
+    """
+    out: dict = {}
+    if initialised:
+        out["initial"] = {"iterations": None, "converged": False, "role": "start",
+                          "stop_reason": f"{STOP_ITERATION_CAP} (by design: cv2.calibrateCamera "
+                                         f"capped at {INIT_ITERATIONS} iterations gives starting "
+                                         "values only)", "cost_px2": None}
+    for name, o in stages.items():
+        role = {"flat_standard": "start", "flat_inliers": "guard"}.get(name, "result")
+        out[name] = {"iterations": o.iterations, "converged": o.converged, "role": role,
+                     "stop_reason": o.stop_reason, "cost_px2": o.cost}
+    checked = [v for v in out.values() if v["role"] != "start"]
+    failed = [v for v in checked if not v["converged"]]
+    return out, not failed, (failed[0] if failed else checked[-1])["stop_reason"]
+
+
+def _initial_values(image_size, X0: np.ndarray, ids_list, pts_list, model: str, K0, dist0,
+                    rvecs0, tvecs0, fix_aspect: bool):
+    """Starting camera (12,) and poses (m, 3), (m, 3): from ``cv2.calibrateCamera`` when ``K0``
+    is None, else from ``K0``, ``dist0`` and the given poses (``cv2.solvePnP`` without them)."""
+    m = len(ids_list)
+    if K0 is None:
+        cam, rv0, tv0 = _initial_camera(image_size, X0, ids_list, pts_list, fix_aspect)
+    else:
+        cam = np.zeros(12)
+        K0 = np.asarray(K0, float)
+        cam[:4] = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+        if dist0 is not None:
+            d0 = np.ravel(dist0)
+            cam[4:4 + len(d0)] = d0
+        rv0 = tv0 = None
+    if model == "standard":
+        cam[9:] = 0.0
+    if rvecs0 is not None and tvecs0 is not None:
+        rv0 = np.asarray(rvecs0, float).reshape(m, 3).copy()
+        tv0 = np.asarray(tvecs0, float).reshape(m, 3).copy()
+    elif rv0 is None:
+        rv0, tv0 = _initial_poses(cam, X0, ids_list, pts_list)
+    return cam, rv0, tv0
+
+
+def _board_tilts_deg(rvecs: np.ndarray, min_tilt_deg: float) -> np.ndarray:
+    """(m,) angle between each board normal and the optical axis, deg; refuses the data when
+    every view is within ``min_tilt_deg`` of fronto-parallel."""
+    R0, _ = rodrigues(rvecs, False)
+    tilts = np.degrees(np.arccos(np.clip(np.abs(R0[:, 2, 2]), 0.0, 1.0)))
+    if tilts.max() < min_tilt_deg:
+        raise ValueError(f"all {len(tilts)} views are within {min_tilt_deg:g} deg of "
+                         f"fronto-parallel (largest board tilt {tilts.max():.2f} deg): the focal "
+                         "length and the target distance are not separable; add views with the "
+                         "board tilted by 15-45 deg")
+    return tilts
+
+
+def _warn_not_converged(stage_info: dict) -> None:
+    """``RuntimeWarning`` naming the stages (other than the capped starts) that stopped short."""
+    bad = [k for k, v in stage_info.items() if v["role"] != "start" and not v["converged"]]
+    warnings.warn(f"the bundle adjustment did not converge: stage{'s' * (len(bad) > 1)} "
+                  + ", ".join(f"{k} ({stage_info[k]['stop_reason']} after "
+                              f"{stage_info[k]['iterations']} iterations)" for k in bad)
+                  + "; the camera and its sd are not a minimum of the cost (raise "
+                  "max_iterations, or pass a better K0/dist0)", RuntimeWarning, stacklevel=4)
+
+
+def _warn_guard(g: dict, guard_warn_ratio: float) -> None:
+    """``RuntimeWarning`` when the refined target's irregular deformation exceeds
+    ``guard_warn_ratio`` times what the noise explains."""
+    if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
+        warnings.warn(f"the refined target departs from a smoothly warped board by "
+                      f"{g['irregular_rms_mm']:.3g} RMS, "
+                      f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
+                      "the noise explains: the free target points are likely absorbing "
+                      "lens-model misfit (or the target is worse than target_sigma_mm); "
+                      "consider a richer lens model or a smaller target_sigma_mm",
+                      RuntimeWarning, stacklevel=4)
+
+
+@dataclass
+class _Data:
+    """The flattened observations: view and point index, uv (px) and weight of each, the
+    numbers of views and points, and the nominal target (n, 3)."""
+
+    vi: np.ndarray
+    pi: np.ndarray
+    uv: np.ndarray
+    w: np.ndarray
+    m: int
+    n: int
+    X0: np.ndarray
+
+
+def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
+                  Lam: _ShapePrior | None, model: str, fix_aspect: bool, refine_target: bool,
+                  robust: bool, reject_sigma: float, max_iterations: int, tol: float):
+    """Stages 2-4 of the module docstring from the starting ``state``.
+
+    Returns the flat-target fit (on the final inliers), the solution, the final problem, the
+    inlier mask (N,), the per-stage :class:`_Outcome` and the normal equations of the final
+    solve's last linearisation when it converged (else None).
+    """
+    vi, pi, uv, w, m, n, X0 = (data.vi, data.pi, data.uv, data.w, data.m, data.n, data.X0)
+    no_pts = np.zeros((n, 3), bool)
+
+    def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
+        s = slice(None) if sel is None else sel
+        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
+
+    last: dict = {}
+    stages: dict[str, _Outcome] = {}
+
+    def lm(name: str, prob: _Problem, st: _State, lam: float = 1e-10) -> _State:
+        st, stages[name], ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        last["prob"], last["ne"] = prob, ne
+        return st
+
+    # ---- stage 2: target held at its nominal shape --------------------------------------
+    if model == "rational" and not np.any(state.cam[9:]):
+        # free k4..k6 only after some iterations of the 5-term model: from a poor start the
+        # rational model has bad local minima (f 10 % off on the figueroa set)
+        std_map, _ = _cam_map("standard", fix_aspect, state.cam[0] / state.cam[1])
+        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
+        state, stages["flat_standard"], _ = _levenberg_marquardt(
+            std_prob, state, min(max_iterations, WARM_START_ITERATIONS), tol, 1e-3)
+    flat_prob = problem(0.0, no_pts)
+    state = lm("flat", flat_prob, state, lam=FLAT_LAMBDA)
+    flat_state = state.copy()
+    sigma_px = _robust_sigma(flat_prob.residuals(state))
+    # ---- stage 3: target released -------------------------------------------------------
+    prob = flat_prob
+    if refine_target:
+        prob = problem(sigma_px, free_pts)
+        state = lm("target", prob, state)
+    # ---- stage 4: outliers; the prior's pixel sigma from the refined residuals ----------
+    N = len(vi)
+    inlier = np.ones(N, bool)
+    for rounds in range(1, 4):
+        r = (project_jacobian(state.cam, state.rvecs, state.tvecs, state.X, vi, pi,
+                              jacobian=False) - uv) * w[:, None]
+        sig = _robust_sigma(r)
+        new_out = readmit = np.zeros(N, bool)
+        if robust:
+            new_out, readmit = _outliers(np.hypot(r[:, 0], r[:, 1]) / sig, inlier, pi, n,
+                                         reject_sigma)
+        reweight = Lam is not None and abs(sig / sigma_px - 1.0) > 0.2
+        if not new_out.any() and not readmit.any() and not reweight:
+            break
+        inlier = (inlier & ~new_out) | readmit
+        sigma_px = sig
+        prob = problem(sigma_px, free_pts, np.flatnonzero(inlier))
+        state = lm(f"reject{rounds}", prob, state)
+    if refine_target and not inlier.all():
+        # the flat-target fit (for the guard's comparison) on the same inliers
+        flat_state, stages["flat_inliers"], _ = _levenberg_marquardt(
+            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
+
+    # a converged LM's last linearisation is at the solution to within its final (tiny) step
+    ne = last.get("ne") if last.get("prob") is prob else None
+    return flat_state, state, prob, inlier, stages, ne
 
 
 @_single_threaded_blas
@@ -1051,29 +1431,39 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Warn (``RuntimeWarning``) when the irregular part of the refined target's deformation
         has an RMS above this many times the RMS the noise alone gives (from the covariance).
     max_iterations : int
-        Per LM stage.
+        Per LM stage. A stage that reaches it stops with ``stop_reason='iteration cap'`` and the
+        result is marked as not converged (module docstring, Convergence).
     tol : float
         Stop when the linear model predicts a cost decrease below ``tol`` times the cost. That
         last step is still taken, so the solution is off by about its square: on the benchmark
         sets 1e-7 and 1e-8 agree to 2e-4 sigma (``benchmarks/bench_bundle.py``).
     return_covariance : bool
-        Also put the full covariance of all free parameters in ``info['covariance']`` with
-        their names in ``info['parameter_names']``. Covariances use the normal equations of
-        the last linearisation, at most one converged step (see ``tol``) from the solution:
-        relative differences of about 1e-5 from a fresh linearisation at ``tol=1e-7``.
+        Also put the full covariances of all free parameters, both kinds, in
+        ``info['covariance_repeatability']`` and ``info['covariance_posterior']`` (module
+        docstring, Covariance), with their names in ``info['parameter_names']``. Covariances
+        use the normal equations of the last linearisation, at most one converged step (see
+        ``tol``) from the solution: relative differences of about 1e-5 from a fresh
+        linearisation at ``tol=1e-7``.
 
     Returns
     -------
     CalibrationResult
         ``backend='bundle'``; ``K``, ``dist`` ((5,) or (8,)), ``sd`` (``fx, fy, cx, cy`` and the
-        distortion terms), ``rms_px`` and ``per_view_rms_px`` over inliers (unweighted px),
-        ``rvecs``, ``tvecs`` (``Rt_cam_board``, target in the gauge frame), ``rejected``
-        (view, id), ``object_points`` (refined, gauge frame; None if ``refine_target`` is
-        False) and ``object_points_sd`` (0 for gauge-fixed coordinates). ``info``:
+        distortion terms; repeatability 1-sigma, as every sd here), ``rms_px`` and
+        ``per_view_rms_px`` over inliers (unweighted px), ``rvecs``, ``tvecs``
+        (``Rt_cam_board``, target in the gauge frame), ``rejected`` (view, id),
+        ``object_points`` (refined, gauge frame; None if ``refine_target`` is False) and
+        ``object_points_sd`` (0 for gauge-fixed coordinates). ``info``:
 
+        - ``converged`` (bool; also ``CalibrationResult.converged``), ``stop_reason``,
+          ``stages`` (per LM stage: ``iterations``, ``converged``, ``stop_reason``, ``role``,
+          ``cost_px2``), ``iterations`` (LM iterations per stage);
         - ``gauge`` (text), ``gauge_points``, ``n_unknowns`` (free parameters after the
-          gauge), ``n_observations`` (inliers), ``iterations`` (LM iterations per stage),
-          ``sigma_px`` (``s``, weighted px), ``model``, ``max_tilt_deg``;
+          gauge), ``n_observations`` (inliers), ``sigma_px`` (``s``, weighted px),
+          ``prior_sigma_px`` (the prior's pixel sigma in the final solve; None without a
+          prior), ``model``, ``max_tilt_deg``;
+        - ``sd_kind`` (``'repeatability'``), ``sd_posterior`` (by name),
+          ``rvecs_sd_posterior``, ``tvecs_sd_posterior`` (m, 3);
         - ``flatness_mm``, ``flatness_sd_mm``: RMS distance of the refined points from their
           best-fit plane, and its linearised 1-sigma;
         - ``guard``: the flat-target fit (``flat_fx`` ...), the shifts from it
@@ -1087,7 +1477,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     ValueError
         Fewer than 3 views; a view with fewer than 4 points, a repeated or out-of-range id;
         every view fronto-parallel; fewer equations (2 per observation) than unknowns; an
-        unknown model; normal equations singular at the solution.
+        unknown model; normal equations singular at the solution; a negative variance
+        (naming the parameter).
 
     Notes
     -----
@@ -1125,145 +1516,33 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                          "target coordinates): add views, or set refine_target=False")
 
     # ---- stage 1: initial values and the fronto-parallel refusal ------------------------
-    if K0 is None:
-        cam, rv0, tv0 = _initial_camera(obs.image_size, X0, ids_list, pts_list, fix_aspect)
-        if fix_aspect:
-            cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
-    else:
-        cam = np.zeros(12)
-        K0 = np.asarray(K0, float)
-        cam[:4] = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
-        if dist0 is not None:
-            d0 = np.ravel(dist0)
-            cam[4:4 + len(d0)] = d0
-        rv0 = tv0 = None
-    if model == "standard":
-        cam[9:] = 0.0
-    if rvecs0 is not None and tvecs0 is not None:
-        rv0 = np.asarray(rvecs0, float).reshape(m, 3).copy()
-        tv0 = np.asarray(tvecs0, float).reshape(m, 3).copy()
-    elif rv0 is None:
-        rv0, tv0 = _initial_poses(cam, X0, ids_list, pts_list)
-    R0, _ = rodrigues(rv0, False)
-    tilts = np.degrees(np.arccos(np.clip(np.abs(R0[:, 2, 2]), 0.0, 1.0)))
-    if tilts.max() < min_tilt_deg:
-        raise ValueError(f"all {m} views are within {min_tilt_deg:g} deg of fronto-parallel "
-                         f"(largest board tilt {tilts.max():.2f} deg): the focal length and the "
-                         "target distance are not separable; add views with the board tilted "
-                         "by 15-45 deg")
+    cam, rv0, tv0 = _initial_values(obs.image_size, X0, ids_list, pts_list, model, K0, dist0,
+                                    rvecs0, tvecs0, fix_aspect)
+    if K0 is None and fix_aspect:
+        cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
+    tilts = _board_tilts_deg(rv0, min_tilt_deg)
 
     modes = _shape_modes(X0) if refine_target else None
     Lam = None
     if refine_target and target_sigma_mm is not None:
         Lam = _ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
-    no_pts = np.zeros((n, 3), bool)
-
-    def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
-        s = slice(None) if sel is None else sel
-        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
-
-    last: dict = {}
-
-    def lm(prob: _Problem, st: _State, lam: float = 1e-10) -> tuple[_State, int]:
-        st, it, _, ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
-        last["prob"], last["ne"] = prob, ne
-        return st, it
-
-    iterations: dict[str, int] = {}
-    # ---- stage 2: target held at its nominal shape --------------------------------------
-    state = _State(cam, rv0, tv0, X0.copy())
-    if model == "rational" and not np.any(cam[9:]):
-        # free k4..k6 only after some iterations of the 5-term model: from a poor start the
-        # rational model has bad local minima (f 10 % off on the figueroa set)
-        std_map, _ = _cam_map("standard", fix_aspect, cam[0] / cam[1])
-        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
-        state, iterations["flat_standard"], _, _ = _levenberg_marquardt(
-            std_prob, state, min(max_iterations, 10), tol, 1e-3)
-    flat_prob = problem(0.0, no_pts)
-    state, iterations["flat"] = lm(flat_prob, state, lam=FLAT_LAMBDA)
-    flat_state = state.copy()
-    sigma_px = _robust_sigma(flat_prob.residuals(state))
-    # ---- stage 3: target released -------------------------------------------------------
-    prob = flat_prob
-    if refine_target:
-        prob = problem(sigma_px, free_pts)
-        state, iterations["target"] = lm(prob, state)
-    # ---- stage 4: outliers; the prior's pixel sigma from the refined residuals ----------
-    inlier = np.ones(N, bool)
-    for rounds in range(1, 4):
-        r = (project_jacobian(state.cam, state.rvecs, state.tvecs, state.X, vi, pi,
-                              jacobian=False) - uv) * w[:, None]
-        sig = _robust_sigma(r)
-        new_out = readmit = np.zeros(N, bool)
-        if robust:
-            new_out, readmit = _outliers(np.hypot(r[:, 0], r[:, 1]) / sig, inlier, pi, n,
-                                         reject_sigma)
-        reweight = Lam is not None and abs(sig / sigma_px - 1.0) > 0.2
-        if not new_out.any() and not readmit.any() and not reweight:
-            break
-        inlier = (inlier & ~new_out) | readmit
-        sigma_px = sig
-        prob = problem(sigma_px, free_pts, np.flatnonzero(inlier))
-        state, iterations[f"reject{rounds}"] = lm(prob, state)
-    if refine_target and not inlier.all():
-        # the flat-target fit (for the guard's comparison) on the same inliers
-        flat_state, iterations["flat_inliers"], _, _ = _levenberg_marquardt(
-            problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
+    flat_state, state, prob, inlier, stages, ne = _solve_stages(
+        _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), cam_map, free_pts,
+        Lam, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations, tol)
 
     # ---- stage 5: covariance ------------------------------------------------------------
-    # a converged LM's last linearisation is at the solution to within its final (tiny) step
-    ne = last.get("ne") if last.get("prob") is prob else None
-    U, W, V = (ne if ne is not None else prob.normal_equations(state))[:3]
-    U = U.copy()
-    r = prob.residuals(state)
-    dof = 2 * prob.N - prob.n_unknowns
-    s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
-    nc, f = prob.nc, prob.free_idx
-    Urf = None  # the shape prior on the free points: (a I + Urf D Urf^T) / sc^2
-    if prob.Lam is not None:
-        # N = J^T J + s^2 Lambda on the point block (the solve used sigma_px^2 Lambda)
-        _, sc, Rs = prob.shape_deviation(state.X)
-        Urf = prob.Lam.rotated_columns(Rs, f)
-        lam_f = Urf @ prob.Lam.D @ Urf.T
-        lam_f.ravel()[:: len(f) + 1] += prob.Lam.a
-        U[nc:, nc:] += (s2 - sigma_px**2) / sc**2 * lam_f
-    try:
-        iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
-        G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
-        Gf = G.reshape(6 * m, -1)
-        cf = scipy.linalg.cho_factor(U - Gf.T @ Gf, check_finite=False)
-    except np.linalg.LinAlgError as exc:
-        raise ValueError("the normal equations are singular at the solution (rms "
-                         f"{np.sqrt(np.mean(r**2) * 2):.3g} px): the data do not determine "
-                         "the unknowns, or the adjustment diverged from a poor start (pass "
-                         "K0/dist0)") from exc
-    Sinv = _inverse_from_cholesky(cf[0])
-    # posterior (includes the prior's allowance for an irregular board), camera and points
-    cov_post_cam = s2 * Sinv[:nc, :nc]
-    cov_cam, cov_pts = cov_post_cam, _PointCovariance(Sinv[nc:, nc:], s2)
-    if Urf is not None:
-        # Repeatability of the estimate for this board (sandwich): the marginal of
-        # s^2 N^-1 (J^T J) N^-1 over camera and points is s^2 S^-1 (S - P) S^-1 =
-        # s^2 (S^-1 - S^-1 P S^-1); the prior P = c (a I + Urf D Urf^T) (c = s^2 / sc^2)
-        # touches only the points (S is the Schur complement over the poses), so only the
-        # camera and point blocks of S^-1[:, x] P S^-1[x, :] are needed.
-        c = s2 / sc**2
-        Sxx, Scx = Sinv[nc:, nc:], Sinv[:nc, nc:]
-        cD = c * prob.Lam.D
-        cov_pts = _PointCovariance(Sxx, s2, c * prob.Lam.a, Sxx @ Urf, cD)
-        ScU = Scx @ Urf
-        cov_cam = s2 * (Sinv[:nc, :nc] - c * prob.Lam.a * (Scx @ Scx.T) - ScU @ cD @ ScU.T)
-    # poses: Cov(p) / s^2 = V^-1 + H S^-1 H^T with H = V^-1 W^T; Cov(y, p) / s^2 = -S^-1 H^T
-    Vinv = iL.transpose(0, 2, 1) @ iL
-    Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
-    # diag(H S^-1 H^T) = column norms of R^-T H^T (S = R^T R, R the upper Cholesky factor)
-    RH = scipy.linalg.solve_triangular(cf[0], Hf.T, trans="T", check_finite=False)
-    pose_var = s2 * (np.einsum("vii->vi", Vinv).ravel() + np.einsum("ij,ij->j", RH, RH))
-    pose_sd = np.sqrt(pose_var).reshape(m, 6)
-    cam_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_cam, cam_map))
+    cov = _covariances(prob, state, ne, cam_names, m)
     nd = 5 if model == "standard" else 8
-    sd = {name: float(cam_sd[k]) for k, name in enumerate(CAMERA_NAMES[:4 + nd])}
-    post_sd = np.sqrt(np.einsum("ij,jk,ik->i", cam_map, cov_post_cam, cam_map))
+    sd_names = CAMERA_NAMES[:4 + nd]
+    sd = dict(zip(sd_names, cov.camera_sd(cam_map, "repeatability")[:4 + nd].tolist(),
+                  strict=True))
+    post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
+                       strict=True))
+    pose_sd = cov.pose_sd("repeatability")
+    pose_sd_post = cov.pose_sd("posterior")
+    stage_info, converged, stop_reason = _convergence_summary(stages, K0 is None)
+    if not converged:
+        _warn_not_converged(stage_info)
 
     cam = state.cam
     K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
@@ -1273,40 +1552,31 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                        / np.maximum(np.bincount(vi[inlier], minlength=m), 1))
     info: dict = {"gauge": gauge_text, "gauge_points": list(gpts),
                   "n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
-                  "iterations": iterations, "sigma_px": float(np.sqrt(s2)), "model": model,
-                  "max_tilt_deg": float(tilts.max()), "rvecs_sd": pose_sd[:, :3],
-                  "tvecs_sd": pose_sd[:, 3:], "points_held": [int(i) for i in held],
+                  "converged": converged, "stop_reason": stop_reason, "stages": stage_info,
+                  "iterations": {k: v.iterations for k, v in stages.items()},
+                  "sigma_px": float(np.sqrt(cov.s2)), "model": model,
+                  "prior_sigma_px": (float(np.sqrt(prob.sig2)) if prob.Lam is not None
+                                     else None),
+                  "max_tilt_deg": float(tilts.max()), "sd_kind": "repeatability",
+                  "rvecs_sd": pose_sd[:, :3], "tvecs_sd": pose_sd[:, 3:],
+                  "points_held": [int(i) for i in held],
                   "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm,
-                  "sd_with_target_prior": {name: float(post_sd[k]) for k, name
-                                           in enumerate(CAMERA_NAMES[:4 + nd])}}
+                  "sd_posterior": post_sd, "rvecs_sd_posterior": pose_sd_post[:, :3],
+                  "tvecs_sd_posterior": pose_sd_post[:, 3:]}
     obj_pts = obj_sd = None
     if refine_target:
         obj_pts = state.X.copy()
+        f, cov_pts = prob.free_idx, cov.points
         var = np.zeros(3 * n)
-        var[f] = np.clip(cov_pts.diag(), 0.0, None)
+        var[f] = cov.point_variances()
         obj_sd = np.sqrt(var).reshape(n, 3)
         info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_pts, f)
         info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam, sd)
-        g = info["guard"]
-        if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
-            warnings.warn(f"the refined target departs from a smoothly warped board by "
-                          f"{g['irregular_rms_mm']:.3g} RMS, "
-                          f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
-                          "the noise explains: the free target points are likely absorbing "
-                          "lens-model misfit (or the target is worse than target_sigma_mm); "
-                          "consider a richer lens model or a smaller target_sigma_mm",
-                          RuntimeWarning, stacklevel=2)
+        _warn_guard(info["guard"], guard_warn_ratio)
     if return_covariance:
-        fj, fk = np.divmod(f, 3)
-        info["parameter_names"] = (
-            [f"cam.{c}" for c in cam_names]
-            + [f"X{j}.{'xyz'[k]}" for j, k in zip(fj, fk, strict=True)]
-            + [f"view{v}.{p}" for v in range(m) for p in ("rx", "ry", "rz", "tx", "ty", "tz")])
-        HS = Hf @ Sinv
-        cov_pp = Hf @ HS.T
-        for v in range(m):
-            cov_pp[6 * v:6 * v + 6, 6 * v:6 * v + 6] += Vinv[v]
-        info["covariance"] = s2 * np.block([[Sinv, -HS.T], [-HS, cov_pp]])
+        info["parameter_names"] = cov.names
+        info["covariance_repeatability"] = cov.full("repeatability")
+        info["covariance_posterior"] = cov.full("posterior")
     return CalibrationResult(backend="bundle", K=K, dist=cam[4:4 + nd].copy(), sd=sd,
                              rms_px=float(np.sqrt(e2[inlier].mean())), per_view_rms_px=per_view,
                              rvecs=state.rvecs.copy(), tvecs=state.tvecs.copy(),
@@ -1375,8 +1645,11 @@ def _guard(modes, X0: np.ndarray, X: np.ndarray, cov_x: _PointCovariance, free: 
     # tr(P C_nom) with C_nom = (I (x) Rs^T) C (I (x) Rs) / sc^2 and P = I - Q Q^T - B B^T:
     # tr(C) - tr(M^T C M) with M = (I (x) Rs) [Q B], rotated once instead of C
     M = (Rs @ np.hstack([Q, B]).reshape(n, 3, -1)).reshape(3 * n, -1)[free]
-    trace = float(np.sum(cov_x.diag()) - np.einsum("ij,ij->", M, cov_x @ M)) / sc**2
-    noise2 = max(trace, 0.0) / (3 * n)  # tr(P C P) = tr(P C)
+    diag = cov_x.diag()
+    trace = float(np.sum(diag) - np.einsum("ij,ij->", M, cov_x @ M)) / sc**2
+    # tr(P C P) = tr(P C) >= 0 for a positive semi-definite C
+    noise2 = _checked_variances(np.array([trace]), np.array([np.sum(diag) / sc**2]),
+                                ["the irregular target deformation"], "noise")[0] / (3 * n)
     g = {"flat_fx": float(cam_flat[0]), "flat_fy": float(cam_flat[1]),
          "flat_cx": float(cam_flat[2]), "flat_cy": float(cam_flat[3]),
          "warp_amplitude_mm": [float(a) for a in Ti @ (B.T @ d)],
@@ -1406,5 +1679,7 @@ def _flatness(X: np.ndarray, cov_x: _PointCovariance, free: np.ndarray
         return 0.0, 0.0
     gvec = (d[:, None] * nrm[None, :] / (len(X) * phi)).ravel()
     gf = gvec[free]
-    return phi, float(np.sqrt(max(gf @ (cov_x @ gf), 0.0)))
+    var = _checked_variances(np.array([gf @ (cov_x @ gf)]), np.array([gf**2 @ cov_x.diag()]),
+                             ["the flatness"], "repeatability")
+    return phi, float(np.sqrt(var[0]))
 

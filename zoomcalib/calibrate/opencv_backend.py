@@ -13,6 +13,15 @@ calibration functions return; it is recomputed here from the result (``cv2.proje
 OpenCV's own value is kept in ``info["opencv_rms_px"]``. ``per_view_rms_px`` is the same
 quantity per view.
 
+Convergence and uncertainties: OpenCV reports neither its iteration count nor why it stopped, so
+the Gauss-Newton step is re-evaluated at its solution (:func:`_stationarity`): ``info`` gets
+``converged`` (the step is at most :data:`STATIONARY_SIGMA` sigma long), ``stop_reason``
+(``'tolerance'`` or ``'not stationary'``) and ``convergence_check`` (the step, the criteria).
+OpenCV's 1-sigmas come from ``s^2 (J^T J)^-1`` with no prior, which is both the posterior and the
+repeatability (``info['sd_kind'] = 'repeatability'``, as the bundle's). A 1-sigma that is not a
+number (a negative variance) stops the calibration for a camera parameter and is listed in
+``info['sd_invalid']``, with a ``RuntimeWarning``, for a pose or target coordinate.
+
 Flag quirks of OpenCV 5.0 handled here
 --------------------------------------
 * ``CALIB_DISABLE_SCHUR_COMPLEMENT`` has the same value as ``CALIB_TILTED_MODEL`` (``1 << 18``),
@@ -30,11 +39,13 @@ Flag quirks of OpenCV 5.0 handled here
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Sequence
 
 import cv2
 import numpy as np
 
+from zoomcalib.calibrate.bundle import _Problem, _schur_solve, _State
 from zoomcalib.calibrate.result import DIST_NAMES, CalibrationResult, Observations
 from zoomcalib.detect.opencv import Detection
 from zoomcalib.targets import Target, parse_pattern
@@ -273,6 +284,81 @@ def _residuals(obj: list[np.ndarray], img: list[np.ndarray], rvecs, tvecs, K, di
     return float(np.sqrt(sq / n)), np.asarray(per_view)
 
 
+#: OpenCV's solution counts as converged when the Gauss-Newton step left at it is at most this
+#: long in the metric of its own covariance, sigma (see :func:`_stationarity`).
+STATIONARY_SIGMA = 0.05
+
+
+def _free_camera_columns(flags: int, n_dist: int, K: np.ndarray) -> np.ndarray:
+    """(12, nc) map from the camera parameters OpenCV adjusted under ``flags`` to the bundle's
+    ``fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6``."""
+    fixed = set(_fixed_names(flags, n_dist))
+    eye = np.eye(12)
+    cols = []
+    if "fx" not in fixed:
+        if flags & cv2.CALIB_FIX_ASPECT_RATIO:
+            cols.append(eye[0] * (K[0, 0] / K[1, 1]) + eye[1])   # f with fx / fy held
+        else:
+            cols += [eye[0], eye[1]]
+    names = ("cx", "cy") + DIST_NAMES[:n_dist]
+    bundle_index = {"cx": 2, "cy": 3, "k1": 4, "k2": 5, "p1": 6, "p2": 7, "k3": 8, "k4": 9,
+                    "k5": 10, "k6": 11}
+    cols += [eye[bundle_index[nm]] for nm in names if nm not in fixed]
+    return np.array(cols).T
+
+
+def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
+                  dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, flags: int,
+                  n_dist: int) -> float:
+    r"""Length of the Gauss-Newton step left at OpenCV's solution, in sigma.
+
+    ``cv2.calibrateCamera*`` does not say how many iterations it used nor why it stopped, so
+    the solution is checked instead: with the Jacobian ``J`` of the reprojection errors ``r``
+    over the parameters OpenCV adjusted (camera under ``flags``, every pose; a released target
+    is held at its refined points), the step ``d = -N^-1 J^T r`` (``N = J^T J``) has length
+    ``sqrt(d^T N d / s^2)`` in the metric of the covariance ``s^2 N^-1``
+    (``s^2 = |r|^2 / (2 N_obs - n_unknowns)``): the largest distance, in 1-sigma, of any
+    parameter or combination of them from the stationary point. ``inf`` if ``N`` is singular.
+    """
+    ids = [np.arange(len(o)) for o in obj]
+    offsets = np.cumsum([0] + [len(o) for o in obj])
+    points = np.concatenate([np.asarray(o, np.float64).reshape(-1, 3) for o in obj])
+    vi = np.concatenate([np.full(len(i), v) for v, i in enumerate(ids)])
+    pi = np.concatenate([i + offsets[v] for v, i in enumerate(ids)])
+    uv = np.concatenate([np.asarray(p, np.float64).reshape(-1, 2) for p in img])
+    cam = np.zeros(12)
+    cam[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    cam[4:4 + n_dist] = dist[:n_dist]
+    cam_map = _free_camera_columns(flags, n_dist, K)
+    prob = _Problem(vi, pi, uv, np.ones(len(vi)), len(obj), len(points), cam_map,
+                    np.zeros((len(points), 3), bool), points, None, 0.0)
+    state = _State(cam, np.asarray(rvecs, np.float64), np.asarray(tvecs, np.float64), points)
+    U, W, V, g, gp, r = prob.normal_equations(state)
+    sol = _schur_solve(U, W, V, g, gp, 0.0)
+    dof = 2 * prob.N - prob.n_unknowns
+    s2 = float(np.einsum("ij,ij->", r, r)) / dof
+    if sol is None or not s2 > 0:
+        return float("inf")
+    return float(np.sqrt(max(sol[2], 0.0) / s2))
+
+
+def _convergence(obj, img, K, dist, rv, tv, flags: int, n_dist: int, criteria) -> dict:
+    """``converged``, ``stop_reason`` and how they were found (``convergence_check``)."""
+    step = _stationarity(obj, img, K, dist, rv, tv, flags, n_dist)
+    ok = step <= STATIONARY_SIGMA
+    kind, count, eps = criteria
+    return {"converged": bool(ok),
+            "stop_reason": "tolerance" if ok else "not stationary",
+            "convergence_check": {
+                "method": "Gauss-Newton step re-evaluated at OpenCV's solution (OpenCV does "
+                          "not report its iterations); converged when at most "
+                          f"{STATIONARY_SIGMA} sigma long",
+                "step_sigma": step, "threshold_sigma": STATIONARY_SIGMA,
+                "criteria": {"type": int(kind), "max_count": int(count), "epsilon": float(eps)},
+                "note": ("" if ok else "OpenCV stopped short of the minimum: its iteration cap "
+                         f"({int(count)}) or its step tolerance ({float(eps):g}) ended it")}}
+
+
 def _criteria(criteria):
     if criteria is None:
         return (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -287,9 +373,33 @@ def _run(fn, what: str, *args, **kwargs):
         raise RuntimeError(f"{what}: OpenCV failed: {msg}") from None
 
 
+def _invalid_sd(sd: np.ndarray, names: list[str]) -> list[str]:
+    """Names of the 1-sigmas that are not finite, non-negative numbers (OpenCV takes the square
+    root of its covariance's diagonal: NaN means a negative variance there)."""
+    sd = np.asarray(sd, np.float64).ravel()
+    return [names[i] for i in np.flatnonzero(~(np.isfinite(sd) & (sd >= 0)))]
+
+
+def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None:
+    """Refuse a result whose camera 1-sigmas are invalid; flag invalid pose or target ones in
+    ``info['sd_invalid']`` with a ``RuntimeWarning``."""
+    if not invalid:
+        return
+    if any(nm in invalid for nm in ("fx", "fy", "cx", "cy", *DIST_NAMES)[:n_camera]):
+        raise RuntimeError(f"{res.backend}: the 1-sigma of {invalid[0]} is not a number "
+                           f"({len(invalid)} parameters affected): OpenCV's covariance is not "
+                           "positive semi-definite at its solution")
+    res.info["sd_invalid"] = invalid
+    warnings.warn(f"{res.backend}: OpenCV gives no valid 1-sigma (negative variance) for "
+                  f"{len(invalid)} parameters: {', '.join(invalid[:6])}"
+                  f"{' ...' if len(invalid) > 6 else ''} (listed in info['sd_invalid'])",
+                  RuntimeWarning, stacklevel=3)
+
+
 def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, flags: int,
             n_dist: int, model: str, names: list[str], opencv_rms: float,
-            opencv_per_view) -> CalibrationResult:
+            opencv_per_view, criteria) -> tuple[CalibrationResult, list[str]]:
+    """The result of one OpenCV calibration, and the names of its invalid 1-sigmas."""
     K = np.asarray(out_K, np.float64).reshape(3, 3)
     dist_all = np.asarray(out_dist, np.float64).ravel()
     dist = dist_all[:n_dist].copy()
@@ -300,6 +410,9 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     rms, per_view = _residuals(obj, img, rv, tv, K, dist)
     sd, notes = _sd_by_name(sdi, K, flags, n_dist)
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
+    invalid = (_invalid_sd(list(sd.values()), list(sd))
+               + _invalid_sd(sde, [f"{nm}.{p}" for nm in names
+                                   for p in ("rx", "ry", "rz", "tx", "ty", "tz")]))
     info = {
         "model": model, "flags": int(flags), "flag_names": flag_names(flags),
         "views": list(names), "n_points": int(sum(len(o) for o in obj)),
@@ -308,10 +421,13 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
         "sd_rvecs": sde[:, :3], "sd_tvecs": sde[:, 3:],
         "fixed": _fixed_names(flags, n_dist),
         "engine": "bouguet" if flags & _DISABLE_SCHUR else "schur",
+        # no prior: OpenCV's s^2 (J^T J)^-1 is both the posterior and the repeatability
+        "sd_kind": "repeatability",
+        **_convergence(obj, img, K, dist, rv, tv, flags, n_dist, criteria),
     }
     if notes:
         info["notes"] = notes
-    return CalibrationResult(backend, K, dist, sd, rms, per_view, rv, tv, info=info)
+    return CalibrationResult(backend, K, dist, sd, rms, per_view, rv, tv, info=info), invalid
 
 
 # ----------------------------------------------------------------------------------------------
@@ -358,7 +474,8 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
         module notes; ``rvecs, tvecs`` (m, 3) ``Rt_cam_board``. ``info``: ``model``,
         ``flags``/``flag_names`` (as run), ``views`` (names), ``n_points``, ``opencv_rms_px``,
         ``opencv_per_view_rms_px``, ``sd_rvecs``/``sd_tvecs`` (m, 3), ``fixed`` (names of
-        parameters held fixed), ``engine``.
+        parameters held fixed), ``engine``, ``converged``, ``stop_reason``,
+        ``convergence_check``, ``sd_kind``, ``sd_invalid`` (module notes).
 
     Raises
     ------
@@ -366,7 +483,7 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
         Too few views (``min_views``), a view with fewer than 4 points, fewer equations than
         unknowns, or inconsistent options.
     RuntimeError
-        If OpenCV fails or diverges.
+        If OpenCV fails or diverges, or a camera parameter's 1-sigma is not a number.
     """
     model, flags, n_dist = _check_model(model, flags)
     names = _names(obs)
@@ -378,8 +495,10 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
                tuple(int(v) for v in obs.image_size), K0, d0, flags=flags,
                criteria=_criteria(criteria))
     rms, K, dist, rvecs, tvecs, sdi, sde, per_view = out
-    return _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist, model,
-                   names, rms, per_view)
+    res, invalid = _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist,
+                           model, names, rms, per_view, _criteria(criteria))
+    _check_sd(res, invalid, 4 + n_dist)
+    return res
 
 
 def default_fixed_point(object_points: np.ndarray) -> int:
@@ -496,10 +615,14 @@ def calibrate_opencv_ro(obs: Observations, model: str = "standard", flags: int =
     refined = np.asarray(new_obj, np.float64).reshape(n, 3)
     if not np.all(np.isfinite(refined)):
         raise RuntimeError("calibrate_opencv_ro: refined target points are not finite")
-    res = _finish("opencv-ro", K, dist, rvecs, tvecs, sdi, sde, [refined] * full.n_views, img,
-                  flags, n_dist, model, full.names, rms, per_view)
+    res, invalid = _finish("opencv-ro", K, dist, rvecs, tvecs, sdi, sde,
+                           [refined] * full.n_views, img, flags, n_dist, model, full.names, rms,
+                           per_view, _criteria(criteria))
     res.object_points = refined
     res.object_points_sd = np.asarray(sdo, np.float64).reshape(n, 3)
+    invalid += _invalid_sd(res.object_points_sd, [f"point{j}.{a}" for j in range(n)
+                                                  for a in "xyz"])
+    _check_sd(res, invalid, 4 + n_dist)
     res.info.update({
         "i_fixed_point": i_fixed_point,
         "dropped_views": dropped,

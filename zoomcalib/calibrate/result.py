@@ -74,7 +74,11 @@ class CalibrationResult:
     object_points_sd : (n, 3) ndarray or None
         Their 1-sigma.
     info : dict
-        Backend-specific extras (iterations, flatness, gauge, ...).
+        Backend-specific extras (iterations, flatness, gauge, ...). Every backend sets
+        ``converged`` (bool), ``stop_reason`` (str: ``'tolerance'`` when converged, else e.g.
+        ``'iteration cap'``, ``'damping limit'``) and ``sd_kind`` (``'repeatability'``: the
+        spread of the estimate over noise draws, which ``sd`` and the backend's other
+        1-sigmas are).
     """
 
     backend: str
@@ -106,13 +110,19 @@ class CalibrationResult:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
+    @property
+    def converged(self) -> bool:
+        """True when the backend's solver reported convergence (``info['converged']``); False
+        when it stopped short (``info['stop_reason']`` says why) or did not report."""
+        return bool(self.info.get("converged", False))
+
     def to_dict(self) -> dict:
         """The ``calibration.json`` entry of this backend (DESIGN.md section 4)."""
         d = {"K": self.K.tolist(), "dist": [float(v) for v in self.dist],
              "sd": {k: float(v) for k, v in self.sd.items()}, "rms_px": float(self.rms_px),
              "per_view_rms_px": [float(v) for v in self.per_view_rms_px],
              "rejected": [[int(a), int(b)] for a, b in self.rejected],
-             "n_views": int(len(self.per_view_rms_px))}
+             "n_views": int(len(self.per_view_rms_px)), "converged": self.converged}
         if self.object_points is not None:
             d["object_points"] = self.object_points.tolist()
         if self.object_points_sd is not None:

@@ -120,6 +120,13 @@ class LinearFit:
     chi2, chi2_dof, rms_px, bic, cv_rms_px : float
     cv_residual_px : (N, 2) ndarray
         Held-out residuals.
+    rank : int
+        Number of independent columns: a linear least-squares fit is solved in one step, and
+        its solution is the minimum only of the directions the data determine.
+    converged : bool
+        True when every parameter is determined (``rank`` equals the number of parameters).
+    stop_reason : str
+        ``'exact'`` (closed-form solve, full rank) or ``'rank deficient'``.
     """
 
     terms: tuple[Term, ...]
@@ -132,6 +139,9 @@ class LinearFit:
     bic: float
     cv_rms_px: float
     cv_residual_px: np.ndarray
+    rank: int = 0
+    converged: bool = False
+    stop_reason: str = ""
 
     @property
     def names(self) -> list[str]:
@@ -149,12 +159,19 @@ class LinearFit:
 
     def summary(self) -> dict:
         return {"rms_px": self.rms_px, "chi2_dof": self.chi2_dof, "cv_rms_px": self.cv_rms_px,
-                "bic": self.bic, "n_params": len(self.params)}
+                "bic": self.bic, "n_params": len(self.params), "rank": self.rank,
+                "converged": self.converged, "stop_reason": self.stop_reason}
 
 
-def _solve(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+#: singular values below this fraction of the largest count as zero (rank of a fit)
+RCOND = 1e-10
+
+
+def _solve(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, int]:
+    """Weighted least-squares solution and the rank of the weighted design matrix."""
     sw = np.sqrt(w)
-    return np.linalg.lstsq(A * sw[:, None], y * sw, rcond=1e-10)[0]
+    beta, _, rank, _ = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=RCOND)
+    return beta, int(rank)
 
 
 def fit_terms(terms: tuple[Term, ...], ctx: Context, sigma_px: np.ndarray,
@@ -174,7 +191,7 @@ def fit_terms(terms: tuple[Term, ...], ctx: Context, sigma_px: np.ndarray,
     n, k = A.shape
     if n <= k:
         raise ValueError(f"{ctx.table.source}: {n // 2} rows cannot fit {k} parameters")
-    beta = _solve(A, y, w)
+    beta, rank = _solve(A, y, w)
     r = y - A @ beta
     chi2 = float(np.sum(w * r ** 2))
     dof = n - k
@@ -183,12 +200,13 @@ def fit_terms(terms: tuple[Term, ...], ctx: Context, sigma_px: np.ndarray,
     cv = np.empty_like(y)
     for label in np.unique(groups):
         out = rows == label
-        b = _solve(A[~out], y[~out], w[~out])
+        b, _ = _solve(A[~out], y[~out], w[~out])
         cv[out] = y[out] - A[out] @ b
     return LinearFit(terms, beta, cov, r.reshape(-1, 2), chi2, chi2 / dof,
                      float(np.sqrt(np.mean(r ** 2))),
                      float(n * np.log(chi2 / n) + k * np.log(n)),
-                     float(np.sqrt(np.mean(cv ** 2))), cv.reshape(-1, 2))
+                     float(np.sqrt(np.mean(cv ** 2))), cv.reshape(-1, 2), rank, rank == k,
+                     "exact" if rank == k else "rank deficient")
 
 
 @dataclass
@@ -251,6 +269,14 @@ class Diagnosis:
         return self.candidates[0] if self.candidates else None
 
     @property
+    def converged(self) -> bool:
+        """Every fit behind the answer determined all its parameters (full rank), and a fitted
+        pitch has its minimum inside the admissible range."""
+        fits = [self.baseline] + [c.fit for c in self.candidates]
+        return (all(f.converged for f in fits)
+                and (self.pitch_fit is None or self.pitch_fit["converged"]))
+
+    @property
     def ambiguous_with(self) -> list[str]:
         """Other causes that fit almost as well as the named one (BIC within AMBIGUITY_BIC)."""
         if self.extended is None:
@@ -273,6 +299,7 @@ class Diagnosis:
         base_params, base_sd = self.baseline.param_dict()
         return {
             "cause": self.cause,
+            "converged": self.converged,
             "ambiguous_with": self.ambiguous_with,
             "baseline": {**self.baseline.summary(), "params": base_params,
                          "params_sd": base_sd},
@@ -326,7 +353,8 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
 
     Returns
     -------
-    dict with ``pitch_mm``, ``sd_mm``, ``range_mm``, ``at_range_end``.
+    dict with ``pitch_mm``, ``sd_mm``, ``range_mm``, ``at_range_end``, ``converged`` (a
+    minimum inside the range) and ``stop_reason`` (``'grid minimum'`` or ``'range end'``).
     """
     lo, hi = response.pitch_range(table.fx, table.source)
     grid = np.geomspace(lo, hi, n_grid) if hi > lo else np.array([lo])
@@ -344,8 +372,10 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
     best = int(np.argmin(deviance))
     scale = max(chi2_dof[best], 1.0)
     inside = grid[(deviance - deviance[best]) / scale <= 1.0]
+    at_end = best in (0, len(grid) - 1)
     return {"pitch_mm": float(grid[best]), "sd_mm": float(0.5 * np.ptp(inside)),
-            "range_mm": [lo, hi], "at_range_end": best in (0, len(grid) - 1)}
+            "range_mm": [lo, hi], "at_range_end": at_end, "converged": not at_end,
+            "stop_reason": "range end" if at_end else "grid minimum"}
 
 
 def diagnose_table(table: ZoomTable, response: LensResponse,
