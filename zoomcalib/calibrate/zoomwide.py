@@ -147,8 +147,10 @@ def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray) -> tuple[f
 
 
 def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
-    c, low = scipy.linalg.cho_factor(cov)
-    return float(-np.sum(np.log(np.diag(c))) - 0.5 * y @ scipy.linalg.cho_solve((c, low), y))
+    """Log density of ``y ~ N(0, cov)`` up to a constant (small matrices: plain NumPy)."""
+    c = np.linalg.cholesky(cov)
+    z = np.linalg.solve(c, y)
+    return float(-np.sum(np.log(np.diag(c))) - 0.5 * z @ z)
 
 
 def _subset(obs: Observations, keep: np.ndarray) -> Observations:
@@ -357,24 +359,54 @@ class _Solve:
     stop_reason: str
 
 
+def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray):
+    """``J^T J`` split into the global block ``U`` (intrinsics and board, dense), the coupling
+    ``W`` (global x poses, dense) and the per-view 6 x 6 pose blocks ``V`` (views, 6, 6); and
+    ``J^T r`` split likewise."""
+    n_glob = prob.n_cam + prob.n_modes
+    A = (J.T @ J).tocsr()
+    g = J.T @ r
+    V = scipy.sparse.bsr_matrix(A[n_glob:, n_glob:], blocksize=(6, 6))
+    V.sort_indices()
+    if len(V.data) != V.shape[0] // 6:
+        raise RuntimeError("zoom-wide problem: two views are coupled (internal error)")
+    return (A[:n_glob, :n_glob].toarray(), A[:n_glob, n_glob:].toarray(), V.data,
+            g[:n_glob], g[n_glob:])
+
+
+def _schur_step(U, W, V, g_glob, g_pose, lam: float):
+    """Solve the damped normal equations ``(A + lam diag A) delta = -g`` by eliminating the
+    poses: ``S = U - W V^-1 W^T``. Returns ``delta`` or None when ``S`` is not positive
+    definite."""
+    n_views = len(V)
+    Ud = U + np.diag(lam * np.diag(U) + 1e-12 * max(np.diag(U).max(), 1e-300))
+    Vd = V + lam * np.einsum("vii->vi", V)[:, :, None] * np.eye(6)
+    Vinv = np.linalg.inv(Vd)
+    W3 = W.reshape(len(U), n_views, 6)
+    WV = np.einsum("gvi,vij->gvj", W3, Vinv)
+    S = Ud - np.einsum("gvj,hvj->gh", WV, W3)
+    rhs = g_glob - np.einsum("gvj,vj->g", WV, g_pose.reshape(n_views, 6))
+    try:
+        d_glob = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
+    except np.linalg.LinAlgError:
+        return None
+    back = g_pose.reshape(n_views, 6) + np.einsum("gvi,g->vi", W3, d_glob)
+    d_pose = -np.einsum("vij,vj->vi", Vinv, back)
+    return np.concatenate([d_glob, d_pose.ravel()])
+
+
 def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int = 50,
-                         tol: float = 1e-10) -> _Solve:
-    """Marquardt-scaled LM on the dense normal equations of the sparse Jacobian. Stops when the
+                         tol: float = 1e-9) -> _Solve:
+    """Marquardt-scaled LM with the poses eliminated (:func:`_schur_step`). Stops when the
     relative decrease of the cost falls below ``tol`` (``"tolerance"``), at the iteration cap,
     or when the damping passes 1e12 without a decrease (``"damping limit"``)."""
     r, J = prob.evaluate(state)
     cost = float(r @ r)
     lam = 1e-4
     for it in range(1, max_iterations + 1):
-        A = (J.T @ J).toarray()
-        g = J.T @ r
-        dA = np.diag(A).copy()
+        blocks = _normal_blocks(prob, J, r)
         while True:
-            try:
-                c = scipy.linalg.cho_factor(A + np.diag(lam * (dA + 1e-12 * dA.max())))
-                delta = -scipy.linalg.cho_solve(c, g)
-            except np.linalg.LinAlgError:
-                delta = None
+            delta = _schur_step(*blocks, lam)
             if delta is not None:
                 trial = prob.apply(state, delta)
                 r_t = prob.evaluate(trial, jacobian=False)
@@ -552,11 +584,13 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
 
 
 def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
-    """``(J^T J)^{-1}`` of the weighted problem (prior rows included), all unknowns."""
-    _, J = prob.evaluate(state)
-    A = (J.T @ J).toarray()
-    c = scipy.linalg.cho_factor(A)
-    return scipy.linalg.cho_solve(c, np.eye(len(A)))
+    """Posterior covariance ``[(J^T J)^{-1}]`` of the intrinsics and board modes (the poses
+    marginalised: the inverse of the Schur complement), weighted problem with its prior rows."""
+    r, J = prob.evaluate(state)
+    U, W, V, _, _ = _normal_blocks(prob, J, r)
+    W3 = W.reshape(len(U), len(V), 6)
+    S = U - np.einsum("gvj,hvj->gh", np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V)), W3)
+    return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
 
 
 def _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, iterations
