@@ -97,12 +97,13 @@ ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
     "k1", "k2", "p1", "p2", "k3", "rms_px", "n_views")
 #: Columns written after those when any row knows them.
 ZOOM_TABLE_OPTIONAL: tuple[str, ...] = (
-    "direction", "sequence", "focus", "temperature", "backend", "k4", "k5", "k6",
+    "direction", "sequence", "focus", "temperature", "backend", "mode", "converged", "flags",
+    "k4", "k5", "k6",
     "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6")
 #: Columns :func:`read_zoom_table` cannot do without.
 ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
 
-_TEXT_COLUMNS = ("step", "direction", "backend")
+_TEXT_COLUMNS = ("step", "direction", "backend", "mode", "converged", "flags")
 _INT_COLUMNS = ("n_views", "sequence")
 
 

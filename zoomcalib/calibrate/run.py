@@ -10,8 +10,9 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
   safe and given a hash of the exact name when it had to be changed
   (:func:`zoomcalib.calibrate.guards.step_file_stems`);
 - ``calibration.json`` and ``calibration.yml`` — per step and backend;
-- ``zoom_calibration.csv`` — one row per step, all from one backend (the bundle when it
-  calibrated every step, else OpenCV), named in its ``backend`` column;
+- ``zoom_calibration.csv`` — one row per step, all from one backend, named in its ``backend``
+  and ``mode`` columns: the zoom-wide adjustment (:mod:`zoomcalib.calibrate.zoomwide`, the
+  default for a zoom set), else the bundle when it calibrated every step, else OpenCV;
 - ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
   (four or more steps with known zoom);
 - figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
@@ -78,6 +79,7 @@ class CalibrateRun:
     ignored: list[str] = field(default_factory=list)
     table_backend: dict[str, str] = field(default_factory=dict)
     stems: dict[str, str] = field(default_factory=dict)
+    zoom_wide: object | None = None
 
     @property
     def partial(self) -> bool:
@@ -162,7 +164,9 @@ def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResu
     """The ``zoom_calibration.csv`` row of one step: every distortion term the model has
     (k1..k3 always, k4..k6 for the rational model) with its 1-sigma, and the backend."""
     row = {"step": step, "zoom": np.nan if zoom is None else zoom, "fx": res.fx, "fy": res.fy,
-           "cx": res.cx, "cy": res.cy, "backend": res.backend}
+           "cx": res.cx, "cy": res.cy, "backend": res.backend,
+           "mode": res.info.get("mode", "per-step"),
+           "converged": bool(res.info.get("converged", True))}
     for k in ("fx", "fy", "cx", "cy"):
         row[f"sd_{k}"] = res.sd.get(k, np.nan)
     n_terms = max(5, len(res.dist))
@@ -181,7 +185,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      backends: tuple[str, ...] = BACKENDS, model: str = "standard",
                      method: str | None = None, workers: int = 1,
                      progress: Callable[[int], None] | None = None,
-                     log: Callable[[str], None] = print) -> CalibrateRun:
+                     log: Callable[[str], None] = print, zoom_wide: bool = True
+                     ) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -200,6 +205,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         Called with 1 per image detected.
     log : callable
         Receives one-line messages (skipped images and steps).
+    zoom_wide : bool
+        For a zoom set of 2 or more steps, also calibrate all steps together
+        (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`, standard model only); its
+        results (backend ``"zoom-wide"``) make the zoom table. ``backends`` still run per step.
 
     Returns
     -------
@@ -251,6 +260,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             continue
         run.results[step] = step_results
         extras_of[step] = extras
+    if zoom_wide and len(run.results) >= 2:
+        _zoom_wide(run, model, target, log)
     run.table_backend = _table_backends(run, log)
     rows = [_table_row(step, run.zoom[step], extras_of[step],
                        run.results[step][run.table_backend[step]]) for step in run.results]
@@ -357,11 +368,46 @@ def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[s
     return kept
 
 
+def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None]
+               ) -> None:
+    """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
+    ``"zoom-wide"``; a failure is logged and recorded (the per-step results stay)."""
+    from .zoomwide import calibrate_zoom_wide
+
+    if model != "standard":
+        run.failures.append(f"zoom-wide: the {model} model is not supported; the table uses "
+                            "the per-step results (use --per-step to silence this)")
+        log(run.failures[-1])
+        return
+    obs = dict(run.observations)
+    if len(target.discs):  # dot centres: corrected with each step's own calibration first
+        radius = float(target.discs[0, 2])
+        obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
+               for s, o in obs.items() if s in run.results}
+    obs = {s: o for s, o in obs.items() if s in run.results}
+    try:
+        zw = calibrate_zoom_wide(obs)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
+        msg = " ".join(str(exc).split())
+        run.failures.append(f"zoom-wide adjustment failed: {msg}")
+        run.backend_failures.setdefault("all steps", []).append("zoom-wide")
+        log(run.failures[-1])
+        return
+    if not zw.converged:
+        log(f"zoom-wide adjustment did not converge ({zw.stop_reason}); its rows are marked")
+    for step, res in zw.results.items():
+        run.results[step]["zoom-wide"] = res
+    run.zoom_wide = zw
+
+
 def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, str]:
     """The backend of each step's table row and figures: one backend for every step, the
-    bundle when it calibrated every step, else OpenCV when it did; only when neither did do
-    the rows mix (each step's bundle result, else OpenCV's), which is logged."""
+    zoom-wide adjustment when it ran, else the bundle when it calibrated every step, else
+    OpenCV when it did; only when none did do the rows mix (each step's bundle result, else
+    OpenCV's), which is logged."""
     steps = list(run.results)
+    if steps and all("zoom-wide" in run.results[s] for s in steps):
+        return {s: "zoom-wide" for s in steps}
     for backend in ("bundle", "opencv"):
         if steps and all(backend in run.results[s] for s in steps):
             if backend == "opencv" and any("bundle" in run.results[s] for s in steps):

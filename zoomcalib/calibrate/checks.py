@@ -1,0 +1,132 @@
+"""Honesty checks of a calibration: ill-conditioning flags and the two-halves cross-validation.
+
+*Ill-conditioning.* A step is flagged, with a one-line reason each, when its principal point
+lies outside the central region of the image (more than a quarter of the width or height from
+the centre ``((W-1)/2, (H-1)/2)``), when the 1-sigma of ``cx`` or ``cy`` exceeds 1 % of the
+image diagonal, when two intrinsics are correlated beyond ``|r| = 0.999`` (where the backend
+reports the correlation), or when its solve did not converge.
+
+*Cross-validation* (the check mrcal calls its most important): each step's views are split into
+two halves (even and odd images), each half is calibrated on its own as the full set was, and
+for ``q`` in ``fx, cx, cy`` the difference is expressed in its combined sigma,
+
+    z_q = (q_a - q_b) / sqrt(sd_a^2 + sd_b^2),
+
+which is ``N(0, 1)`` when the reported sigmas are honest and the halves see the same camera.
+``|z| > 3`` flags the step ("halves disagree").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .result import CalibrationResult, Observations
+
+__all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_halves",
+           "CROSS_VALIDATED", "Z_LIMIT"]
+
+#: Parameters compared between the halves.
+CROSS_VALIDATED = ("fx", "cx", "cy")
+#: |z| beyond which the halves disagree.
+Z_LIMIT = 3.0
+_CORRELATION_LIMIT = 0.999
+
+
+def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[str]:
+    """One-line reasons why ``res`` is ill-conditioned (empty when none; module docstring)."""
+    w, h = image_size
+    flags = []
+    dx, dy = res.cx - (w - 1) / 2.0, res.cy - (h - 1) / 2.0
+    if abs(dx) > w / 4.0 or abs(dy) > h / 4.0:
+        flags.append(f"principal point ({res.cx:.0f}, {res.cy:.0f}) outside the central region")
+    limit = 0.01 * float(np.hypot(w, h))
+    for q in ("cx", "cy"):
+        sd = res.sd.get(q, np.nan)
+        if not np.isfinite(sd) or sd > limit:
+            flags.append(f"sd {q} {sd:.1f} px > 1 % of the image diagonal ({limit:.1f} px)")
+    corr, names = res.info.get("correlation"), res.info.get("correlation_names")
+    if corr is not None and names:
+        c = np.abs(np.asarray(corr, float)) - np.eye(len(names))
+        i, j = np.unravel_index(np.argmax(c), c.shape)
+        if c[i, j] > _CORRELATION_LIMIT:
+            flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")
+    if not res.info.get("converged", True):
+        flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
+    return flags
+
+
+def split_halves(obs: Observations) -> tuple[Observations, Observations]:
+    """The even and the odd views of ``obs`` (in their order, i.e. by image name)."""
+    def pick(start: int) -> Observations:
+        keep = range(start, obs.n_views, 2)
+        return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
+                            [obs.names[i] for i in keep] if obs.names else [])
+    return pick(0), pick(1)
+
+
+@dataclass
+class CrossValidation:
+    """Per step: each half's values and sigmas and the z of their difference.
+
+    ``halves[step]`` is ``(result_even, result_odd)``; ``z[step][q]`` the normalised difference
+    for ``q`` in :data:`CROSS_VALIDATED`; ``failures`` steps whose halves could not be
+    calibrated, with the reason.
+    """
+
+    backend: str
+    halves: dict[str, tuple[CalibrationResult, CalibrationResult]] = field(default_factory=dict)
+    z: dict[str, dict[str, float]] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+
+    def disagreeing(self) -> dict[str, list[str]]:
+        """Steps whose halves differ by more than :data:`Z_LIMIT` combined sigmas, and in what."""
+        return {s: [q for q, v in z.items() if not abs(v) <= Z_LIMIT]
+                for s, z in self.z.items() if any(not abs(v) <= Z_LIMIT for v in z.values())}
+
+    def to_dict(self) -> dict:
+        out = {"backend": self.backend, "z_limit": Z_LIMIT, "failures": dict(self.failures),
+               "steps": {}}
+        for s, (a, b) in self.halves.items():
+            out["steps"][s] = {
+                "z": self.z[s],
+                "halves": [{q: getattr(r, q) for q in CROSS_VALIDATED}
+                           | {f"sd_{q}": r.sd.get(q, float("nan")) for q in CROSS_VALIDATED}
+                           | {"n_views": len(r.per_view_rms_px)} for r in (a, b)]}
+        return out
+
+
+def _z(a: CalibrationResult, b: CalibrationResult) -> dict[str, float]:
+    out = {}
+    for q in CROSS_VALIDATED:
+        sd = float(np.hypot(a.sd.get(q, np.nan), b.sd.get(q, np.nan)))
+        out[q] = float((getattr(a, q) - getattr(b, q)) / sd) if sd > 0 else float("nan")
+    return out
+
+
+def cross_validate(observations: Mapping[str, Observations],
+                   calibrate_steps: Callable[[dict[str, Observations]],
+                                             dict[str, CalibrationResult]],
+                   backend: str) -> CrossValidation:
+    """Calibrate the even and the odd halves of every step with ``calibrate_steps`` (which
+    takes ``{step: Observations}`` and returns ``{step: CalibrationResult}``, raising
+    ``ValueError`` or ``RuntimeError`` on failure) and compare them (module docstring)."""
+    cv = CrossValidation(backend)
+    even, odd = {}, {}
+    for step, obs in observations.items():
+        even[step], odd[step] = split_halves(obs)
+    try:
+        res_even, res_odd = calibrate_steps(even), calibrate_steps(odd)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+        for step in observations:
+            cv.failures[step] = " ".join(str(exc).split())
+        return cv
+    for step in observations:
+        if step in res_even and step in res_odd:
+            cv.halves[step] = (res_even[step], res_odd[step])
+            cv.z[step] = _z(res_even[step], res_odd[step])
+        else:
+            cv.failures[step] = "a half could not be calibrated"
+    return cv
