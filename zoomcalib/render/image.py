@@ -142,7 +142,9 @@ def psf_kernel(optics: Optics, pixel_pitch_mm: float, supersample: int) -> np.nd
     """The PSF of ``optics`` point-sampled on the fine grid (spacing ``1 / supersample`` px).
 
     'airy' is the Airy pattern (cut at ``AIRY_REACH`` first-ring radii) convolved with the
-    Gaussian of blur and defocus; the others are as in the module docstring.
+    Gaussian of blur and defocus; the others are as in the module docstring. Point sampling
+    resolves the core when the PSF spans a few fine samples: an Airy radius or sigma of at
+    least ``2 / supersample`` px.
 
     Returns
     -------
@@ -420,9 +422,18 @@ def _edge_weight(coord, grad_u, grad_v, lines, S):
     nearer_right = d_right < d_left
     g = np.maximum(np.hypot(grad_u, grad_v), 1e-300)  # board mm per px across the line
     d = np.minimum(d_left, d_right) / g  # px
-    w = _coverage_beyond(d, grad_u / g, grad_v / g, S)
+    w = _coverage_near(d, grad_u / g, grad_v / g, S)
     step = np.where(nearer_right, 1, -1)
     return i, step, w
+
+
+def _coverage_near(d: np.ndarray, nu: np.ndarray, nv: np.ndarray, S: int) -> np.ndarray:
+    """:func:`_coverage_beyond`, evaluated only where it is not 0 (the sub-samples an edge
+    crosses, a few % of them); the same numbers, computed faster."""
+    near = np.abs(d) < (np.abs(nu) + np.abs(nv)) / (2 * S) * (1 + 1e-9)
+    w = np.zeros(np.shape(d))
+    w[near] = _coverage_beyond(d[near], nu[near], nv[near], S)
+    return w
 
 
 def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
@@ -622,10 +633,12 @@ def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: flo
         ix, sx, wx = _edge_weight(bx, bx_u, bx_v, xs, S)
         iy, sy, wy = _edge_weight(by, by_u, by_v, ys, S)
         nx, ny = value.shape
-        cov = ((1 - wx) * (1 - wy) * value[ix, iy]
-               + wx * (1 - wy) * value[np.clip(ix + sx, 0, nx - 1), iy]
-               + (1 - wx) * wy * value[ix, np.clip(iy + sy, 0, ny - 1)]
-               + wx * wy * value[np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)])
+        cov = value[ix, iy]  # away from every edge; blend the neighbours across edges:
+        e = (wx > 0) | (wy > 0)
+        ix, iy, wx, wy, ix2, iy2 = (ix[e], iy[e], wx[e], wy[e], np.clip(ix[e] + sx[e], 0, nx - 1),
+                                    np.clip(iy[e] + sy[e], 0, ny - 1))
+        cov[e] = ((1 - wx) * (1 - wy) * value[ix, iy] + wx * (1 - wy) * value[ix2, iy]
+                  + (1 - wx) * wy * value[ix, iy2] + wx * wy * value[ix2, iy2])
         if tree is not None:
             dist, k = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
             dist, k = dist.reshape(bx.shape), k.reshape(bx.shape)
@@ -635,7 +648,7 @@ def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: flo
             gu, gv = bx_u * ex + by_u * ey, bx_v * ex + by_v * ey
             g = np.maximum(np.hypot(gu, gv), 1e-300)
             d_px = (discs[k, 2] - dist) / g  # > 0 inside the disc
-            beyond = _coverage_beyond(d_px, gu / g, gv / g, S)
+            beyond = _coverage_near(d_px, gu / g, gv / g, S)
             cov = cov * np.where(d_px > 0, beyond, 1.0 - beyond)
         if kernel is not None:
             cov = cv2.filter2D(cov, -1, kernel, borderType=cv2.BORDER_REPLICATE)
