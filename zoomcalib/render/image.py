@@ -277,10 +277,6 @@ class BoardSurface:
             w += a * np.sin(2 * np.pi * (kx * x + ky * y) + ph)
         return w
 
-    def max_slope(self) -> float:
-        """An upper bound of ``|grad w|`` (dimensionless)."""
-        return float(sum(2 * np.pi * abs(a) * np.hypot(kx, ky) for a, kx, ky, _ in self.modes))
-
     def lift(self, points: np.ndarray) -> np.ndarray:
         """(n, 3) board points (z = 0 on the print) -> on the surface, ``z + w(x, y)``."""
         p = np.array(points, dtype=float)
