@@ -123,6 +123,54 @@ def target(pattern, dpi, out):
     click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
 
 
+def _testbed_options(func):
+    """Options of the non-flat board, the PSF shape and JPEG output (render, render-sweep)."""
+    options = [
+        click.option("--wave", default=0.0, show_default=True, type=click.FloatRange(min=0),
+                     help="Peak height of the board's waves, mm (a few low-order sine modes "
+                          "drawn from --seed); 0: a flat board."),
+        click.option("--psf", default="gaussian", show_default=True,
+                     type=click.Choice(["gaussian", "airy", "halo", "elliptical"]),
+                     help="PSF shape; all but gaussian are rendered supersampled."),
+        click.option("--airy-radius", default=0.0, show_default=True,
+                     type=click.FloatRange(min=0),
+                     help="airy: radius of the first dark ring, px (0: 1.22 lambda N)."),
+        click.option("--halo", default="0.05,6", show_default=True,
+                     help="halo: FRACTION,SIGMA_PX of the energy in a wide Gaussian."),
+        click.option("--ellipse", default="0.5,30", show_default=True,
+                     help="elliptical: RATIO,ANGLE_DEG (minor over major sigma, major axis from "
+                          "the u axis towards +v)."),
+        click.option("--jpeg-quality", type=click.IntRange(1, 100),
+                     help="Write JPEG files of this quality (1-100) instead of PNG; the truth "
+                          "is unchanged."),
+    ]
+    for option in reversed(options):
+        func = option(func)
+    return func
+
+
+def _two_numbers(text: str, hint: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"must be two numbers separated by a comma, got {text!r}",
+                                 param_hint=hint) from None
+    return a, b
+
+
+def _make_optics(blur, f_number, defocus, psf, airy_radius, halo, ellipse):
+    from .render.image import Optics
+
+    fraction, sigma = _two_numbers(halo, "--halo")
+    ratio, angle = _two_numbers(ellipse, "--ellipse")
+    try:
+        return Optics(blur_px=blur, f_number=f_number, defocus_mm=defocus, psf=psf,
+                      airy_radius_px=airy_radius, halo_fraction=fraction, halo_sigma_px=sigma,
+                      ellipse_ratio=ratio, ellipse_angle_deg=angle)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--halo/--ellipse") from None
+
+
 @main.command()
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
@@ -150,18 +198,21 @@ def target(pattern, dpi, out):
 @click.option("--direction", default="random", show_default=True,
               help="Direction of the last zoom move before each step (sets the backlash side): "
                    "random, in, out, or one of in/out per step, comma-separated.")
+@_testbed_options
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
-           bits, through, size, direction, seed, out):
+           bits, through, size, direction, wave, psf, airy_radius, halo, ellipse, jpeg_quality,
+           seed, out):
     """Render calibration images through the (perturbed) zoom lens.
 
     Writes one subfolder per zoom step (OUT/zoom_XX/view_YY.png), OUT/steps.csv and
     OUT/dataset.json with every truth: camera per step, lens errors, poses and the true
-    pixel position of every target point (OpenCV convention).
+    pixel position of every target point (OpenCV convention). With --wave each step's board
+    waves (its surface is in dataset.json and the truth lies on it).
     """
     from .render.dataset import render_dataset
-    from .render.image import Optics, Radiometry
+    from .render.image import Radiometry
 
     lens_ = _load_lens(lens)
     _parse_target(pattern)
@@ -192,18 +243,79 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     elif direction not in ("random", "in", "out"):
         raise click.BadParameter("must be random, in, out or a comma-separated list",
                                  param_hint="--direction")
-    optics = Optics(blur_px=blur, f_number=lens_.f_number, defocus_mm=defocus)
+    optics = _make_optics(blur, lens_.f_number, defocus, psf, airy_radius, halo, ellipse)
     radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
+    if jpeg_quality is not None and radiometry.bits != 8:
+        raise click.BadParameter("JPEG holds 8-bit images only; use --bits 8",
+                                 param_hint="--jpeg-quality")
     with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
         doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
                              sensor=sensor, through=through, direction=direction,
-                             progress=bar.update)
+                             progress=bar.update, board_surface=wave or None,
+                             jpeg_quality=jpeg_quality)
     for st in doc["steps"]:
         cam = st["camera"]
         click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "
                    f"fx {cam['fx']:.1f}, c ({cam['cx']:.2f}, {cam['cy']:.2f}) px, "
                    f"target {st['target']}, {len(st['views'])} views")
     click.echo(f"wrote {out}/steps.csv, {out}/dataset.json and {len(zoom) * views} images")
+
+
+@main.command("render-sweep")
+@click.option("--fx", "fx_range", default="2300,23000", show_default=True,
+              help="Focal length at the short and long end, MIN,MAX px (log-spaced steps).")
+@click.option("--steps", default=7, show_default=True, type=click.IntRange(min=1))
+@click.option("--views", default=10, show_default=True, type=click.IntRange(min=1),
+              help="Views per zoom step.")
+@click.option("--size", default="1280x720", show_default=True, help="Image WIDTHxHEIGHT, px.")
+@click.option("--pattern", default="chessboard:22x15:20", show_default=True,
+              help="The board (one physical size for every step).")
+@click.option("--noise", default=2.0, show_default=True, type=click.FloatRange(min=0),
+              help="Read noise, 1-sigma in 8-bit digital numbers (of 255).")
+@click.option("--blur", default=0.8, show_default=True, type=click.FloatRange(min=0),
+              help="Gaussian blur sigma, px (added to diffraction at f/2.8, 3 um pixels).")
+@click.option("--supersample", default=3, show_default=True, type=click.IntRange(1, 8),
+              help="Sub-samples per pixel side for non-Gaussian PSFs.")
+@_testbed_options
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
+def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, wave, psf,
+                 airy_radius, halo, ellipse, jpeg_quality, seed, out):
+    """Render a zoom sweep like a real session through pinhole + distortion cameras.
+
+    fx log-spaced over --fx, a principal point drifting by tens of px, barrel distortion fading
+    towards the long end, tilts up to 40 degrees at the short end and near-fronto-parallel
+    views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg), OUT/steps.csv (zoom =
+    fx) and OUT/truth.json (K, dist, board surface, poses and true points per step).
+    """
+    from .render.image import Radiometry
+    from .render.sweep import render_zoom_sweep
+
+    _parse_target(pattern)
+    fx = _two_numbers(fx_range, "--fx")
+    if not 0 < fx[0] <= fx[1]:
+        raise click.BadParameter("need 0 < MIN <= MAX", param_hint="--fx")
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
+            from None
+    optics = _make_optics(blur, 2.8, 0.0, psf, airy_radius, halo, ellipse)
+    with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
+        try:
+            doc = render_zoom_sweep(out, fx, steps, views, (width, height), pattern,
+                                    wave or None, jpeg_quality=jpeg_quality, seed=seed,
+                                    optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
+                                    supersample=supersample, progress=bar.update)
+        except RuntimeError as exc:
+            raise click.ClickException(str(exc)) from None
+    for st in doc["steps"]:
+        cam = st["camera"]
+        click.echo(f"  {st['step']}: fx {cam['fx']:.1f}, c ({cam['cx']:.2f}, {cam['cy']:.2f}) px, "
+                   f"k1 {cam['dist'][0]:.4f}, tilts up to {st['max_tilt_deg']:.1f} deg, "
+                   f"{len(st['views'])} views")
+    click.echo(f"wrote {out}/steps.csv, {out}/truth.json and {steps * views} images in "
+               f"{doc['render_s']:.1f} s")
 
 
 @main.command()

@@ -14,7 +14,11 @@ Layout written by :func:`render_dataset`::
     OUT/dataset.json              lens, sensor, tolerances, seed, optics, radiometry, and per step:
                                   zoom, efl_mm, camera (fitted), misalignment, target spec,
                                   per view: file, rvec, tvec (board -> camera, mm), points_px
-    OUT/zoom_XX/view_YY.png
+    OUT/zoom_XX/view_YY.png       (view_YY.jpg with a JPEG quality)
+
+With a :class:`~zoomcalib.render.image.BoardSurface` the board waves: the images show it and
+``points_px`` are the projections of the object points lifted onto it (``dataset.json`` records
+the surface under ``board_surface``). JPEG compression changes the images only, not the truth.
 """
 
 from __future__ import annotations
@@ -34,9 +38,51 @@ from ..optics.mechanics import Tolerances, draw_misalignment
 from ..optics.misalignment import Misalignment
 from ..optics.prescription import Prescription
 from ..targets import Target, parse_pattern
-from .image import Optics, Radiometry, camera_mapping, project_points, render_image
+from .image import (
+    BoardSurface,
+    Optics,
+    Radiometry,
+    camera_mapping,
+    project_points,
+    render_image,
+)
 
-__all__ = ["generate_poses", "render_dataset", "scaled_target_for_view"]
+__all__ = ["generate_poses", "render_dataset", "scaled_target_for_view", "write_image"]
+
+
+def write_image(path: str | Path, image: np.ndarray, jpeg_quality: int | None = None) -> Path:
+    """Write ``image`` as PNG (``jpeg_quality`` None) or as JPEG of that quality (1-100).
+
+    ``path`` is taken without its suffix; the written file (``.png`` or ``.jpg``) is returned.
+
+    Raises
+    ------
+    ValueError
+        A quality outside 1-100, or a JPEG of an image that is not 8-bit.
+    """
+    path = Path(path)
+    if jpeg_quality is None:
+        out = path.with_suffix(".png")
+        ok, data = cv2.imencode(".png", image)
+    else:
+        check_jpeg_quality(jpeg_quality, image.dtype)
+        out = path.with_suffix(".jpg")
+        ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if not ok:
+        raise ValueError(f"{out}: the image could not be encoded")
+    out.write_bytes(data.tobytes())
+    return out
+
+
+def check_jpeg_quality(jpeg_quality: int | None, dtype=np.uint8) -> None:
+    """Raise ``ValueError`` unless ``jpeg_quality`` is None or an integer 1-100 for 8-bit data."""
+    if jpeg_quality is None:
+        return
+    if int(jpeg_quality) != jpeg_quality or not 1 <= jpeg_quality <= 100:
+        raise ValueError(f"JPEG quality must be an integer from 1 to 100, got {jpeg_quality!r}")
+    if np.dtype(dtype) != np.uint8:
+        raise ValueError(f"JPEG holds 8-bit images only, not {np.dtype(dtype)}; use PNG "
+                         "(no JPEG quality) for 12 or 16 bits")
 
 
 def scaled_target_for_view(target: Target, fy_px: float, sensor: Sensor,
@@ -100,7 +146,9 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
                    sensor: Sensor = DEFAULT_SENSOR, distance_mm: float = 2000.0,
                    fill: float = 0.55, through: str = "exact", supersample: int = 4,
                    direction: str | Sequence[str] = "random",
-                   progress: Callable[[int], None] | None = None) -> dict:
+                   progress: Callable[[int], None] | None = None,
+                   board_surface: BoardSurface | float | None = None,
+                   jpeg_quality: int | None = None) -> dict:
     """Render a multi-zoom calibration data set (layout in the module docstring).
 
     Parameters
@@ -113,6 +161,12 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     direction : {'random', 'in', 'out'} or sequence of 'in' / 'out', one per step
         Direction of the last zoom move before each step (sets the backlash side); a sequence
         is written to ``steps.csv``.
+    board_surface : BoardSurface or float, optional
+        The board's waves (board frame of every step's scaled target, mm), or an amplitude (mm):
+        each step then draws its own :meth:`BoardSurface.random` over its scaled target,
+        recorded in the step's ``board_surface``. None: flat.
+    jpeg_quality : int, optional
+        Write JPEG files of this quality (1-100, 8-bit images only) instead of PNG.
 
     Returns
     -------
@@ -121,11 +175,13 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     """
     optics = optics or Optics()
     radiometry = radiometry or Radiometry()
+    check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     base = parse_pattern(pattern)
     ss = np.random.SeedSequence(seed)
     mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
+    surface_seeds = ss.spawn(len(zoom))
     n_groups = len(lens.groups)
     if tolerances is not None:
         draws = draw_misalignment(lens, tolerances, zoom, 1, mech_seed, direction)
@@ -142,12 +198,15 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         name = f"zoom_{i:02d}"
         (out / name).mkdir(exist_ok=True)
         poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
+        surface = board_surface
+        if isinstance(board_surface, int | float):
+            surface = BoardSurface.random(target.extent_mm, float(board_surface),
+                                          np.random.default_rng(surface_seeds[i]))
         views = []
         for j, (R, t) in enumerate(poses):
             view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
-                                supersample)
-            fname = f"view_{j:02d}.png"
-            cv2.imwrite(str(out / name / fname), view.image)
+                                supersample, surface=surface)
+            fname = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality).name
             views.append({"file": f"{name}/{fname}", **view.truth_dict()})
             if progress is not None:
                 progress(1)
@@ -157,6 +216,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
             "model_fit_rms_px": em.lens_camera.fit_rms_px,
             "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
             "target": target.spec, "psf_sigma_px": views and float(view.sigma_px),
+            "board_surface": None if surface is None else surface.to_dict(),
             "views": views,
         })
         rows.append({"step": name, "zoom": float(z),
@@ -171,6 +231,10 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         "tolerances": None if tolerances is None else tolerances.to_dict(),
         "optics": asdict(optics), "radiometry": asdict(radiometry),
         "distance_mm": distance_mm, "fill": fill, "supersample": supersample,
+        "board_surface": (board_surface.to_dict() if isinstance(board_surface, BoardSurface)
+                          else None if board_surface is None
+                          else {"random_amplitude_mm": float(board_surface)}),
+        "jpeg_quality": jpeg_quality,
         "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); rvec/tvec: board -> "
                       "camera, mm; points_px: true image position of every target object point",
         "steps": steps,

@@ -11,9 +11,13 @@ Pixel sub-sample ``(u, v)`` (OpenCV convention, pixel centres at integers; sub-s
 ``S`` at ``i + (k + 0.5) / S - 0.5``) has normalised coordinates ``xy = mapping.unproject(u, v)``;
 its ray ``s (x, y, 1)`` meets the board plane of pose ``Rt_cam_board = (R, t)`` (board -> camera,
 ``P = R b + t``) at ``s = (n . t) / (n . (x, y, 1))``, ``n = R e_z``, i.e. at board point
-``b = R^T (s (x, y, 1) - t)``. This board-coordinate field is computed on a coarse pixel lattice
-and interpolated by bicubic splines (it is smooth: perspective times lens distortion), which also
-give its derivatives ``d b / d (u, v)``.
+``b = R^T (s (x, y, 1) - t)``. A non-flat board (:class:`BoardSurface`, height ``z = w(x, y)``
+in board mm; the point printed at ``(x, y)`` sits at ``(x, y, w(x, y))``) is met where
+``b_z = w(b_x, b_y)``, i.e. ``s = (n . t + w(b_x(s), b_y(s))) / (n . (x, y, 1))``, solved by
+fixed-point iteration from the plane's ``s`` (see :func:`_intersect_surface`). This
+board-coordinate field is computed on a coarse pixel lattice and interpolated by bicubic splines
+(it is smooth: perspective, lens distortion and the board's waves), which also give its
+derivatives ``d b / d (u, v)``.
 
 Coverage
 --------
@@ -24,6 +28,18 @@ covers an exactly computed fraction of that square sub-sample (see :func:`_cover
 crossings of two edges use the tensor product. The PSF is a
 Gaussian of standard deviation ``sigma`` (see :func:`psf_sigma_px`), applied to the sub-sampled
 coverage before the ``S x S`` box integration.
+
+PSF
+---
+``Optics.psf`` selects the PSF. ``'gaussian'`` (default) is rendered in closed form when it can be
+(see :func:`_render_analytic`). The others exist only as a kernel sampled on the ``S x S`` fine
+grid (:func:`psf_kernel`), convolved with the sub-sampled coverage before the box integration,
+so they always take the supersampled path: ``'airy'`` (diffraction pattern with its first dark
+ring at ``Optics.airy_radius_px``, convolved with the Gaussian of blur and defocus), ``'halo'``
+(the Gaussian core plus a fraction ``halo_fraction`` of the energy in a wide Gaussian of sigma
+``halo_sigma_px``, as veiling glare) and ``'elliptical'`` (a Gaussian of sigma ``psf_sigma_px``
+along the axis at ``ellipse_angle_deg`` from the image u axis towards +v, and
+``ellipse_ratio`` times that across it, as astigmatism or motion).
 """
 
 from __future__ import annotations
@@ -38,10 +54,13 @@ from scipy.spatial import cKDTree
 from ..camera import Sensor
 from ..targets import Target
 
-__all__ = ["Radiometry", "Optics", "psf_sigma_px", "board_coordinates", "render_coverage",
-           "render_image", "apply_radiometry", "project_points", "RenderedView", "camera_mapping"]
+__all__ = ["Radiometry", "Optics", "PSF_KINDS", "psf_sigma_px", "psf_kernel", "BoardSurface",
+           "board_coordinates", "render_coverage", "render_image", "apply_radiometry",
+           "project_points", "RenderedView", "camera_mapping"]
 
 BACKGROUND = 0.5  # relative reflectance of what lies beyond the board
+
+PSF_KINDS = ("gaussian", "airy", "halo", "elliptical")
 
 
 @dataclass(frozen=True)
@@ -58,23 +77,112 @@ class Optics:
         Image-side defocus; the blur circle of diameter ``defocus / N`` enters as a Gaussian of
         sigma = diameter / 4.
     wavelength_um : float
+    psf : {'gaussian', 'airy', 'halo', 'elliptical'}
+        PSF shape (module docstring, section PSF). Only 'gaussian' can be rendered analytically.
+    airy_radius_px : float
+        'airy': radius of the first dark ring, px; 0 takes the diffraction limit
+        ``1.22 lambda N`` of ``wavelength_um`` and ``f_number``.
+    halo_fraction, halo_sigma_px : float
+        'halo': fraction of the energy in the wide Gaussian, and its sigma (px).
+    ellipse_ratio, ellipse_angle_deg : float
+        'elliptical': sigma across the major axis over sigma along it, and the angle of the
+        major axis from the image u axis towards +v, degrees.
     """
 
     blur_px: float = 0.7
     f_number: float = 2.4
     defocus_mm: float = 0.0
     wavelength_um: float = 0.55
+    psf: str = "gaussian"
+    airy_radius_px: float = 0.0
+    halo_fraction: float = 0.05
+    halo_sigma_px: float = 6.0
+    ellipse_ratio: float = 0.5
+    ellipse_angle_deg: float = 30.0
+
+    def __post_init__(self):
+        if self.psf not in PSF_KINDS:
+            raise ValueError(f"psf must be one of {', '.join(PSF_KINDS)}, got {self.psf!r}")
+        if not 0.0 <= self.halo_fraction < 1.0 or self.halo_sigma_px <= 0:
+            raise ValueError("halo_fraction must lie in [0, 1) and halo_sigma_px be positive")
+        if not 0.0 < self.ellipse_ratio <= 1.0 or self.airy_radius_px < 0:
+            raise ValueError("ellipse_ratio must lie in (0, 1] and airy_radius_px be >= 0")
 
 
 def psf_sigma_px(optics: Optics, pixel_pitch_mm: float) -> float:
     """Gaussian PSF sigma (px): ``sqrt(blur^2 + s_diff^2 + s_defocus^2)``.
 
     ``s_diff = 0.42 lambda N`` (the Gaussian that best matches the Airy core) and
-    ``s_defocus = |defocus| / (4 N)``, both converted from mm to px.
+    ``s_defocus = |defocus| / (4 N)``, both converted from mm to px. For ``psf='airy'``,
+    ``s_diff`` is ``0.42 / 1.22`` of :func:`airy_radius_px` (the Gaussian matching the core of
+    the rendered Airy pattern). For 'halo' this is the core's sigma, for 'elliptical' the sigma
+    along the major axis.
     """
-    s_diff = 0.42 * optics.wavelength_um * 1e-3 * optics.f_number / pixel_pitch_mm
     s_def = abs(optics.defocus_mm) / (4 * optics.f_number) / pixel_pitch_mm
+    if optics.psf == "airy":
+        s_diff = 0.42 / 1.22 * airy_radius_px(optics, pixel_pitch_mm)
+    else:
+        s_diff = 0.42 * optics.wavelength_um * 1e-3 * optics.f_number / pixel_pitch_mm
     return float(np.sqrt(optics.blur_px**2 + s_diff**2 + s_def**2))
+
+
+def airy_radius_px(optics: Optics, pixel_pitch_mm: float) -> float:
+    """Radius of the Airy pattern's first dark ring, px: ``optics.airy_radius_px`` when set,
+    else ``1.22 lambda N``."""
+    if optics.airy_radius_px > 0:
+        return float(optics.airy_radius_px)
+    return 1.22 * optics.wavelength_um * 1e-3 * optics.f_number / pixel_pitch_mm
+
+
+AIRY_REACH = 6.0  # Airy kernels are cut at this many first-ring radii (2.8 % of the energy beyond)
+J1_FIRST_ZERO = 3.8317059702075125
+
+
+def psf_kernel(optics: Optics, pixel_pitch_mm: float, supersample: int) -> np.ndarray:
+    """The PSF of ``optics`` point-sampled on the fine grid (spacing ``1 / supersample`` px).
+
+    'airy' is the Airy pattern (cut at ``AIRY_REACH`` first-ring radii) convolved with the
+    Gaussian of blur and defocus; the others are as in the module docstring. Point sampling
+    resolves the core when the PSF spans a few fine samples: an Airy radius or sigma of at
+    least ``2 / supersample`` px.
+
+    Returns
+    -------
+    kernel : (k, k) float64 ndarray
+        Odd side, centred, summing to 1; rows along v, columns along u.
+    """
+    from scipy.special import j1
+
+    S = int(supersample)
+    sigma = psf_sigma_px(optics, pixel_pitch_mm)
+    if optics.psf == "airy":
+        radius = airy_radius_px(optics, pixel_pitch_mm)
+        s_gauss = np.sqrt(max(sigma**2 - (0.42 / 1.22 * radius) ** 2, 0.0))
+        reach = AIRY_REACH * radius + 4 * s_gauss
+    elif optics.psf == "halo":
+        reach = 4 * max(sigma, optics.halo_sigma_px)
+    else:
+        reach = 4 * sigma
+    half = int(np.ceil(reach * S)) + 1
+    y, x = np.mgrid[-half:half + 1, -half:half + 1] / S  # px; x along u, y along v
+    if optics.psf == "airy":
+        r = np.hypot(x, y)
+        arg = np.maximum(J1_FIRST_ZERO * r / radius, 1e-12)
+        k = np.where(r <= AIRY_REACH * radius, (2 * j1(arg) / arg) ** 2, 0.0)
+        if s_gauss > 0:
+            k = cv2.GaussianBlur(k, (0, 0), s_gauss * S, borderType=cv2.BORDER_CONSTANT)
+    elif optics.psf == "halo":
+        r2 = x * x + y * y
+        h = optics.halo_sigma_px
+        k = ((1 - optics.halo_fraction) * np.exp(-0.5 * r2 / sigma**2) / sigma**2
+             + optics.halo_fraction * np.exp(-0.5 * r2 / h**2) / h**2)
+    else:
+        a = np.deg2rad(optics.ellipse_angle_deg)
+        s_minor = sigma * (optics.ellipse_ratio if optics.psf == "elliptical" else 1.0)
+        along = x * np.cos(a) + y * np.sin(a)
+        across = -x * np.sin(a) + y * np.cos(a)
+        k = np.exp(-0.5 * (along**2 / sigma**2 + across**2 / s_minor**2))
+    return k / k.sum()
 
 
 @dataclass(frozen=True)
@@ -140,8 +248,110 @@ def _cell_grid(target: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xs, ys, value
 
 
+@dataclass(frozen=True)
+class BoardSurface:
+    """A smoothly waving board: height ``z = w(x, y)`` above its plane, board frame, mm.
+
+    ``w(x, y) = sum_k a_k sin(2 pi (kx_k x + ky_k y) + phase_k)``. The point printed at board
+    ``(x, y)`` sits at ``(x, y, w(x, y))`` (the paper's stretch, of order ``(a k)^2``, is
+    neglected: 1e-5 for tenths of a mm over tens of cm). Board +z points away from the side the
+    pattern is seen from in the usual poses (along the camera's +z at zero rotation).
+
+    Attributes
+    ----------
+    modes : tuple of (amplitude_mm, kx_per_mm, ky_per_mm, phase_rad)
+        No modes: the flat board.
+    """
+
+    modes: tuple[tuple[float, float, float, float], ...] = ()
+
+    @property
+    def is_flat(self) -> bool:
+        return all(m[0] == 0 for m in self.modes)
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``w(x, y)``, mm, for board coordinates in mm (any matching shapes)."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        w = np.zeros(np.broadcast(x, y).shape)
+        for a, kx, ky, ph in self.modes:
+            w += a * np.sin(2 * np.pi * (kx * x + ky * y) + ph)
+        return w
+
+    def lift(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) board points (z = 0 on the print) -> on the surface, ``z + w(x, y)``."""
+        p = np.array(points, dtype=float)
+        p[:, 2] += self.height(p[:, 0], p[:, 1])
+        return p
+
+    def to_dict(self) -> dict:
+        return {"model": "sum of a sin(2 pi (kx x + ky y) + phase), board mm",
+                "modes": [{"amplitude_mm": a, "kx_per_mm": kx, "ky_per_mm": ky, "phase_rad": ph}
+                          for a, kx, ky, ph in self.modes]}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> BoardSurface:
+        return cls(tuple((float(m["amplitude_mm"]), float(m["kx_per_mm"]), float(m["ky_per_mm"]),
+                          float(m["phase_rad"])) for m in doc["modes"]))
+
+    @classmethod
+    def random(cls, extent_mm: np.ndarray, amplitude_mm: float,
+               rng: np.random.Generator | int = 0, n_modes: int = 3,
+               cycles: tuple[float, float] = (0.3, 1.5)) -> BoardSurface:
+        """Low-order waves over a board: ``n_modes`` sinusoids of random direction and phase,
+        each with ``cycles`` (uniform range) periods across the board's diagonal, scaled so the
+        largest ``|w|`` over ``extent_mm = (xmin, ymin, xmax, ymax)`` is ``amplitude_mm``."""
+        rng = np.random.default_rng(rng)
+        ext = np.asarray(extent_mm, float)
+        diag = float(np.hypot(*(ext[2:] - ext[:2])))
+        freq = rng.uniform(*cycles, n_modes) / diag  # cycles per mm
+        angle = rng.uniform(0, 2 * np.pi, n_modes)
+        amp = rng.uniform(0.5, 1.0, n_modes)
+        phase = rng.uniform(0, 2 * np.pi, n_modes)
+        modes = tuple((float(a), float(f * np.cos(t)), float(f * np.sin(t)), float(p))
+                      for a, f, t, p in zip(amp, freq, angle, phase, strict=True))
+        gy, gx = np.mgrid[ext[1]:ext[3]:65j, ext[0]:ext[2]:65j]
+        peak = np.max(np.abs(cls(modes).height(gx, gy)))
+        scale = amplitude_mm / peak
+        return cls(tuple((a * scale, kx, ky, p) for a, kx, ky, p in modes))
+
+
+SURFACE_MAX_ITER = 30
+SURFACE_TOL_MM = 1e-9  # fixed-point step along the ray at which the intersection has converged
+
+
+def _intersect_surface(ray: np.ndarray, R: np.ndarray, t: np.ndarray,
+                       surface: BoardSurface) -> np.ndarray:
+    """Ray parameter ``s`` where ``s ray`` (camera frame) meets the board surface.
+
+    Fixed-point iteration ``s <- (n . t + w(b_xy(s))) / (n . ray)`` from the plane's solution;
+    it contracts by ``|grad w| tan(incidence)`` per step (about 0.02 for 0.3 mm waves of 10 cm
+    at 40 degrees), so a few steps reach ``SURFACE_TOL_MM``.
+
+    Raises
+    ------
+    ValueError
+        When it does not converge in ``SURFACE_MAX_ITER`` steps (a surface too steep for the
+        view).
+    """
+    n = R[:, 2]
+    nr = ray @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n @ t) / nr
+        ray_len = np.linalg.norm(ray, axis=1)
+        for _ in range(SURFACE_MAX_ITER):
+            b = (s[:, None] * ray - t) @ R
+            s_new = (n @ t + surface.height(b[:, 0], b[:, 1])) / nr
+            step = np.nanmax(np.abs(s_new - s) * ray_len, initial=0.0)
+            s = s_new
+            if step < SURFACE_TOL_MM:
+                return s
+    raise ValueError(f"the ray intersection with the board surface did not converge (last step "
+                     f"{step:.2g} mm): the surface is too steep for this view")
+
+
 def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
-                      step_px: int = 4) -> tuple[RectBivariateSpline, RectBivariateSpline]:
+                      step_px: int = 4, surface: BoardSurface | None = None
+                      ) -> tuple[RectBivariateSpline, RectBivariateSpline]:
     """Splines of the board point seen by each pixel position.
 
     Parameters
@@ -151,6 +361,8 @@ def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
         ``Rt_cam_board``: board -> camera, mm.
     step_px : int
         Lattice spacing of the exactly computed nodes.
+    surface : BoardSurface, optional
+        Non-flat board; None (or no modes) is the plane.
 
     Returns
     -------
@@ -162,9 +374,12 @@ def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
     gv, gu = np.meshgrid(vs, us, indexing="ij")
     xy = mapping.unproject(np.stack([gu.ravel(), gv.ravel()], -1))
     ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)  # shape (M, 3)
-    n = R[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (n @ t) / (ray @ n)
+    if surface is None or surface.is_flat:
+        n = R[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (n @ t) / (ray @ n)
+    else:
+        s = _intersect_surface(ray, R, t, surface)
     s = np.where(s > 0, s, np.nan)
     b = (s[:, None] * ray - t) @ R  # R^T (P - t), shape (M, 3)
     if np.any(~np.isfinite(b)):
@@ -203,29 +418,55 @@ def _edge_weight(coord, grad_u, grad_v, lines, S):
     nearer_right = d_right < d_left
     g = np.maximum(np.hypot(grad_u, grad_v), 1e-300)  # board mm per px across the line
     d = np.minimum(d_left, d_right) / g  # px
-    w = _coverage_beyond(d, grad_u / g, grad_v / g, S)
+    w = _coverage_near(d, grad_u / g, grad_v / g, S)
     step = np.where(nearer_right, 1, -1)
     return i, step, w
 
 
+def _coverage_near(d: np.ndarray, nu: np.ndarray, nv: np.ndarray, S: int) -> np.ndarray:
+    """:func:`_coverage_beyond`, evaluated only where it is not 0 (the sub-samples an edge
+    crosses, a few % of them); the same numbers, computed faster."""
+    near = np.abs(d) < (np.abs(nu) + np.abs(nv)) / (2 * S) * (1 + 1e-9)
+    w = np.zeros(np.shape(d))
+    w[near] = _coverage_beyond(d[near], nu[near], nv[near], S)
+    return w
+
+
 def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
                     sigma_px: float, supersample: int = 4, band_rows: int = 96,
-                    method: str = "auto") -> np.ndarray:
+                    method: str = "auto", surface: BoardSurface | None = None,
+                    optics: Optics | None = None) -> np.ndarray:
     """Relative reflectance seen by each pixel: painted, blurred, then pixel-integrated.
 
     Parameters
     ----------
+    sigma_px : float
+        Sigma of the Gaussian PSF, px (unused when ``optics`` has a non-Gaussian PSF).
     method : {'auto', 'analytic', 'supersample'}
-        'analytic' (:func:`_render_analytic`) needs a blur of at least 0.3 px and grid lines
-        further apart than the blur's reach; 'auto' takes it when it applies, else
+        'analytic' (:func:`_render_analytic`) needs a Gaussian PSF of at least 0.3 px and grid
+        lines further apart than the blur's reach; 'auto' takes it when it applies, else
         'supersample' (sub-sampled coverage, blurred, then box-integrated).
+    surface : BoardSurface, optional
+        Non-flat board (None: the plane).
+    optics : Optics, optional
+        When its ``psf`` is not 'gaussian', its :func:`psf_kernel` replaces the Gaussian of
+        ``sigma_px`` and the supersampled path is taken ('analytic' raises ``ValueError``).
 
     Returns
     -------
     image : (H, W) float64 ndarray
         0 = dark print, 1 = white paper, ``BACKGROUND`` beyond the board.
     """
-    bxs, bys = board_coordinates(mapping, R, t, sensor)
+    if method not in ("auto", "analytic", "supersample"):
+        raise ValueError(f"method must be 'auto', 'analytic' or 'supersample', got {method!r}")
+    kernel = None
+    if optics is not None and optics.psf != "gaussian":
+        if method == "analytic":
+            raise ValueError(f"the analytic renderer paints a Gaussian PSF only; psf "
+                             f"{optics.psf!r} needs method='supersample' (or 'auto')")
+        kernel = psf_kernel(optics, sensor.pixel_pitch_mm, supersample)
+        method = "supersample"
+    bxs, bys = board_coordinates(mapping, R, t, sensor, surface=surface)
     if method in ("auto", "analytic"):
         out = _render_analytic(target, bxs, bys, sensor, sigma_px)
         if out is not None:
@@ -233,9 +474,8 @@ def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, senso
         if method == "analytic":
             raise ValueError("the analytic renderer needs a blur >= 0.3 px and grid lines more "
                              "than the blur's reach apart; use method='supersample'")
-    elif method != "supersample":
-        raise ValueError(f"method must be 'auto', 'analytic' or 'supersample', got {method!r}")
-    return _render_supersampled(target, bxs, bys, sensor, sigma_px, supersample, band_rows)
+    return _render_supersampled(target, bxs, bys, sensor, sigma_px, supersample, band_rows,
+                                kernel)
 
 
 ANALYTIC_MIN_SIGMA = 0.3  # px; below this the 6-node pixel rule is not accurate enough
@@ -362,15 +602,20 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
 
 
 def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: float,
-                         supersample: int, band_rows: int) -> np.ndarray:
-    """Sub-sampled coverage (exact per straight edge), Gaussian blur on the fine grid, then
-    ``S x S`` box integration (see the module docstring)."""
+                         supersample: int, band_rows: int,
+                         kernel: np.ndarray | None = None) -> np.ndarray:
+    """Sub-sampled coverage (exact per straight edge), blur on the fine grid (the Gaussian of
+    ``sigma_px``, or ``kernel`` sampled on the fine grid when given), then ``S x S`` box
+    integration (see the module docstring)."""
     S = int(supersample)
     xs, ys, value = _cell_grid(target)
     discs = target.discs
     tree = cKDTree(discs[:, :2]) if len(discs) else None
     W, H = sensor.width_px, sensor.height_px
-    halo = int(np.ceil(4 * sigma_px)) + 1
+    if kernel is None:
+        halo = int(np.ceil(4 * sigma_px)) + 1
+    else:
+        halo = int(np.ceil((kernel.shape[0] // 2) / S)) + 1
     out = np.empty((H, W))
     sub = (np.arange(S) + 0.5) / S - 0.5
     u = (np.arange(W)[:, None] + sub).ravel()  # shape (W S,)
@@ -384,10 +629,12 @@ def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: flo
         ix, sx, wx = _edge_weight(bx, bx_u, bx_v, xs, S)
         iy, sy, wy = _edge_weight(by, by_u, by_v, ys, S)
         nx, ny = value.shape
-        cov = ((1 - wx) * (1 - wy) * value[ix, iy]
-               + wx * (1 - wy) * value[np.clip(ix + sx, 0, nx - 1), iy]
-               + (1 - wx) * wy * value[ix, np.clip(iy + sy, 0, ny - 1)]
-               + wx * wy * value[np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)])
+        cov = value[ix, iy]  # away from every edge; blend the neighbours across edges:
+        e = (wx > 0) | (wy > 0)
+        ix, iy, wx, wy, ix2, iy2 = (ix[e], iy[e], wx[e], wy[e], np.clip(ix[e] + sx[e], 0, nx - 1),
+                                    np.clip(iy[e] + sy[e], 0, ny - 1))
+        cov[e] = ((1 - wx) * (1 - wy) * value[ix, iy] + wx * (1 - wy) * value[ix2, iy]
+                  + (1 - wx) * wy * value[ix, iy2] + wx * wy * value[ix2, iy2])
         if tree is not None:
             dist, k = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
             dist, k = dist.reshape(bx.shape), k.reshape(bx.shape)
@@ -397,9 +644,11 @@ def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: flo
             gu, gv = bx_u * ex + by_u * ey, bx_v * ex + by_v * ey
             g = np.maximum(np.hypot(gu, gv), 1e-300)
             d_px = (discs[k, 2] - dist) / g  # > 0 inside the disc
-            beyond = _coverage_beyond(d_px, gu / g, gv / g, S)
+            beyond = _coverage_near(d_px, gu / g, gv / g, S)
             cov = cov * np.where(d_px > 0, beyond, 1.0 - beyond)
-        if sigma_px > 0:
+        if kernel is not None:
+            cov = cv2.filter2D(cov, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        elif sigma_px > 0:
             cov = cv2.GaussianBlur(cov, (0, 0), sigmaX=sigma_px * S, sigmaY=sigma_px * S,
                                    borderType=cv2.BORDER_REPLICATE)
         cov = cov.reshape(a1 - a0, S, W, S).mean(axis=(1, 3))
@@ -471,12 +720,15 @@ class RenderedView:
 
 def render_image(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
                  optics: Optics | None = None, radiometry: Radiometry | None = None,
-                 rng: np.random.Generator | int = 0, supersample: int = 4) -> RenderedView:
+                 rng: np.random.Generator | int = 0, supersample: int = 4,
+                 surface: BoardSurface | None = None) -> RenderedView:
     """Render one view of ``target`` at pose ``Rt_cam_board = (R, t)`` through ``mapping``.
 
     ``mapping`` is an :class:`~zoomcalib.optics.lens_camera.ExactMapping` (render through the
     exact ray-traced lens) or a :class:`~zoomcalib.camera.CameraModel` wrapped by
-    :func:`camera_mapping`.
+    :func:`camera_mapping`. A Gaussian PSF takes the analytic path when it applies, any other
+    ``optics.psf`` the supersampled one (``supersample`` sub-samples per pixel side). With a
+    non-flat ``surface`` the truth is the projection of the object points lifted onto it.
 
     Returns
     -------
@@ -488,9 +740,11 @@ def render_image(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: 
     optics = optics or Optics()
     radiometry = radiometry or Radiometry()
     sigma = psf_sigma_px(optics, sensor.pixel_pitch_mm)
-    cov = render_coverage(target, mapping, R, t, sensor, sigma, supersample)
+    cov = render_coverage(target, mapping, R, t, sensor, sigma, supersample, surface=surface,
+                          optics=optics)
     image = apply_radiometry(cov, radiometry, rng)
-    pts = project_points(target.object_points, mapping, R, t)
+    points = target.object_points if surface is None else surface.lift(target.object_points)
+    pts = project_points(points, mapping, R, t)
     visible = ((pts[:, 0] > 0) & (pts[:, 0] < sensor.width_px - 1)
                & (pts[:, 1] > 0) & (pts[:, 1] < sensor.height_px - 1))
     return RenderedView(image, pts, visible, R, t, sigma)

@@ -1,0 +1,219 @@
+"""A zoom sweep like a real calibration session, rendered through pinhole + distortion cameras.
+
+Camera per step
+---------------
+``steps`` focal lengths ``fx`` log-spaced over ``fx_range`` (px, square pixels: ``fy = fx``).
+With ``s = log(fx / fx_0) / log(fx_1 / fx_0)`` (0 at the short end, 1 at the long end):
+
+* principal point ``c(s) = centre + pp_offset_px + pp_drift_px * s (3 - s) / 2``: a smooth, bowed
+  drift of ``pp_drift_px`` over the sweep (the centre is ``((W - 1) / 2, (H - 1) / 2)``);
+* distortion ``(k1, 0, 0, 0, 0)`` with ``k1 = k1_short * fx_0 / fx``: barrel at the short end,
+  nearly none at the long end.
+
+Poses
+-----
+One physical board (the pattern in mm, optionally waving: :class:`BoardSurface`) at a distance
+scaled with ``fx`` so its point grid spans ``fill`` of the image height, times 0.95-1.25 per
+view. Tilts about random in-plane axes are drawn from 0.2-1 times a maximum that goes
+geometrically from ``tilt_short_deg`` at the short end to ``tilt_long_deg`` at the long end (near
+fronto-parallel, as long-focus sets are); rolls of up to 10 degrees; the board centre lands in the
+middle fifth of the image; a view is kept when every point lies 10 px inside the image.
+
+Layout written by :func:`render_zoom_sweep`::
+
+    OUT/steps.csv            step, zoom (= fx, px), sequence
+    OUT/truth.json           settings, board surface, and per step: zoom, K, dist, camera,
+                             psf_sigma_px, per view: file, rvec, tvec (board -> camera, mm),
+                             points_px (true, OpenCV convention), visible; render_s
+                             (wall clock) and render_cpu_s (CPU time of the process)
+    OUT/fx_NNNNN/view_YY.png (or .jpg)   NNNNN = fx rounded to px
+
+The folder names hold one number each (the rounded fx), so
+:func:`zoomcalib.calibrate.io.zoom_steps` reads the zoom from ``steps.csv`` (exact fx) or, without
+it, from the names.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import __version__
+from ..camera import CameraModel, Sensor
+from ..io import write_csv, write_json
+from ..targets import Target, parse_pattern
+from .dataset import check_jpeg_quality, write_image
+from .image import BoardSurface, Optics, Radiometry, camera_mapping, project_points, render_image
+
+__all__ = ["SWEEP_SENSOR", "sweep_cameras", "sweep_poses", "render_zoom_sweep"]
+
+SWEEP_SENSOR = Sensor(1280, 720, 0.003)  # a video camera's frame, 3 um pixels
+MARGIN_PX = 10.0
+
+
+def _zoom_position(fx: np.ndarray, fx_range: tuple[float, float]) -> np.ndarray:
+    """0 at the short end of the sweep, 1 at the long end, linear in log fx."""
+    return np.log(np.asarray(fx) / fx_range[0]) / np.log(fx_range[1] / fx_range[0])
+
+
+def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int = 7,
+                  sensor: Sensor = SWEEP_SENSOR,
+                  pp_offset_px: tuple[float, float] = (6.0, -4.0),
+                  pp_drift_px: tuple[float, float] = (30.0, -18.0),
+                  k1_short: float = -0.12) -> list[CameraModel]:
+    """The cameras of the sweep, short end first (module docstring, section Camera per step)."""
+    if steps < 1 or not 0 < fx_range[0] <= fx_range[1]:
+        raise ValueError(f"need steps >= 1 and 0 < fx_min <= fx_max, got {steps} and {fx_range}")
+    fx = np.geomspace(fx_range[0], fx_range[1], steps)
+    s = _zoom_position(fx, fx_range) if fx_range[1] > fx_range[0] else np.zeros(steps)
+    bow = s * (3 - s) / 2
+    centre = np.array([(sensor.width_px - 1) / 2, (sensor.height_px - 1) / 2])
+    cams = []
+    for f, b in zip(fx, bow, strict=True):
+        cx, cy = centre + np.asarray(pp_offset_px) + np.asarray(pp_drift_px) * b
+        dist = np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0])
+        cams.append(CameraModel(float(f), float(f), float(cx), float(cy), dist, sensor))
+    return cams
+
+
+def _rotation(axis_angle) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(axis_angle, dtype=float).reshape(3, 1))[0]
+
+
+def sweep_poses(target: Target, camera: CameraModel, n_views: int, max_tilt_deg: float,
+                rng: np.random.Generator, fill: float = 0.7,
+                max_tries: int = 2000) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Board poses ``Rt_cam_board = (R, t)`` (mm) for one step (module docstring, Poses).
+
+    Raises
+    ------
+    RuntimeError
+        When fewer than ``n_views`` poses keep the board inside the image.
+    """
+    sensor = camera.sensor
+    mapping = camera_mapping(camera)
+    pts = target.object_points
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    span = np.ptp(pts[:, 1]) or np.ptp(pts[:, 0])
+    distance = camera.fy * span / (fill * sensor.height_px)
+    size = np.array([sensor.width_px - 1, sensor.height_px - 1])
+    ext = target.extent_mm
+    outline = np.array([[ext[0], ext[1], 0], [ext[2], ext[1], 0], [ext[0], ext[3], 0],
+                        [ext[2], ext[3], 0]])
+    poses = []
+    for _ in range(max_tries):
+        if len(poses) == n_views:
+            break
+        tilt = np.deg2rad(max_tilt_deg * rng.uniform(0.2, 1.0))
+        phi = rng.uniform(0, 2 * np.pi)
+        R = (_rotation(tilt * np.array([np.cos(phi), np.sin(phi), 0.0]))
+             @ _rotation([0.0, 0.0, np.deg2rad(rng.uniform(-10, 10))]))
+        aim = mapping.unproject((rng.uniform(0.4, 0.6, 2) * size)[None])[0]
+        dist = distance * rng.uniform(0.95, 1.25)
+        t = dist * np.array([aim[0], aim[1], 1.0]) / np.sqrt(1 + aim @ aim) - R @ centre
+        if np.any((outline @ R.T + t)[:, 2] <= 0):
+            continue
+        uv = project_points(pts, mapping, R, t)
+        if np.all(uv > MARGIN_PX) and np.all(uv < size - MARGIN_PX):
+            poses.append((R, t))
+    if len(poses) < n_views:
+        raise RuntimeError(f"found only {len(poses)} of {n_views} poses that keep the board "
+                           f"{MARGIN_PX:g} px inside the image at fx {camera.fx:.0f}; lower fill")
+    return poses
+
+
+def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 23000.0),
+                      steps: int = 7, views: int = 10, size: tuple[int, int] = (1280, 720),
+                      pattern: str = "chessboard:22x15:20",
+                      board_surface: BoardSurface | float | None = None,
+                      psf: str | None = None, jpeg_quality: int | None = None, seed: int = 0,
+                      optics: Optics | None = None, radiometry: Radiometry | None = None,
+                      fill: float = 0.7, tilt_deg: tuple[float, float] = (40.0, 3.0),
+                      supersample: int = 3, pixel_pitch_mm: float = 0.003,
+                      progress: Callable[[int], None] | None = None, **camera_options) -> dict:
+    """Render a zoom sweep (layout and conventions in the module docstring).
+
+    Parameters
+    ----------
+    fx_range : (float, float)
+        Focal length at the short and long end, px.
+    size : (int, int)
+        Image width, height, px.
+    board_surface : BoardSurface or float, optional
+        The board's waves (board mm), or an amplitude (mm) for :meth:`BoardSurface.random`
+        drawn from ``seed`` over the board; the same board serves every step. None: flat.
+    psf : str, optional
+        Overrides ``optics.psf`` ('gaussian', 'airy', 'halo', 'elliptical'). A Gaussian PSF
+        is rendered analytically; the others supersampled ``supersample`` times per pixel side.
+    jpeg_quality : int, optional
+        JPEG files of this quality (1-100) instead of PNG; the truth is unchanged.
+    optics, radiometry
+        Default: ``Optics(blur_px=0.8, f_number=2.8)`` and ``Radiometry()`` (2 DN read noise).
+    tilt_deg : (float, float)
+        Largest tilt at the short and at the long end, degrees.
+    **camera_options
+        ``pp_offset_px``, ``pp_drift_px``, ``k1_short`` of :func:`sweep_cameras`.
+
+    Returns
+    -------
+    truth : dict
+        What was written to ``truth.json``.
+    """
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    sensor = Sensor(int(size[0]), int(size[1]), pixel_pitch_mm)
+    optics = optics or Optics(blur_px=0.8, f_number=2.8)
+    if psf is not None:
+        optics = replace(optics, psf=psf)
+    radiometry = radiometry or Radiometry()
+    check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
+    target = parse_pattern(pattern)
+    cameras = sweep_cameras(fx_range, steps, sensor, **camera_options)
+    surface_seed, *step_seeds = np.random.SeedSequence(seed).spawn(steps + 1)
+    surface = board_surface
+    if isinstance(board_surface, int | float):
+        surface = BoardSurface.random(target.extent_mm, float(board_surface),
+                                      np.random.default_rng(surface_seed))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    max_tilt = np.geomspace(tilt_deg[0], tilt_deg[1], steps)
+    doc_steps, rows = [], []
+    for i, cam in enumerate(cameras):
+        rng = np.random.default_rng(step_seeds[i])
+        name = f"fx_{round(cam.fx):05d}"
+        (out / name).mkdir(exist_ok=True)
+        mapping = camera_mapping(cam)
+        view_docs = []
+        for j, (R, t) in enumerate(sweep_poses(target, cam, views, max_tilt[i], rng, fill)):
+            view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
+                                supersample, surface=surface)
+            file = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality)
+            view_docs.append({"file": f"{name}/{file.name}", **view.truth_dict()})
+            if progress is not None:
+                progress(1)
+        doc_steps.append({"step": name, "zoom": cam.fx, "K": cam.K.tolist(),
+                          "dist": cam.dist.tolist(), "camera": cam.to_dict(),
+                          "max_tilt_deg": float(max_tilt[i]),
+                          "psf_sigma_px": float(view.sigma_px), "views": view_docs})
+        rows.append({"step": name, "zoom": cam.fx, "sequence": i})
+    write_csv(out / "steps.csv", rows, ["step", "zoom", "sequence"])
+    doc = {
+        "format": "zoomcalib-sweep-truth", "zoomcalib_version": __version__,
+        "pattern": pattern, "sensor": asdict(sensor), "seed": seed,
+        "fx_range": [float(v) for v in fx_range], "fill": fill, "tilt_deg": list(tilt_deg),
+        "optics": asdict(optics), "radiometry": asdict(radiometry),
+        "supersample": supersample, "jpeg_quality": jpeg_quality,
+        "board_surface": None if surface is None else surface.to_dict(),
+        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
+                      "rvec/tvec: board -> camera, mm; points_px: true image position of every "
+                      "object point on the (waving) board",
+        "steps": doc_steps,
+        "render_s": time.perf_counter() - t_start,
+        "render_cpu_s": time.process_time() - cpu_start,
+    }
+    write_json(out / "truth.json", doc)
+    return doc
