@@ -65,6 +65,7 @@ def _camera_b(folder: Path, n: int = 13) -> Path:
 def _calibrate(folder: Path, out: Path, **kw):
     log: list[str] = []
     kw.setdefault("backends", ("opencv",))
+    kw.setdefault("zoom_wide", False)  # these cases concern the per-step job
     run = calibrate_folder(folder, SPEC, out, method="classic", log=log.append, **kw)
     return run, log
 

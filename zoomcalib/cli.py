@@ -380,10 +380,16 @@ def detect(folder, pattern, methods, workers, out):
 @main.command()
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
-@click.option("--backend", default="both", show_default=True,
-              type=click.Choice(["opencv", "bundle", "both"]),
-              help="cv2.calibrateCameraExtended, our photogrammetric bundle (refines the "
-                   "target points), or both on the same detections.")
+@click.option("--backend", type=click.Choice(["opencv", "bundle", "both"]),
+              help="Per-step calibration: cv2.calibrateCameraExtended, our photogrammetric "
+                   "bundle (refines the target points), or both on the same detections. "
+                   "Default: opencv beside the zoom-wide adjustment, both with --per-step.")
+@click.option("--per-step", is_flag=True,
+              help="Calibrate each zoom step on its own only (no zoom-wide adjustment); the "
+                   "zoom table then comes from the per-step backends.")
+@click.option("--cross-validate", is_flag=True,
+              help="Also calibrate the even and the odd images of every step apart and report "
+                   "their differences in combined sigmas (flags |z| > 3).")
 @click.option("--model", default="standard", show_default=True,
               type=click.Choice(["standard", "rational"]),
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
@@ -393,7 +399,7 @@ def detect(folder, pattern, methods, workers, out):
               help="Detection processes (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
-def calibrate(folder, pattern, backend, model, method, workers, out):
+def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -408,7 +414,11 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     from .detect import image_files
 
     _parse_target(pattern)
+    backend = backend or ("both" if per_step else "opencv")
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
+    if model != "standard" and not per_step:
+        raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
+                                 f"--per-step with --model {model}", param_hint="--model")
     from .calibrate.io import zoom_steps
 
     try:
@@ -419,18 +429,11 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     messages = []
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
         run = calibrate_folder(folder, pattern, out, backends, model, method,
-                               workers or os.cpu_count() or 1, bar.update, messages.append)
+                               workers or os.cpu_count() or 1, bar.update, messages.append,
+                               zoom_wide=not per_step, cross_validate=cross_validate)
     for m in messages:
         click.echo(m)
-    click.echo(f"{'step':>12s} {'zoom':>7s} {'backend':>8s} {'fx':>10s} {'fy':>10s} "
-               f"{'cx':>9s} {'cy':>9s} {'sd_cx':>7s} {'rms':>7s} views")
-    for step, res in run.results.items():
-        z = run.zoom.get(step)
-        for name, r in res.items():
-            click.echo(f"{step:>12s} {'' if z is None else f'{z:7.3f}':>7s} {name:>8s} "
-                       f"{r.fx:10.2f} {r.fy:10.2f} {r.cx:9.2f} {r.cy:9.2f} "
-                       f"{r.sd.get('cx', float('nan')):7.3f} {r.rms_px:7.3f} "
-                       f"{len(r.per_view_rms_px)}")
+    _print_calibration(run)
     if run.holdout:
         click.echo("zoom model, held-out interpolation error (RMS): " + ", ".join(
             f"{k} {v:.3g}" for k, v in run.holdout.items() if k in ("fx", "fy", "cx", "cy")))
@@ -440,6 +443,32 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     if run.partial:  # exit code 3: some steps or backends are missing from the results
         click.echo(run.partial_message())
         click.get_current_context().exit(3)
+
+
+def _print_calibration(run) -> None:
+    """The per-step table (table backend marked *), cross-validation and flags."""
+    nan = float("nan")
+    click.echo(f"{'step':>12s} {'zoom':>7s} {'backend':>10s} {'fx':>10s} {'fy':>10s} "
+               f"{'cx':>9s} {'cy':>9s} {'sd_cx':>7s} {'sd_cy':>7s} {'rms':>7s} views")
+    for step, res in run.results.items():
+        z = run.zoom.get(step)
+        for name, r in res.items():
+            mark = "*" if run.table_backend.get(step) == name else " "
+            click.echo(f"{step:>12s} {'' if z is None else f'{z:7.3f}':>7s} {name:>9s}{mark} "
+                       f"{r.fx:10.2f} {r.fy:10.2f} {r.cx:9.2f} {r.cy:9.2f} "
+                       f"{r.sd.get('cx', nan):7.3f} {r.sd.get('cy', nan):7.3f} "
+                       f"{r.rms_px:7.3f} {len(r.per_view_rms_px)}")
+    click.echo("* = the zoom table's row")
+    cv = run.cross_validation
+    if cv is not None:
+        click.echo(f"cross-validation ({cv.backend}; even vs odd images, difference / combined "
+                   "sigma):")
+        for step, z in cv.z.items():
+            click.echo(f"{step:>12s} " + " ".join(f"z_{q} {v:+6.2f}" for q, v in z.items()))
+        for step, why in cv.failures.items():
+            click.echo(f"{step:>12s} halves not calibrated: {why}")
+    for step, reasons in run.flags.items():
+        click.echo(f"FLAGGED step {step}: " + "; ".join(reasons))
 
 
 @main.command()

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_principal_point_spiral", "plot_focal_length", "plot_residuals"]
+__all__ = ["plot_principal_point_spiral", "plot_focal_length", "plot_residuals",
+           "plot_cross_validation"]
 
 
 def _pyplot():
@@ -122,3 +123,35 @@ def plot_residuals(points: list[np.ndarray], residuals: list[np.ndarray],
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def plot_cross_validation(steps: list[str], z: np.ndarray, names: tuple[str, ...],
+                          path: str | Path, limit: float = 3.0, title: str = "") -> Path:
+    """Two-halves check: per step, the difference of each parameter between the even and the
+    odd images in combined sigmas, with the +-``limit`` band.
+
+    Parameters
+    ----------
+    steps : list of str
+        Step names, in zoom order.
+    z : (S, P) ndarray
+        ``(q_even - q_odd) / sqrt(sd_even^2 + sd_odd^2)`` per step and parameter.
+    names : tuple of str
+        The P parameter names.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(max(6.4, 0.5 * len(steps) + 2), 4.0), dpi=120)
+    x = np.arange(len(steps))
+    ax.axhspan(-limit, limit, color="0.92", zorder=0, label=f"|z| <= {limit:g}")
+    for k, name in enumerate(names):
+        ax.plot(x + (k - (len(names) - 1) / 2) * 0.12, z[:, k], "o", label=name)
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xticks(x, steps, rotation=45, ha="right")
+    ax.set_xlabel("zoom step")
+    ax.set_ylabel("difference between halves / combined sigma")
+    ax.set_title(title or "Cross-validation: even vs odd images per step")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

@@ -53,7 +53,7 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
         i, j = np.unravel_index(np.argmax(c), c.shape)
         if c[i, j] > _CORRELATION_LIMIT:
             flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")
-    if not res.info.get("converged", True):
+    if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags
 

@@ -50,7 +50,8 @@ MANIFEST = "manifest.json"
 #: ones it does not write itself.
 _OWN_FILES: tuple[str, ...] = (
     "calibration.json", "calibration.yml", "zoom_calibration.csv", "zoom_model.json",
-    "principal_point_path.png", "focal_length.png", "residuals_*.png", MANIFEST,
+    "principal_point_path.png", "focal_length.png", "residuals_*.png", "cross_validation.png",
+    MANIFEST,
     "detections/*.json")
 OWN_FILE_PATTERNS: tuple[str, ...] = _OWN_FILES + tuple(f"{p}.tmp" for p in _OWN_FILES)
 

@@ -80,6 +80,8 @@ class CalibrateRun:
     table_backend: dict[str, str] = field(default_factory=dict)
     stems: dict[str, str] = field(default_factory=dict)
     zoom_wide: object | None = None
+    cross_validation: object | None = None
+    flags: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -166,7 +168,7 @@ def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResu
     row = {"step": step, "zoom": np.nan if zoom is None else zoom, "fx": res.fx, "fy": res.fy,
            "cx": res.cx, "cy": res.cy, "backend": res.backend,
            "mode": res.info.get("mode", "per-step"),
-           "converged": bool(res.info.get("converged", True))}
+           "converged": res.converged}
     for k in ("fx", "fy", "cx", "cy"):
         row[f"sd_{k}"] = res.sd.get(k, np.nan)
     n_terms = max(5, len(res.dist))
@@ -185,8 +187,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      backends: tuple[str, ...] = BACKENDS, model: str = "standard",
                      method: str | None = None, workers: int = 1,
                      progress: Callable[[int], None] | None = None,
-                     log: Callable[[str], None] = print, zoom_wide: bool = True
-                     ) -> CalibrateRun:
+                     log: Callable[[str], None] = print, zoom_wide: bool = True,
+                     cross_validate: bool = False) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -209,6 +211,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         For a zoom set of 2 or more steps, also calibrate all steps together
         (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`, standard model only); its
         results (backend ``"zoom-wide"``) make the zoom table. ``backends`` still run per step.
+    cross_validate : bool
+        Calibrate the even and the odd images of every step apart, as the table's backend did,
+        and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
 
     Returns
     -------
@@ -263,15 +268,31 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if zoom_wide and len(run.results) >= 2:
         _zoom_wide(run, model, target, log)
     run.table_backend = _table_backends(run, log)
+    if cross_validate and run.results:
+        run.cross_validation = _cross_validate(run, model, target)
+    run.flags = _step_flags(run)
     rows = [_table_row(step, run.zoom[step], extras_of[step],
-                       run.results[step][run.table_backend[step]]) for step in run.results]
+                       run.results[step][run.table_backend[step]]) | {
+                           "flags": "; ".join(run.flags.get(step, []))}
+            for step in run.results]
 
     meta = {"folder": str(folder), "pattern": pattern, "model": model, "backends": list(backends),
             "method": method, "failures": run.failures, "partial": run.partial_message(),
             "detection_settings": settings,
             "detections": {s: {k: v for k, v in p.items() if k != "images"}
                            for s, p in provenance.items()},
-            "left_out": run.left_out, "ignored_images": run.ignored}
+            "left_out": run.left_out, "ignored_images": run.ignored,
+            "table_backend": run.table_backend, "flags": run.flags}
+    if run.cross_validation is not None:
+        meta["cross_validation"] = run.cross_validation.to_dict()
+    if run.zoom_wide is not None:
+        zw = run.zoom_wide
+        meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
+                             "iterations": zw.iterations, "tau": zw.tau,
+                             "board_modes_mm": zw.board_modes.tolist(),
+                             "board_modes_sd_mm": zw.board_modes_sd.tolist(),
+                             "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
+                             "held_out_mse_px2": zw.held_out}
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
@@ -400,6 +421,48 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     run.zoom_wide = zw
 
 
+def _cross_validate(run: CalibrateRun, model: str, target: Target):
+    """Two-halves check with the backend (and mode) of the zoom table."""
+    from .checks import cross_validate
+
+    backend = next(iter(run.table_backend.values()))
+    if backend == "zoom-wide":
+        from .zoomwide import calibrate_zoom_wide
+
+        return cross_validate(run.observations, lambda o: calibrate_zoom_wide(o).results,
+                              backend)
+
+    def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:
+        out = {}
+        for step, o in obs.items():
+            try:
+                out[step] = _calibrate(run.table_backend[step], o, model, target)
+            except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error):
+                continue
+        return out
+    return cross_validate({s: run.observations[s] for s in run.results}, per_step, backend)
+
+
+def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
+    """Per step, why its table row is not to be trusted (conditioning and cross-validation)."""
+    from .checks import Z_LIMIT, conditioning_flags
+
+    flags = {}
+    for step in run.results:
+        res = run.results[step][run.table_backend[step]]
+        reasons = conditioning_flags(res, run.observations[step].image_size)
+        cv = run.cross_validation
+        if cv is not None and step in cv.z:
+            bad = [f"{q} {z:+.1f}" for q, z in cv.z[step].items() if not abs(z) <= Z_LIMIT]
+            if bad:
+                reasons.append("halves disagree (z: " + ", ".join(bad) + ")")
+        if cv is not None and step in cv.failures:
+            reasons.append(f"halves not calibrated: {cv.failures[step]}")
+        if reasons:
+            flags[step] = reasons
+    return flags
+
+
 def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, str]:
     """The backend of each step's table row and figures: one backend for every step, the
     zoom-wide adjustment when it ran, else the bundle when it calibrated every step, else
@@ -457,6 +520,17 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
         f = np.array([[best[s].fx, best[s].sd.get("fx", 0.0)] for s in steps])
         files.append(plot_focal_length(zoom, f[:, 0], f[:, 1], out / "focal_length.png",
                                        run.zoom_model))
+    cv = run.cross_validation
+    if cv is not None and cv.z:
+        from ..plots import plot_cross_validation
+        from .checks import CROSS_VALIDATED
+
+        names = [s for s in steps if s in cv.z]
+        z = np.array([[cv.z[s][q] for q in CROSS_VALIDATED] for s in names])
+        files.append(plot_cross_validation(names, z, CROSS_VALIDATED,
+                                           out / "cross_validation.png",
+                                           title=f"Cross-validation ({cv.backend}): even vs "
+                                                 "odd images"))
     for s in steps:
         obs = run.observations[s]
         res = residual_vectors(best[s], obs)

@@ -551,15 +551,20 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     Raises
     ------
     ValueError
-        If the steps see different boards, or fewer than 2 steps are given.
+        If the steps see different boards or have different image sizes, or fewer than 2
+        steps are given.
     """
     names = list(observations)
     if len(names) < 2:
         raise ValueError(f"a zoom-wide calibration needs 2 or more steps, got {len(names)}")
     board = np.asarray(observations[names[0]].object_points, float)
+    size = tuple(observations[names[0]].image_size)
     for n in names[1:]:
         if not np.array_equal(observations[n].object_points, board):
             raise ValueError(f"step {n}: another board than step {names[0]}'s")
+        if tuple(observations[n].image_size) != size:
+            raise ValueError(f"step {n}: image size {observations[n].image_size} differs from "
+                             f"step {names[0]}'s {size} (one camera has one sensor)")
     terms, held, init = _initial(observations, select)
     state, free, sds = _start(init, terms)
     u = np.log(state.cams[:, 0])
