@@ -4,7 +4,8 @@
 lies outside the central region of the image (more than a quarter of the width or height from
 the centre ``((W-1)/2, (H-1)/2)``), when the 1-sigma of ``cx`` or ``cy`` exceeds 1 % of the
 image diagonal, when two intrinsics are correlated beyond ``|r| = 0.999`` (where the backend
-reports the correlation), or when its solve did not converge.
+reports the correlation; fx with fy is not counted, being one focal length), or when its
+solve did not converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
 two halves (even and odd images), each half is calibrated on its own as the full set was, and
@@ -50,6 +51,9 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
     corr, names = res.info.get("correlation"), res.info.get("correlation_names")
     if corr is not None and names:
         c = np.abs(np.asarray(corr, float)) - np.eye(len(names))
+        if "fx" in names and "fy" in names:  # one focal length in two pixel pitches
+            i, j = names.index("fx"), names.index("fy")
+            c[i, j] = c[j, i] = 0.0
         i, j = np.unravel_index(np.argmax(c), c.shape)
         if c[i, j] > _CORRELATION_LIMIT:
             flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")

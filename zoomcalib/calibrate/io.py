@@ -147,6 +147,10 @@ def _entry(res: CalibrationResult) -> dict:
     return d
 
 
+#: ``meta`` entries too long for one YAML string (OpenCV's limit); calibration.json has them.
+_JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags")
+
+
 def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult]],
                 meta: Mapping) -> None:
     tmp = path.with_name(path.name + ".tmp.yml")
@@ -156,7 +160,9 @@ def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult
     try:
         fs.write("format", "zoomcalib-calibration")
         fs.write("version", 1)
-        fs.write("meta_json", json.dumps(dict(meta), default=_plain))
+        # the YAML keeps the run's settings; the long reports live in calibration.json
+        brief = {k: v for k, v in meta.items() if k not in _JSON_ONLY_META}
+        fs.write("meta_json", json.dumps(brief, default=_plain))
         prefixes: list[tuple[str, str, str, CalibrationResult]] = []
         used: set[str] = set()
         for step, by_backend in results.items():

@@ -259,14 +259,18 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 run.failures.append(f"step {step}: backend {backend} failed: {msg}")
                 log(run.failures[-1])
                 run.backend_failures.setdefault(step, []).append(backend)
-        if not step_results:
+        if not step_results and not zoom_wide:
             run.backend_failures.pop(step, None)
             run.dropped.append(step)
             continue
-        run.results[step] = step_results
+        run.results[step] = step_results  # empty: left to the zoom-wide adjustment
         extras_of[step] = extras
-    if zoom_wide and len(run.results) >= 2:
+    if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log)
+    for step in [s for s, r in run.results.items() if not r]:
+        del run.results[step]
+        run.backend_failures.pop(step, None)
+        run.dropped.append(step)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target)
@@ -404,8 +408,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     if len(target.discs):  # dot centres: corrected with each step's own calibration first
         radius = float(target.discs[0, 2])
         obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
-               for s, o in obs.items() if s in run.results}
-    obs = {s: o for s, o in obs.items() if s in run.results}
+               if run.results.get(s) else o for s, o in obs.items()}
     try:
         zw = calibrate_zoom_wide(obs)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
@@ -418,6 +421,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         log(f"zoom-wide adjustment did not converge ({zw.stop_reason}); its rows are marked")
     for step, res in zw.results.items():
         run.results[step]["zoom-wide"] = res
+        # a per-step backend that failed here is reported, but the step's result is complete
+        run.backend_failures.pop(step, None)
     run.zoom_wide = zw
 
 

@@ -379,7 +379,7 @@ def _schur_step(U, W, V, g_glob, g_pose, lam: float):
     poses: ``S = U - W V^-1 W^T``. Returns ``delta`` or None when ``S`` is not positive
     definite."""
     n_views = len(V)
-    Ud = U + np.diag(lam * np.diag(U) + 1e-12 * max(np.diag(U).max(), 1e-300))
+    Ud = U + np.diag((lam + 1e-14) * np.diag(U))  # scale-free: each column its own
     Vd = V + lam * np.einsum("vii->vi", V)[:, :, None] * np.eye(6)
     Vinv = np.linalg.inv(Vd)
     W3 = W.reshape(len(U), n_views, 6)
@@ -476,8 +476,23 @@ def _initial(observations: Mapping[str, Observations], select: bool):
             terms[name], held[name] = select_distortion(obs)
         else:
             terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
-        init[name] = calibrate_opencv(obs, flags=_distortion_flags(terms[name]))
+        init[name] = _opencv_start(name, obs, terms)
     return terms, held, init
+
+
+def _opencv_start(name: str, obs: Observations, terms: dict) -> CalibrationResult:
+    """OpenCV with the step's chosen terms; if that fails (a long-end step whose distortion
+    OpenCV cannot separate), with no distortion, the start the adjustment then improves."""
+    try:
+        return calibrate_opencv(obs, flags=_distortion_flags(terms[name]))
+    except (ValueError, RuntimeError) as first:
+        if not terms[name]:
+            raise ValueError(f"step {name}: no starting calibration: {first}") from None
+        terms[name] = ()
+        try:
+            return calibrate_opencv(obs, flags=_distortion_flags(()))
+        except (ValueError, RuntimeError) as exc:
+            raise ValueError(f"step {name}: no starting calibration: {exc}") from None
 
 
 def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.ndarray, list]:
