@@ -27,8 +27,9 @@ from zoomcalib.targets import parse_pattern
 SIZE = (1280, 720)
 
 
-def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3, pattern="chessboard:22x15:20",
-                       fx_range=(2300.0, 23000.0), shift_odd_cx=0.0):
+def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
+                       pattern="chessboard:22x15:20", fx_range=(2300.0, 23000.0),
+                       shift_odd_cx=0.0):
     """A zoom sweep's detections and its truth (see the module docstring)."""
     target = parse_pattern(pattern)
     X0 = target.object_points.astype(float)
@@ -59,7 +60,7 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3, pattern=
             p, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t - R @ centre, K,
                                      np.array([k1, k2, 0, 0, 0]))
             p = p.reshape(-1, 2) + rng.normal(0, noise, (len(X), 2))
-            inside = (p[:, 0] > 0) & (p[:, 0] < SIZE[0] - 1) & (p[:, 1] > 0) & (p[:, 1] < SIZE[1] - 1)
+            inside = np.all((p > 0) & (p < np.array(SIZE) - 1), axis=1)
             vlist.append((np.flatnonzero(inside), p[inside]))
         name = f"step{s}"
         obs[name] = Observations(X0.copy(), vlist, SIZE, [f"{name}_{v:02d}" for v in range(views)])
@@ -110,7 +111,8 @@ def test_zoom_wide_recovers_every_step(sweep):
         assert abs(r.fx / t["fx"] - 1) < 0.003, (name, r.fx, t["fx"])
         for q in ("cx", "cy"):
             # 4 sigma: a 1-in-16000 event per value for honest Gaussian sigmas
-            assert abs(getattr(r, q) - t[q]) < 4 * r.sd[q], (name, q, getattr(r, q), t[q], r.sd[q])
+            err = getattr(r, q) - t[q]
+            assert abs(err) < 4 * r.sd[q], (name, q, err, r.sd[q])
             assert r.sd[q] < 5.0
 
 
