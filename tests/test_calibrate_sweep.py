@@ -1,0 +1,56 @@
+"""End to end: a rendered zoom sweep with a wavy board, an Airy PSF and JPEG frames, through
+``zoomcalib calibrate`` with default settings (and ``--cross-validate``); truth hidden in
+``truth.json``, which only this test reads."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from zoomcalib.calibrate.io import read_zoom_table
+from zoomcalib.cli import main
+from zoomcalib.render.sweep import render_zoom_sweep
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweep")
+    seed = int(np.random.default_rng(11).integers(1 << 16))
+    render_zoom_sweep(root / "images", fx_range=(1800.0, 9000.0), steps=4, views=8,
+                      size=(960, 540), pattern="chessboard:16x10:20", board_surface=0.3,
+                      psf="airy", supersample=2, jpeg_quality=90, seed=seed)
+    out = root / "out"
+    res = CliRunner().invoke(main, ["calibrate", str(root / "images"), "--pattern",
+                                    "chessboard:16x10:20", "--cross-validate", "--workers", "1",
+                                    "--out", str(out)])
+    truth = json.loads((root / "images" / "truth.json").read_text())
+    return res, out, truth
+
+
+def test_default_calibration_of_a_rendered_sweep_is_within_its_sigmas(rendered):
+    res, out, truth = rendered
+    assert res.exit_code == 0, res.output
+    rows = {r["step"]: r for r in read_zoom_table(out / "zoom_calibration.csv")}
+    assert {r["backend"] for r in rows.values()} == {"zoom-wide"}
+    assert {r["mode"] for r in rows.values()} == {"zoom-wide"}
+    for step in truth["steps"]:
+        K = np.asarray(step["K"])
+        row = rows[step["step"]]
+        assert abs(row["fx"] / K[0, 0] - 1) < 0.003, (step["step"], row["fx"], K[0, 0])
+        for q, true in (("cx", K[0, 2]), ("cy", K[1, 2])):
+            # 4 combined sigma; the sigma itself must be small enough to be useful
+            assert abs(row[q] - true) < 4 * row[f"sd_{q}"], (step["step"], q, row[q], true)
+            assert row[f"sd_{q}"] < 5.0
+
+
+def test_cross_validation_is_reported_everywhere(rendered):
+    res, out, truth = rendered
+    doc = json.loads((out / "calibration.json").read_text())
+    cv = doc["meta"]["cross_validation"]
+    assert cv["backend"] == "zoom-wide"
+    assert set(cv["steps"]) == {s["step"] for s in truth["steps"]}
+    for step in cv["steps"].values():
+        assert all(abs(z) < 4.0 for z in step["z"].values()), step["z"]
+    assert "cross-validation (zoom-wide" in res.output
+    assert (out / "cross_validation.png").stat().st_size > 10_000
