@@ -34,9 +34,17 @@ from ..optics.mechanics import Tolerances, draw_misalignment
 from ..optics.misalignment import Misalignment
 from ..optics.prescription import Prescription
 from ..targets import Target, parse_pattern
-from .image import Optics, Radiometry, camera_mapping, project_points, render_image
+from .image import (
+    Optics,
+    Radiometry,
+    camera_mapping,
+    project_points,
+    psf_sigma_px,
+    render_image,
+)
 
-__all__ = ["generate_poses", "render_dataset", "scaled_target_for_view"]
+__all__ = ["check_render_inputs", "generate_poses", "render_dataset",
+           "scaled_target_for_view", "MAX_PSF_FRACTION"]
 
 
 def scaled_target_for_view(target: Target, fy_px: float, sensor: Sensor,
@@ -90,8 +98,43 @@ def generate_poses(target: Target, mapping, sensor: Sensor, n_views: int, distan
             poses.append((R, t))
     if len(poses) < n_views:
         raise RuntimeError(f"found only {len(poses)} of {n_views} poses that keep the target in "
-                           f"view; reduce --fill or the number of views")
+                           f"view with a {margin_px:g} px margin on a {sensor.width_px}x"
+                           f"{sensor.height_px} px sensor")
     return poses
+
+
+MAX_PSF_FRACTION = 0.01
+"""Largest PSF sigma, as a fraction of the image's shorter side. Beyond it the renderer's
+supersampled path grows with the blur's reach (the measured cost is in ``docs/commands.md``) while
+the corners it renders are too soft to calibrate."""
+
+
+def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
+    """Refuse inputs that cannot give a data set, before any work.
+
+    Raises
+    ------
+    ValueError
+        One line naming the quantity and the limit: a non-finite optics value, an empty sensor,
+        no views, or a PSF sigma (blur, diffraction and defocus combined, px) above
+        ``MAX_PSF_FRACTION`` of the image's shorter side.
+    """
+    if sensor.width_px < 1 or sensor.height_px < 1:
+        raise ValueError(f"sensor {sensor.width_px}x{sensor.height_px} px has no pixels")
+    if n_views < 1:
+        raise ValueError(f"{n_views} views: at least one is needed")
+    values = {"blur_px": optics.blur_px, "defocus_mm": optics.defocus_mm,
+              "f_number": optics.f_number, "wavelength_um": optics.wavelength_um}
+    for name, value in values.items():
+        if not np.isfinite(value):
+            raise ValueError(f"optics {name} is {value}, not a finite number")
+    sigma = psf_sigma_px(optics, sensor.pixel_pitch_mm)
+    limit = MAX_PSF_FRACTION * min(sensor.width_px, sensor.height_px)
+    if sigma > limit:
+        raise ValueError(f"PSF sigma {sigma:.1f} px (blur {optics.blur_px:g} px, defocus "
+                         f"{optics.defocus_mm:g} mm at f/{optics.f_number:g}) exceeds "
+                         f"{limit:.1f} px, {MAX_PSF_FRACTION:.0%} of the "
+                         f"{sensor.width_px}x{sensor.height_px} image's shorter side")
 
 
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
@@ -118,11 +161,17 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     -------
     dataset : dict
         What was written to ``dataset.json``.
+
+    Raises
+    ------
+    ValueError
+        Before any file is written: inputs refused by :func:`check_render_inputs`, or a step
+        for which ``n_views`` poses keeping the target in view cannot be found.
     """
     optics = optics or Optics()
     radiometry = radiometry or Radiometry()
+    check_render_inputs(optics, sensor, n_views)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     base = parse_pattern(pattern)
     ss = np.random.SeedSequence(seed)
     mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
@@ -132,16 +181,27 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     else:
         draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
                              np.zeros((len(zoom), 1, n_groups, 2)))
-    steps, rows = [], []
+    # Every step's mapping and poses first: a step whose poses cannot be found stops the run
+    # before any file is written. Each step keeps its own generator, so the images do not
+    # depend on this order.
+    plans = []
     for i, z in enumerate(zoom):
         rng = np.random.default_rng(step_seeds[i])
         mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
         em = exact_mapping(lens, z, mis, sensor)
         mapping = em if through == "exact" else camera_mapping(em.camera)
         target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
+        try:
+            poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
+        except RuntimeError as exc:
+            raise ValueError(f"zoom {z:g}: {exc}") from None
+        plans.append((rng, mis, em, mapping, target, poses))
+    out.mkdir(parents=True, exist_ok=True)
+    steps, rows = [], []
+    for i, (z, (rng, mis, em, mapping, target, poses)) in enumerate(zip(zoom, plans,
+                                                                          strict=True)):
         name = f"zoom_{i:02d}"
         (out / name).mkdir(exist_ok=True)
-        poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
         views = []
         for j, (R, t) in enumerate(poses):
             view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
