@@ -5,7 +5,10 @@ The commands only parse options, call the library and print a short summary.
 
 from __future__ import annotations
 
+import math
+import os
 import sys
+from pathlib import Path
 
 import click
 import numpy as np
@@ -31,7 +34,104 @@ def _load_tolerances(path, lens):
         raise click.BadParameter(str(exc), param_hint="--tolerances") from None
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+EXIT_PARTIAL = 3
+EXIT_NOTHING = 4
+EXIT_CODES = ("Exit codes: 0 all done; 1 the input could not be used, or a file could not be "
+              "written (one line says which); 2 bad option or argument, or an output path that "
+              "cannot be written (before any work); 3 partial: some images or steps failed, "
+              "the results of the rest are written; 4 nothing usable.")
+
+
+class _Group(click.Group):
+    """The command group; an operating-system error that no check foresaw (a disk full, a
+    file removed while in use) ends with one line naming the file, never a traceback."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            where = exc.filename or "output"
+            raise click.ClickException(f"{where}: {exc.strerror or exc}") from None
+
+
+class _Finite(click.ParamType):
+    """A finite float in ``[lo, hi]`` (click's FloatRange lets 'nan' through)."""
+
+    name = "float"
+
+    def __init__(self, lo: float = -math.inf, hi: float = math.inf) -> None:
+        self.lo, self.hi = lo, hi
+
+    def convert(self, value, param, ctx) -> float:
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        if not self.lo <= v <= self.hi:
+            bounds = (f">= {self.lo:g}" if math.isinf(self.hi) else
+                      f"<= {self.hi:g}" if math.isinf(self.lo) else
+                      f"in [{self.lo:g}, {self.hi:g}]")
+            self.fail(f"{v:g} is not {bounds}", param, ctx)
+        return v
+
+
+def _nearest_existing(path: Path) -> Path:
+    return next(p for p in (path, *path.parents) if p.exists() or p.is_symlink())
+
+
+def _folder_problem(folder: Path) -> str | None:
+    """Why files cannot be created in ``folder`` (created when missing), or None."""
+    existing = _nearest_existing(folder)
+    if not existing.is_dir():
+        kind = "a broken link" if not existing.exists() else "a file"
+        return f"{existing} is {kind}, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"no permission to write in {existing}"
+    return None
+
+
+def _check_out_folder(path: str, hint: str = "--out") -> None:
+    """Refuse, before any work, an output folder that cannot be created or written."""
+    problem = _folder_problem(Path(os.path.abspath(path)))
+    if problem:
+        raise click.BadParameter(f"{path}: {problem}", param_hint=hint)
+
+
+def _check_out_file(path: str, hint: str = "--out", suffixes: tuple[str, ...] = ("",)) -> None:
+    """Refuse, before any work, output files ``path + suffix`` that cannot be written; create
+    their folder."""
+    full = Path(os.path.abspath(path))
+    problem = _folder_problem(full.parent)
+    for f in (Path(str(full) + x) for x in suffixes):
+        if problem is None and f.is_dir():
+            problem = f"{f} is a folder, not a file"
+        elif problem is None and f.exists() and not os.access(f, os.W_OK):
+            problem = f"{f} is not writable"
+    if problem:
+        raise click.BadParameter(f"{path}: {problem}", param_hint=hint)
+    full.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _finish(failed: list[str], total: int, what: str) -> None:
+    """Exit EXIT_NOTHING when all ``total`` ``what`` failed, EXIT_PARTIAL when some did (their
+    names were printed already), else return."""
+    if not failed:
+        return
+    if len(failed) >= total:
+        click.echo(f"nothing usable: all {total} {what} failed (exit code {EXIT_NOTHING})",
+                   err=True)
+        sys.exit(EXIT_NOTHING)
+    click.echo(f"partial result: {len(failed)} of {total} {what} failed: "
+               f"{', '.join(failed)} (exit code {EXIT_PARTIAL})", err=True)
+    sys.exit(EXIT_PARTIAL)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]},
+             epilog=EXIT_CODES)
 @click.version_option(__version__, prog_name="zoomcalib")
 def main() -> None:
     """Calibrate zoom cameras and measure which error source limits the calibration.
@@ -45,7 +145,7 @@ LENS_HELP = (f"Lens prescription: a built-in name ({', '.join(builtin_lenses())}
              "file in the same form.")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file (YAML or JSON); default: the built-in tolerances "
@@ -55,7 +155,8 @@ LENS_HELP = (f"Lens prescription: a built-in name ({', '.join(builtin_lenses())}
               help="Number of evenly spaced zoom states from 0 (wide) to 1 (tele).")
 @click.option("--samples", default=1000, show_default=True, type=click.IntRange(min=2),
               help="Monte Carlo draws of the mechanical errors per zoom state.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Random seed.")
 @click.option("--tracer", type=click.Choice(TRACERS), default="exact", show_default=True,
               help="Real-ray tracer, or the (linear, faster) paraxial one.")
 @click.option("--direction", type=click.Choice(["random", "in", "out"]), default="random",
@@ -74,6 +175,7 @@ def simulate(lens, tolerances, steps, samples, seed, tracer, direction, out):
 
     lens_ = _load_lens(lens)
     tol = _load_tolerances(tolerances, lens_)
+    _check_out_folder(out)
     with click.progressbar(length=steps, label="zoom steps", file=sys.stderr) as bar:
         res = run(lens_, tol, out, steps=steps, samples=samples, seed=seed, tracer=tracer,
                   direction=direction, progress=bar.update)
@@ -94,6 +196,9 @@ def simulate(lens, tolerances, steps, samples, seed, tracer, direction, out):
     click.echo(f"wrote {', '.join(str(p) for p in res.files.values())}")
 
 
+MAX_SIDE_PX = 16384  # render --size: a larger image would not fit the renderer's buffers
+
+
 def _parse_target(spec):
     from .targets import PatternError, parse_pattern
 
@@ -103,9 +208,9 @@ def _parse_target(spec):
         raise click.BadParameter(str(exc), param_hint="PATTERN") from None
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("pattern")
-@click.option("--dpi", default=300.0, show_default=True, type=click.FloatRange(min=10),
+@click.option("--dpi", default=300.0, show_default=True, type=_Finite(10, 2400),
               help="Resolution of the PNG.")
 @click.option("--out", default="target", show_default=True,
               help="Output stem: writes STEM.png, STEM.svg (mm) and STEM.json (geometry).")
@@ -118,12 +223,13 @@ def target(pattern, dpi, out):
     from .targets import write_printable
 
     t = _parse_target(pattern)
+    _check_out_file(out, suffixes=(".png", ".svg", ".json"))
     files = write_printable(t, out, dpi)
     w, h = t.size_mm
     click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file; default: the built-in tolerances. Each zoom step "
@@ -136,21 +242,24 @@ def target(pattern, dpi, out):
               help="Views per zoom step.")
 @click.option("--pattern", default="chessboard:9x6:25", show_default=True,
               help="Target (scaled per zoom step to fill the view).")
-@click.option("--noise", default=2.0, show_default=True, type=click.FloatRange(min=0),
+@click.option("--noise", default=2.0, show_default=True, type=_Finite(0, 255),
               help="Read noise, 1-sigma in 8-bit digital numbers (of 255).")
-@click.option("--blur", default=0.7, show_default=True, type=click.FloatRange(min=0),
+@click.option("--blur", default=0.7, show_default=True, type=_Finite(0),
               help="Gaussian blur sigma, px (added to diffraction and defocus).")
-@click.option("--defocus", default=0.0, show_default=True, help="Image-side defocus, mm.")
+@click.option("--defocus", default=0.0, show_default=True, type=_Finite(),
+              help="Image-side defocus, mm. The PSF sigma of blur, diffraction and defocus "
+                   "together must stay within 1 % of the image's shorter side (at least 3 px).")
 @click.option("--bits", default=8, show_default=True, type=click.Choice(["8", "12", "16"]))
 @click.option("--through", default="exact", show_default=True,
               type=click.Choice(["exact", "model"]),
               help="Render through the exact ray-traced lens, or its fitted OpenCV model.")
 @click.option("--size", default="1280x960", show_default=True,
-              help="Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels).")
+              help=f"Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels), each side at most "
+                   f"{MAX_SIDE_PX}.")
 @click.option("--direction", default="random", show_default=True,
               help="Direction of the last zoom move before each step (sets the backlash side): "
                    "random, in, out, or one of in/out per step, comma-separated.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
            bits, through, size, direction, seed, out):
@@ -160,11 +269,13 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     OUT/dataset.json with every truth: camera per step, lens errors, poses and the true
     pixel position of every target point (OpenCV convention).
     """
-    from .render.dataset import render_dataset
+    from .render.dataset import check_render_inputs, render_dataset
     from .render.image import Optics, Radiometry
 
     lens_ = _load_lens(lens)
     _parse_target(pattern)
+    if nominal and tolerances:
+        raise click.UsageError("give --tolerances or --nominal, not both")
     tol = None if nominal else _load_tolerances(tolerances, lens_)
     if zoom_list:
         try:
@@ -180,10 +291,13 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
 
     try:
         width, height = (int(v) for v in size.lower().split("x"))
-        sensor = Sensor(width, height)
     except ValueError:
-        raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
-            from None
+        raise click.BadParameter(f"{size!r} is not WIDTHxHEIGHT, e.g. 1280x960",
+                                 param_hint="--size") from None
+    if not (1 <= width <= MAX_SIDE_PX and 1 <= height <= MAX_SIDE_PX):
+        raise click.BadParameter(f"{size}: each side must be 1 to {MAX_SIDE_PX} px",
+                                 param_hint="--size")
+    sensor = Sensor(width, height)
     if "," in direction:
         direction = [d.strip() for d in direction.split(",")]
         if len(direction) != len(zoom) or not set(direction) <= {"in", "out"}:
@@ -193,11 +307,22 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
         raise click.BadParameter("must be random, in, out or a comma-separated list",
                                  param_hint="--direction")
     optics = Optics(blur_px=blur, f_number=lens_.f_number, defocus_mm=defocus)
+    try:
+        check_render_inputs(optics, sensor, views)
+    except ValueError as exc:
+        raise click.BadParameter(f"{exc}; reduce --blur or --defocus, or use a larger --size",
+                                 param_hint="--blur / --defocus") from None
+    _check_out_folder(out)
     radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
-    with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
-        doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
-                             sensor=sensor, through=through, direction=direction,
-                             progress=bar.update)
+    try:
+        with click.progressbar(length=len(zoom) * views, label="rendering",
+                               file=sys.stderr) as bar:
+            doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
+                                 sensor=sensor, through=through, direction=direction,
+                                 progress=bar.update)
+    except ValueError as exc:  # found before any file is written
+        raise click.BadParameter(f"{exc}; use a larger --size or fewer --views",
+                                 param_hint="--size / --views") from None
     for st in doc["steps"]:
         cam = st["camera"]
         click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "
@@ -206,7 +331,7 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     click.echo(f"wrote {out}/steps.csv, {out}/dataset.json and {len(zoom) * views} images")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
 @click.option("--method", "methods", multiple=True,
@@ -265,7 +390,7 @@ def detect(folder, pattern, methods, workers, out):
                            f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px{extra}")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
 @click.option("--backend", default="both", show_default=True,
@@ -326,7 +451,7 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
     click.echo(f"wrote {len(run.files)} files to {out}")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file; default: the built-in tolerances.")
@@ -348,7 +473,7 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
 @click.option("--lensfun", type=click.Path(exists=True),
               help="A lensfun database (folder or XML) for the distortion claim; default: the "
                    "extract shipped with zoomcalib.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", default="zoomcalib-study", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
 def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, backend,
@@ -405,7 +530,7 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
     click.echo(f"wrote {out}/report.md, {out}/report.html and the CSV tables")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--pixel-pitch", default="0.00645", show_default=True,

@@ -44,7 +44,7 @@ from .image import (
 )
 
 __all__ = ["check_render_inputs", "generate_poses", "render_dataset",
-           "scaled_target_for_view", "MAX_PSF_FRACTION"]
+           "scaled_target_for_view", "psf_limit_px", "MAX_PSF_FRACTION", "MIN_PSF_LIMIT_PX"]
 
 
 def scaled_target_for_view(target: Target, fy_px: float, sensor: Sensor,
@@ -104,9 +104,18 @@ def generate_poses(target: Target, mapping, sensor: Sensor, n_views: int, distan
 
 
 MAX_PSF_FRACTION = 0.01
-"""Largest PSF sigma, as a fraction of the image's shorter side. Beyond it the renderer's
-supersampled path grows with the blur's reach (the measured cost is in ``docs/commands.md``) while
-the corners it renders are too soft to calibrate."""
+"""Largest PSF sigma, as a fraction of the image's shorter side (but at least
+``MIN_PSF_LIMIT_PX``). Beyond it the renderer's time and memory grow with the blur's reach (the
+measured cost is in ``docs/commands.md``) while the corners it renders are too soft to
+calibrate."""
+
+MIN_PSF_LIMIT_PX = 3.0
+"""The PSF sigma limit of small images, px (cheap to render at any image size)."""
+
+
+def psf_limit_px(sensor: Sensor) -> float:
+    """Largest PSF sigma the renderer accepts for ``sensor``, px."""
+    return max(MIN_PSF_LIMIT_PX, MAX_PSF_FRACTION * min(sensor.width_px, sensor.height_px))
 
 
 def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
@@ -117,7 +126,7 @@ def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
     ValueError
         One line naming the quantity and the limit: a non-finite optics value, an empty sensor,
         no views, or a PSF sigma (blur, diffraction and defocus combined, px) above
-        ``MAX_PSF_FRACTION`` of the image's shorter side.
+        :func:`psf_limit_px`.
     """
     if sensor.width_px < 1 or sensor.height_px < 1:
         raise ValueError(f"sensor {sensor.width_px}x{sensor.height_px} px has no pixels")
@@ -129,12 +138,13 @@ def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
         if not np.isfinite(value):
             raise ValueError(f"optics {name} is {value}, not a finite number")
     sigma = psf_sigma_px(optics, sensor.pixel_pitch_mm)
-    limit = MAX_PSF_FRACTION * min(sensor.width_px, sensor.height_px)
+    limit = psf_limit_px(sensor)
     if sigma > limit:
         raise ValueError(f"PSF sigma {sigma:.1f} px (blur {optics.blur_px:g} px, defocus "
-                         f"{optics.defocus_mm:g} mm at f/{optics.f_number:g}) exceeds "
-                         f"{limit:.1f} px, {MAX_PSF_FRACTION:.0%} of the "
-                         f"{sensor.width_px}x{sensor.height_px} image's shorter side")
+                         f"{optics.defocus_mm:g} mm at f/{optics.f_number:g}) exceeds the "
+                         f"limit of {limit:.1f} px for a {sensor.width_px}x{sensor.height_px} "
+                         f"image ({MAX_PSF_FRACTION:.0%} of its shorter side, at least "
+                         f"{MIN_PSF_LIMIT_PX:g} px)")
 
 
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
