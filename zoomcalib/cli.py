@@ -52,8 +52,9 @@ class _Group(click.Group):
         except BrokenPipeError:
             raise
         except OSError as exc:
-            where = exc.filename or "output"
-            raise click.ClickException(f"{where}: {exc.strerror or exc}") from None
+            text = exc.strerror or str(exc) or type(exc).__name__
+            raise click.ClickException(f"{exc.filename}: {text}" if exc.filename else text) \
+                from None
 
 
 class _Finite(click.ParamType):
@@ -116,18 +117,33 @@ def _check_out_file(path: str, hint: str = "--out", suffixes: tuple[str, ...] = 
     full.parent.mkdir(parents=True, exist_ok=True)
 
 
-def _finish(failed: list[str], total: int, what: str) -> None:
-    """Exit EXIT_NOTHING when all ``total`` ``what`` failed, EXIT_PARTIAL when some did (their
-    names were printed already), else return."""
-    if not failed:
-        return
-    if len(failed) >= total:
-        click.echo(f"nothing usable: all {total} {what} failed (exit code {EXIT_NOTHING})",
-                   err=True)
-        sys.exit(EXIT_NOTHING)
-    click.echo(f"partial result: {len(failed)} of {total} {what} failed: "
-               f"{', '.join(failed)} (exit code {EXIT_PARTIAL})", err=True)
-    sys.exit(EXIT_PARTIAL)
+def _calibration_problems(failures: list[str], messages: list[str]) -> list[str]:
+    """Short names of what a calibrate run could not do: its failures (``step S: why``,
+    ``step S: backend B failed: why``, ``zoom model: why``) and the images it skipped (logged
+    as ``step S: skipped FILE: why``)."""
+    out = []
+    for f in failures:
+        head, _, rest = f.partition(": ")
+        out.append(f"{head} {rest.split(' failed')[0]}" if rest.startswith("backend ") else head)
+    for m in messages:
+        if m.startswith("step ") and ": skipped " in m:
+            step, _, rest = m[len("step "):].partition(": skipped ")
+            name = rest.split(":", 1)[0]
+            out.append(f"image {name}" if step == "." else f"image {step}/{name}")
+    return out
+
+
+def _exit_nothing(what: str) -> None:
+    click.echo(f"nothing usable: {what} (exit code {EXIT_NOTHING})", err=True)
+    sys.exit(EXIT_NOTHING)
+
+
+def _exit_if_partial(problems: list[str], summary: str) -> None:
+    """When there are ``problems``, print ``summary`` and their names and exit EXIT_PARTIAL."""
+    if problems:
+        click.echo(f"partial result: {summary}: {', '.join(problems)} "
+                   f"(exit code {EXIT_PARTIAL})", err=True)
+        sys.exit(EXIT_PARTIAL)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]},
@@ -350,10 +366,8 @@ def detect(folder, pattern, methods, workers, out):
     parent) holds a rendered dataset.json, prints each method's error against the truth:
     RMS, bias and noise, next to the Cramér-Rao bound of the renderer's image model.
     """
-    from pathlib import Path
-
     from .detect import default_method, detect_folder, image_files, write_detections
-    from .detect.report import dataset_crlb, error_report, load_truth
+    from .detect.report import dataset_crlb, error_report, load_truth, truth_names
 
     target = _parse_target(pattern)
     root = Path(folder)
@@ -361,9 +375,18 @@ def detect(folder, pattern, methods, workers, out):
                                         for p in image_files(sub))
     if not files:
         raise click.BadParameter(f"{folder}: no images found", param_hint="FOLDER")
-    found = load_truth(root)
-    base = found[0] if found else root.resolve()
     methods = methods or (default_method(target),)
+    if len(methods) == 1:
+        _check_out_file(out)
+    else:
+        _check_out_file(str(Path(out).with_suffix("")),
+                        suffixes=tuple(f"_{m}.json" for m in methods))
+    try:
+        found = load_truth(root)
+    except ValueError as exc:  # a dataset.json that is not JSON
+        raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    names = truth_names(files, root, found[0] if found else root)
+    failed_images = set()
     for method in methods:
         try:
             with click.progressbar(length=len(files), label=method, file=sys.stderr) as bar:
@@ -371,8 +394,8 @@ def detect(folder, pattern, methods, workers, out):
                                      progress=bar.update)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--method") from None
-        for d, f in zip(dets, files, strict=True):
-            d.file = str(Path(f).resolve().relative_to(base))
+        for d, name in zip(dets, names, strict=True):
+            d.file = name
         path = out if len(methods) == 1 else str(Path(out).with_suffix("")) + f"_{method}.json"
         write_detections(path, dets, pattern)
         failed = [d for d in dets if d.error]
@@ -380,6 +403,7 @@ def detect(folder, pattern, methods, workers, out):
                    f"wrote {path}")
         for d in failed:
             click.echo(f"  skipped {d.error}")
+        failed_images |= {f"{d.file} ({method})" if len(methods) > 1 else d.file for d in failed}
         if found:
             rep = error_report(dets, found[1])
             if rep["n_points"]:
@@ -388,6 +412,11 @@ def detect(folder, pattern, methods, workers, out):
                 click.echo(f"  vs truth ({rep['n_points']} points): RMS {rep['rms_px']:.4f} px, "
                            f"bias ({rep['bias_px'][0]:+.4f}, {rep['bias_px'][1]:+.4f}) px, "
                            f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px{extra}")
+    what = "images" if len(methods) == 1 else "(image, method) pairs"
+    if len(failed_images) == len(files) * len(methods):
+        _exit_nothing(f"no target detected in any of the {len(files)} images")
+    _exit_if_partial(sorted(failed_images),
+                     f"{len(failed_images)} of {len(files) * len(methods)} {what} failed")
 
 
 @main.command(epilog=EXIT_CODES)
@@ -427,6 +456,7 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
         steps = zoom_steps(folder)
     except (ValueError, FileNotFoundError) as exc:
         raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
@@ -447,8 +477,9 @@ def calibrate(folder, pattern, backend, model, method, workers, out):
         click.echo("zoom model, held-out interpolation error (RMS): " + ", ".join(
             f"{k} {v:.3g}" for k, v in run.holdout.items() if k in ("fx", "fy", "cx", "cy")))
     if not run.results:
-        raise click.ClickException("no step could be calibrated")
+        _exit_nothing("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")
+    _exit_if_partial(_calibration_problems(run.failures, messages), "not calibrated or skipped")
 
 
 @main.command(epilog=EXIT_CODES)
@@ -495,6 +526,7 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
 
     lens_ = _load_lens(lens)
     _load_tolerances(tolerances, lens_)
+    _check_out_folder(out)
     overrides = {"lens": lens, "tolerances": tolerances, "tolerance_scale": tolerance_scale,
                  "seed": seed, "lensfun": lensfun,
                  "backends": ("opencv", "bundle") if backend == "both" else (backend,)}
@@ -507,6 +539,9 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
         except ValueError:
             raise click.BadParameter("must be numbers separated by commas",
                                      param_hint="--noise") from None
+        if not all(0 <= v <= 255 for v in overrides["noise_dn"]):
+            raise click.BadParameter(f"{noise}: each level must be a number in [0, 255] DN",
+                                     param_hint="--noise")
     config = StudyConfig.quick(**overrides) if quick else StudyConfig(**overrides)
     n_tasks = len(detection_tasks(config))
     command = "zoomcalib " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -528,6 +563,10 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
                f"calibration {t['calibrate_s']:.0f} s (summed over workers), mechanics "
                f"{t['mechanics_s']:.1f} s, wall {t['wall_s']:.0f} s")
     click.echo(f"wrote {out}/report.md, {out}/report.html and the CSV tables")
+    if len(res["failures"]) == n_tasks:
+        _exit_nothing(f"all {n_tasks} calibration sets failed")
+    _exit_if_partial([f.split(":", 1)[0] for f in res["failures"]],
+                     f"{len(res['failures'])} of {n_tasks} calibration sets failed")
 
 
 @main.command(epilog=EXIT_CODES)
@@ -578,6 +617,7 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
             raise click.BadParameter("must be positive", param_hint="--pixel-pitch")
     if os.path.isdir(input_path) and pattern:
         _parse_target(pattern)
+    _check_out_folder(out)
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
     n_images = 0
     if os.path.isdir(input_path):
@@ -616,6 +656,7 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     if doc["ambiguous_with"]:
         click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
     click.echo(f"wrote {out}/diagnosis.json, report.md, path.png, residuals.png")
+    _exit_if_partial(_calibration_problems(run.failures, messages), "not calibrated or skipped")
 
 
 if __name__ == "__main__":

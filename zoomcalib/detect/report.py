@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..io import read_json
 from .opencv import Detection
 
 __all__ = ["load_truth", "truth_names", "error_report", "chessboard_crlb", "dataset_crlb"]
@@ -20,12 +20,17 @@ def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray], dict] |
     (root, truth, dataset) or None
         ``truth`` maps an image path relative to ``root`` to its (n, 2) true points, px;
         ``dataset`` is the parsed ``dataset.json``.
+
+    Raises
+    ------
+    ValueError
+        One line naming ``dataset.json`` when it is not JSON.
     """
     folder = Path(folder).resolve()
     for root in (folder, folder.parent):
         f = root / "dataset.json"
         if f.exists():
-            doc = json.loads(f.read_text())
+            doc = read_json(f)
             truth = {v["file"]: np.asarray(v["points_px"], dtype=float)
                      for st in doc.get("steps", []) for v in st.get("views", [])}
             return root, truth, doc
