@@ -264,3 +264,12 @@ def test_help_documents_exit_codes():
     for command in WORK:
         res = CliRunner().invoke(main, [command, "--help"])
         assert "3 partial" in res.output and "4 nothing usable" in res.output, command
+
+
+def test_a_write_failing_during_the_work_is_one_line(tmp_path, monkeypatch):
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(tmp_path / "sim" / "spiral.png"))
+
+    monkeypatch.setattr(zoomcalib.simulate, "simulate", disk_full)
+    res = CliRunner().invoke(main, ["simulate", "--out", str(tmp_path / "sim")])
+    one_line_error(res, 1, f"{tmp_path / 'sim' / 'spiral.png'}: No space left on device")
