@@ -5,7 +5,10 @@ The commands only parse options, call the library and print a short summary.
 
 from __future__ import annotations
 
+import math
+import os
 import sys
+from pathlib import Path
 
 import click
 import numpy as np
@@ -31,7 +34,120 @@ def _load_tolerances(path, lens):
         raise click.BadParameter(str(exc), param_hint="--tolerances") from None
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+EXIT_PARTIAL = 3
+EXIT_NOTHING = 4
+EXIT_CODES = ("Exit codes: 0 all done; 1 the input could not be used, or a file could not be "
+              "written (one line says which); 2 bad option or argument, or an output path that "
+              "cannot be written (before any work); 3 partial: some images or steps failed, "
+              "the results of the rest are written; 4 nothing usable.")
+
+
+class _Group(click.Group):
+    """The command group; an operating-system error that no check foresaw (a disk full, a
+    file removed while in use) ends with one line naming the file, never a traceback."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            text = exc.strerror or str(exc) or type(exc).__name__
+            raise click.ClickException(f"{exc.filename}: {text}" if exc.filename else text) \
+                from None
+
+
+class _Finite(click.ParamType):
+    """A finite float in ``[lo, hi]`` (click's FloatRange lets 'nan' through)."""
+
+    name = "float"
+
+    def __init__(self, lo: float = -math.inf, hi: float = math.inf) -> None:
+        self.lo, self.hi = lo, hi
+
+    def convert(self, value, param, ctx) -> float:
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        if not self.lo <= v <= self.hi:
+            bounds = (f">= {self.lo:g}" if math.isinf(self.hi) else
+                      f"<= {self.hi:g}" if math.isinf(self.lo) else
+                      f"in [{self.lo:g}, {self.hi:g}]")
+            self.fail(f"{v:g} is not {bounds}", param, ctx)
+        return v
+
+
+def _nearest_existing(path: Path) -> Path:
+    return next(p for p in (path, *path.parents) if p.exists() or p.is_symlink())
+
+
+def _folder_problem(folder: Path) -> str | None:
+    """Why files cannot be created in ``folder`` (created when missing), or None."""
+    existing = _nearest_existing(folder)
+    if not existing.is_dir():
+        kind = "a broken link" if not existing.exists() else "a file"
+        return f"{existing} is {kind}, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"no permission to write in {existing}"
+    return None
+
+
+def _check_out_folder(path: str, hint: str = "--out") -> None:
+    """Refuse, before any work, an output folder that cannot be created or written."""
+    problem = _folder_problem(Path(os.path.abspath(path)))
+    if problem:
+        raise click.BadParameter(f"{path}: {problem}", param_hint=hint)
+
+
+def _check_out_file(path: str, hint: str = "--out", suffixes: tuple[str, ...] = ("",)) -> None:
+    """Refuse, before any work, output files ``path + suffix`` that cannot be written; create
+    their folder."""
+    full = Path(os.path.abspath(path))
+    problem = _folder_problem(full.parent)
+    for f in (Path(str(full) + x) for x in suffixes):
+        if problem is None and f.is_dir():
+            problem = f"{f} is a folder, not a file"
+        elif problem is None and f.exists() and not os.access(f, os.W_OK):
+            problem = f"{f} is not writable"
+    if problem:
+        raise click.BadParameter(f"{path}: {problem}", param_hint=hint)
+    full.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _calibration_problems(failures: list[str], messages: list[str]) -> list[str]:
+    """Short names of what a calibrate run could not do: its failures (``step S: why``,
+    ``step S: backend B failed: why``, ``zoom model: why``) and the images it skipped (logged
+    as ``step S: skipped FILE: why``)."""
+    out = []
+    for f in failures:
+        head, _, rest = f.partition(": ")
+        out.append(f"{head} {rest.split(' failed')[0]}" if rest.startswith("backend ") else head)
+    for m in messages:
+        if m.startswith("step ") and ": skipped " in m:
+            step, _, rest = m[len("step "):].partition(": skipped ")
+            name = rest.split(":", 1)[0]
+            out.append(f"image {name}" if step == "." else f"image {step}/{name}")
+    return out
+
+
+def _exit_nothing(what: str) -> None:
+    click.echo(f"nothing usable: {what} (exit code {EXIT_NOTHING})", err=True)
+    sys.exit(EXIT_NOTHING)
+
+
+def _exit_if_partial(problems: list[str], summary: str) -> None:
+    """When there are ``problems``, print ``summary`` and their names and exit EXIT_PARTIAL."""
+    if problems:
+        click.echo(f"partial result: {summary}: {', '.join(problems)} "
+                   f"(exit code {EXIT_PARTIAL})", err=True)
+        sys.exit(EXIT_PARTIAL)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]},
+             epilog=EXIT_CODES)
 @click.version_option(__version__, prog_name="zoomcalib")
 def main() -> None:
     """Calibrate zoom cameras and measure which error source limits the calibration.
@@ -45,7 +161,7 @@ LENS_HELP = (f"Lens prescription: a built-in name ({', '.join(builtin_lenses())}
              "file in the same form.")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file (YAML or JSON); default: the built-in tolerances "
@@ -55,7 +171,8 @@ LENS_HELP = (f"Lens prescription: a built-in name ({', '.join(builtin_lenses())}
               help="Number of evenly spaced zoom states from 0 (wide) to 1 (tele).")
 @click.option("--samples", default=1000, show_default=True, type=click.IntRange(min=2),
               help="Monte Carlo draws of the mechanical errors per zoom state.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Random seed.")
 @click.option("--tracer", type=click.Choice(TRACERS), default="exact", show_default=True,
               help="Real-ray tracer, or the (linear, faster) paraxial one.")
 @click.option("--direction", type=click.Choice(["random", "in", "out"]), default="random",
@@ -74,6 +191,7 @@ def simulate(lens, tolerances, steps, samples, seed, tracer, direction, out):
 
     lens_ = _load_lens(lens)
     tol = _load_tolerances(tolerances, lens_)
+    _check_out_folder(out)
     with click.progressbar(length=steps, label="zoom steps", file=sys.stderr) as bar:
         res = run(lens_, tol, out, steps=steps, samples=samples, seed=seed, tracer=tracer,
                   direction=direction, progress=bar.update)
@@ -94,6 +212,9 @@ def simulate(lens, tolerances, steps, samples, seed, tracer, direction, out):
     click.echo(f"wrote {', '.join(str(p) for p in res.files.values())}")
 
 
+MAX_SIDE_PX = 16384  # render --size: a larger image would not fit the renderer's buffers
+
+
 def _parse_target(spec):
     from .targets import PatternError, parse_pattern
 
@@ -103,9 +224,9 @@ def _parse_target(spec):
         raise click.BadParameter(str(exc), param_hint="PATTERN") from None
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("pattern")
-@click.option("--dpi", default=300.0, show_default=True, type=click.FloatRange(min=10),
+@click.option("--dpi", default=300.0, show_default=True, type=_Finite(10, 2400),
               help="Resolution of the PNG.")
 @click.option("--out", default="target", show_default=True,
               help="Output stem: writes STEM.png, STEM.svg (mm) and STEM.json (geometry).")
@@ -118,6 +239,7 @@ def target(pattern, dpi, out):
     from .targets import write_printable
 
     t = _parse_target(pattern)
+    _check_out_file(out, suffixes=(".png", ".svg", ".json"))
     files = write_printable(t, out, dpi)
     w, h = t.size_mm
     click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
@@ -171,7 +293,7 @@ def _make_optics(blur, f_number, defocus, psf, airy_radius, halo, ellipse):
         raise click.BadParameter(str(exc), param_hint="--halo/--ellipse") from None
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file; default: the built-in tolerances. Each zoom step "
@@ -184,22 +306,25 @@ def _make_optics(blur, f_number, defocus, psf, airy_radius, halo, ellipse):
               help="Views per zoom step.")
 @click.option("--pattern", default="chessboard:9x6:25", show_default=True,
               help="Target (scaled per zoom step to fill the view).")
-@click.option("--noise", default=2.0, show_default=True, type=click.FloatRange(min=0),
+@click.option("--noise", default=2.0, show_default=True, type=_Finite(0, 255),
               help="Read noise, 1-sigma in 8-bit digital numbers (of 255).")
-@click.option("--blur", default=0.7, show_default=True, type=click.FloatRange(min=0),
+@click.option("--blur", default=0.7, show_default=True, type=_Finite(0),
               help="Gaussian blur sigma, px (added to diffraction and defocus).")
-@click.option("--defocus", default=0.0, show_default=True, help="Image-side defocus, mm.")
+@click.option("--defocus", default=0.0, show_default=True, type=_Finite(),
+              help="Image-side defocus, mm. The PSF sigma of blur, diffraction and defocus "
+                   "together must stay within 1 % of the image's shorter side (at least 3 px).")
 @click.option("--bits", default=8, show_default=True, type=click.Choice(["8", "12", "16"]))
 @click.option("--through", default="exact", show_default=True,
               type=click.Choice(["exact", "model"]),
               help="Render through the exact ray-traced lens, or its fitted OpenCV model.")
 @click.option("--size", default="1280x960", show_default=True,
-              help="Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels).")
+              help=f"Sensor size WIDTHxHEIGHT in pixels (6.45 um pixels), each side at most "
+                   f"{MAX_SIDE_PX}.")
 @click.option("--direction", default="random", show_default=True,
               help="Direction of the last zoom move before each step (sets the backlash side): "
                    "random, in, out, or one of in/out per step, comma-separated.")
 @_testbed_options
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, blur, defocus,
            bits, through, size, direction, wave, psf, airy_radius, halo, ellipse, jpeg_quality,
@@ -211,11 +336,13 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     pixel position of every target point (OpenCV convention). With --wave each step's board
     waves (its surface is in dataset.json and the truth lies on it).
     """
-    from .render.dataset import render_dataset
+    from .render.dataset import check_render_inputs, render_dataset
     from .render.image import Radiometry
 
     lens_ = _load_lens(lens)
     _parse_target(pattern)
+    if nominal and tolerances:
+        raise click.UsageError("give --tolerances or --nominal, not both")
     tol = None if nominal else _load_tolerances(tolerances, lens_)
     if zoom_list:
         try:
@@ -231,10 +358,13 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
 
     try:
         width, height = (int(v) for v in size.lower().split("x"))
-        sensor = Sensor(width, height)
     except ValueError:
-        raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
-            from None
+        raise click.BadParameter(f"{size!r} is not WIDTHxHEIGHT, e.g. 1280x960",
+                                 param_hint="--size") from None
+    if not (1 <= width <= MAX_SIDE_PX and 1 <= height <= MAX_SIDE_PX):
+        raise click.BadParameter(f"{size}: each side must be 1 to {MAX_SIDE_PX} px",
+                                 param_hint="--size")
+    sensor = Sensor(width, height)
     if "," in direction:
         direction = [d.strip() for d in direction.split(",")]
         if len(direction) != len(zoom) or not set(direction) <= {"in", "out"}:
@@ -244,15 +374,26 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
         raise click.BadParameter("must be random, in, out or a comma-separated list",
                                  param_hint="--direction")
     optics = _make_optics(blur, lens_.f_number, defocus, psf, airy_radius, halo, ellipse)
+    try:
+        check_render_inputs(optics, sensor, views)
+    except ValueError as exc:
+        raise click.BadParameter(f"{exc}; reduce --blur or --defocus, or use a larger --size",
+                                 param_hint="--blur / --defocus") from None
     radiometry = Radiometry(noise_sd=noise / 255.0, bits=int(bits))
     if jpeg_quality is not None and radiometry.bits != 8:
         raise click.BadParameter("JPEG holds 8-bit images only; use --bits 8",
                                  param_hint="--jpeg-quality")
-    with click.progressbar(length=len(zoom) * views, label="rendering", file=sys.stderr) as bar:
-        doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
-                             sensor=sensor, through=through, direction=direction,
-                             progress=bar.update, board_surface=wave or None,
-                             jpeg_quality=jpeg_quality)
+    _check_out_folder(out)
+    try:
+        with click.progressbar(length=len(zoom) * views, label="rendering",
+                               file=sys.stderr) as bar:
+            doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
+                                 sensor=sensor, through=through, direction=direction,
+                                 progress=bar.update, board_surface=wave or None,
+                                 jpeg_quality=jpeg_quality)
+    except ValueError as exc:  # found before any file is written
+        raise click.BadParameter(f"{exc}; use a larger --size or fewer --views",
+                                 param_hint="--size / --views") from None
     for st in doc["steps"]:
         cam = st["camera"]
         click.echo(f"  {st['step']}: zoom {st['zoom']:.3f}, EFL {st['efl_mm']:.2f} mm, "
@@ -261,7 +402,7 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     click.echo(f"wrote {out}/steps.csv, {out}/dataset.json and {len(zoom) * views} images")
 
 
-@main.command("render-sweep")
+@main.command("render-sweep", epilog=EXIT_CODES)
 @click.option("--fx", "fx_range", default="2300,23000", show_default=True,
               help="Focal length at the short and long end, MIN,MAX px (log-spaced steps).")
 @click.option("--steps", default=7, show_default=True, type=click.IntRange(min=1))
@@ -277,7 +418,7 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
 @click.option("--supersample", default=3, show_default=True, type=click.IntRange(1, 8),
               help="Sub-samples per pixel side for non-Gaussian PSFs.")
 @_testbed_options
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, wave, psf,
                  airy_radius, halo, ellipse, jpeg_quality, seed, out):
@@ -301,6 +442,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
         raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
             from None
     optics = _make_optics(blur, 2.8, 0.0, psf, airy_radius, halo, ellipse)
+    _check_out_folder(out)
     with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
         try:
             doc = render_zoom_sweep(out, fx, steps, views, (width, height), pattern,
@@ -318,7 +460,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                f"{doc['render_s']:.1f} s")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
 @click.option("--method", "methods", multiple=True,
@@ -337,10 +479,8 @@ def detect(folder, pattern, methods, workers, out):
     parent) holds a rendered dataset.json, prints each method's error against the truth:
     RMS, bias and noise, next to the Cramér-Rao bound of the renderer's image model.
     """
-    from pathlib import Path
-
     from .detect import default_method, detect_folder, image_files, write_detections
-    from .detect.report import dataset_crlb, error_report, load_truth
+    from .detect.report import dataset_crlb, error_report, load_truth, truth_names
 
     target = _parse_target(pattern)
     root = Path(folder)
@@ -348,9 +488,18 @@ def detect(folder, pattern, methods, workers, out):
                                         for p in image_files(sub))
     if not files:
         raise click.BadParameter(f"{folder}: no images found", param_hint="FOLDER")
-    found = load_truth(root)
-    base = found[0] if found else root.resolve()
     methods = methods or (default_method(target),)
+    if len(methods) == 1:
+        _check_out_file(out)
+    else:
+        _check_out_file(str(Path(out).with_suffix("")),
+                        suffixes=tuple(f"_{m}.json" for m in methods))
+    try:
+        found = load_truth(root)
+    except ValueError as exc:  # a dataset.json that is not JSON
+        raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    names = truth_names(files, root, found[0] if found else root)
+    failed_images = set()
     for method in methods:
         try:
             with click.progressbar(length=len(files), label=method, file=sys.stderr) as bar:
@@ -358,8 +507,8 @@ def detect(folder, pattern, methods, workers, out):
                                      progress=bar.update)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--method") from None
-        for d, f in zip(dets, files, strict=True):
-            d.file = str(Path(f).resolve().relative_to(base))
+        for d, name in zip(dets, names, strict=True):
+            d.file = name
         path = out if len(methods) == 1 else str(Path(out).with_suffix("")) + f"_{method}.json"
         write_detections(path, dets, pattern)
         failed = [d for d in dets if d.error]
@@ -367,6 +516,7 @@ def detect(folder, pattern, methods, workers, out):
                    f"wrote {path}")
         for d in failed:
             click.echo(f"  skipped {d.error}")
+        failed_images |= {f"{d.file} ({method})" if len(methods) > 1 else d.file for d in failed}
         if found:
             rep = error_report(dets, found[1])
             if rep["n_points"]:
@@ -375,9 +525,14 @@ def detect(folder, pattern, methods, workers, out):
                 click.echo(f"  vs truth ({rep['n_points']} points): RMS {rep['rms_px']:.4f} px, "
                            f"bias ({rep['bias_px'][0]:+.4f}, {rep['bias_px'][1]:+.4f}) px, "
                            f"noise {rep['noise_px']:.4f} px, max {rep['max_px']:.4f} px{extra}")
+    what = "images" if len(methods) == 1 else "(image, method) pairs"
+    if len(failed_images) == len(files) * len(methods):
+        _exit_nothing(f"no target detected in any of the {len(files)} images")
+    _exit_if_partial(sorted(failed_images),
+                     f"{len(failed_images)} of {len(files) * len(methods)} {what} failed")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("folder", type=click.Path(exists=True, file_okay=False))
 @click.option("--pattern", required=True, help="Target spec, e.g. chessboard:9x6:25.")
 @click.option("--backend", type=click.Choice(["opencv", "bundle", "both"]),
@@ -403,10 +558,13 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
-    else the images' EXIF focal length. Writes OUT/calibration.json and .yml, and for zoom sets
+    else the images' EXIF focal length. A zoom set is calibrated by one zoom-wide adjustment
+    (every step together: one board, a smoothness prior across zoom; --per-step turns it off)
+    beside per-step OpenCV. Writes OUT/calibration.json and .yml, and for zoom sets
     OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
-    again. Exit code 3: a partial result (a step dropped, or a backend failed on a step).
+    again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
+    on a step, or an image skipped).
     """
     import os
 
@@ -425,6 +583,7 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
         steps = zoom_steps(folder)
     except (ValueError, FileNotFoundError) as exc:
         raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
@@ -438,11 +597,14 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
         click.echo("zoom model, held-out interpolation error (RMS): " + ", ".join(
             f"{k} {v:.3g}" for k, v in run.holdout.items() if k in ("fx", "fy", "cx", "cy")))
     if not run.results:
-        raise click.ClickException("no step could be calibrated")
+        _exit_nothing("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")
-    if run.partial:  # exit code 3: some steps or backends are missing from the results
-        click.echo(run.partial_message())
-        click.get_current_context().exit(3)
+    # partial (exit 3): a step dropped, a backend the table needs failed, an image skipped;
+    # a per-step backend failing on a step the zoom-wide adjustment calibrated is only reported
+    problems = ([f"step {s}" for s in run.dropped]
+                + [f"step {s} {', '.join(b)}" for s, b in run.backend_failures.items()]
+                + _calibration_problems([], messages))
+    _exit_if_partial(problems, "not calibrated or skipped")
 
 
 def _print_calibration(run) -> None:
@@ -471,7 +633,7 @@ def _print_calibration(run) -> None:
         click.echo(f"FLAGGED step {step}: " + "; ".join(reasons))
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--tolerances", type=click.Path(dir_okay=False),
               help="Mechanical tolerance file; default: the built-in tolerances.")
@@ -493,7 +655,7 @@ def _print_calibration(run) -> None:
 @click.option("--lensfun", type=click.Path(exists=True),
               help="A lensfun database (folder or XML) for the distortion claim; default: the "
                    "extract shipped with zoomcalib.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", default="zoomcalib-study", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
 def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, backend,
@@ -515,6 +677,7 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
 
     lens_ = _load_lens(lens)
     _load_tolerances(tolerances, lens_)
+    _check_out_folder(out)
     overrides = {"lens": lens, "tolerances": tolerances, "tolerance_scale": tolerance_scale,
                  "seed": seed, "lensfun": lensfun,
                  "backends": ("opencv", "bundle") if backend == "both" else (backend,)}
@@ -527,6 +690,9 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
         except ValueError:
             raise click.BadParameter("must be numbers separated by commas",
                                      param_hint="--noise") from None
+        if not all(0 <= v <= 255 for v in overrides["noise_dn"]):
+            raise click.BadParameter(f"{noise}: each level must be a number in [0, 255] DN",
+                                     param_hint="--noise")
     config = StudyConfig.quick(**overrides) if quick else StudyConfig(**overrides)
     n_tasks = len(detection_tasks(config))
     command = "zoomcalib " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -548,9 +714,13 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
                f"calibration {t['calibrate_s']:.0f} s (summed over workers), mechanics "
                f"{t['mechanics_s']:.1f} s, wall {t['wall_s']:.0f} s")
     click.echo(f"wrote {out}/report.md, {out}/report.html and the CSV tables")
+    if len(res["failures"]) == n_tasks:
+        _exit_nothing(f"all {n_tasks} calibration sets failed")
+    _exit_if_partial([f.split(":", 1)[0] for f in res["failures"]],
+                     f"{len(res['failures'])} of {n_tasks} calibration sets failed")
 
 
-@main.command()
+@main.command(epilog=EXIT_CODES)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
 @click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
 @click.option("--pixel-pitch", default="0.00645", show_default=True,
@@ -598,6 +768,7 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
             raise click.BadParameter("must be positive", param_hint="--pixel-pitch")
     if os.path.isdir(input_path) and pattern:
         _parse_target(pattern)
+    _check_out_folder(out)
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
     n_images = 0
     if os.path.isdir(input_path):
@@ -636,6 +807,7 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     if doc["ambiguous_with"]:
         click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
     click.echo(f"wrote {out}/diagnosis.json, report.md, path.png, residuals.png")
+    _exit_if_partial(_calibration_problems(run.failures, messages), "not calibrated or skipped")
 
 
 if __name__ == "__main__":

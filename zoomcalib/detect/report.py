@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..io import read_json
 from .opencv import Detection
 
-__all__ = ["load_truth", "error_report", "chessboard_crlb", "dataset_crlb"]
+__all__ = ["load_truth", "truth_names", "error_report", "chessboard_crlb", "dataset_crlb"]
 
 
 def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray], dict] | None:
@@ -20,16 +20,34 @@ def load_truth(folder: str | Path) -> tuple[Path, dict[str, np.ndarray], dict] |
     (root, truth, dataset) or None
         ``truth`` maps an image path relative to ``root`` to its (n, 2) true points, px;
         ``dataset`` is the parsed ``dataset.json``.
+
+    Raises
+    ------
+    ValueError
+        One line naming ``dataset.json`` when it is not JSON.
     """
     folder = Path(folder).resolve()
     for root in (folder, folder.parent):
         f = root / "dataset.json"
         if f.exists():
-            doc = json.loads(f.read_text())
+            doc = read_json(f)
             truth = {v["file"]: np.asarray(v["points_px"], dtype=float)
                      for st in doc.get("steps", []) for v in st.get("views", [])}
             return root, truth, doc
     return None
+
+
+def truth_names(files: list[Path], folder: str | Path, root: str | Path) -> list[str]:
+    """Names of ``files``, found in ``folder`` or its subfolders, relative to ``root``.
+
+    ``root`` is what :func:`load_truth` found (``folder`` resolved, or its parent), or the
+    resolved ``folder`` when there is no truth. Only ``folder`` is resolved, never the files:
+    an image that is a symbolic link to elsewhere keeps its place in the folder, so its name
+    matches the truth's (``zoom_00/view_00.png``).
+    """
+    folder = Path(folder)
+    prefix = folder.resolve().relative_to(Path(root).resolve())
+    return [(prefix / Path(f).relative_to(folder)).as_posix() for f in files]
 
 
 def error_report(detections: list[Detection], truth: dict[str, np.ndarray]) -> dict:

@@ -15,22 +15,89 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ..calibrate.io import read_zoom_table
 from ..optics.mechanics import Tolerances
 from ..optics.prescription import Prescription
-from .discrepancy import Diagnosis, diagnose_table
-from .model import LensResponse
+from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
+from .model import LensResponse, moving_groups
 from .report import write_diagnosis
 from .table import ZoomTable
 
-__all__ = ["DiagnoseRun", "diagnose_input", "load_zoom_table"]
+__all__ = ["DiagnoseRun", "diagnose_input", "load_zoom_table", "largest_model",
+           "check_table_size", "MIN_SETTINGS", "ONE_STATE_SPREAD"]
+
+MIN_SETTINGS = 3
+"""Fewest distinct zoom settings: with one held out, the others must still span the range."""
+
+ONE_STATE_SPREAD = 1e-3
+"""Rows whose focal lengths all lie within this fraction of their median are one lens state."""
 
 
 @dataclass
 class DiagnoseRun:
+    """What a diagnose run produced; ``failures`` lists the calibration's skipped steps."""
+
     diagnosis: Diagnosis
     table_path: Path
     files: list[Path] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+
+
+def largest_model(groups: tuple[str, ...], locked_tilt: bool = False) -> int:
+    """Parameters of the largest model the diagnosis fits: the baseline plus the largest
+    variant of any cause, as if the table had every optional column."""
+    two = np.arange(2.0)
+    probe = ZoomTable(zoom=two, fx=two + 1, fy=two + 1, cx=two, cy=two, sd_cx=two, sd_cy=two,
+                      direction=np.array([1.0, -1.0]), sequence=two, focus=two,
+                      temperature=two)
+    variants, _ = cause_variants(probe, groups)
+
+    def size(terms) -> int:
+        return sum(len(t.params) for t in terms)
+
+    extra = max((size(v) for options in variants.values() for v in options), default=0)
+    return size(baseline_terms(groups, locked_tilt)) + extra
+
+
+def check_table_size(zoom: np.ndarray, fx: np.ndarray | None, source: str,
+                     groups: tuple[str, ...]) -> None:
+    """Refuse, before any fit, a table too small for the diagnosis or of one lens state.
+
+    Every model is fitted with the rows of each zoom setting held out in turn, so the rows
+    outside any one setting must give as many equations (2 per row) as the largest model
+    (:func:`largest_model`) has parameters, and there must be ``MIN_SETTINGS`` settings.
+
+    Parameters
+    ----------
+    zoom : (N,) ndarray
+        The zoom setting of each row (any unit).
+    fx : (N,) ndarray or None
+        Measured focal lengths, px (None before calibration).
+
+    Raises
+    ------
+    ValueError
+        One line naming ``source``, what it has and the true minimum.
+    """
+    k = largest_model(groups)
+    need = -(-k // 2)  # rows outside any one setting
+    _, counts = np.unique(np.round(np.asarray(zoom, dtype=float), 9), return_counts=True)
+    n = int(counts.sum())
+    if len(counts) < MIN_SETTINGS or n - counts.max() < need:
+        raise ValueError(
+            f"{source}: {n} rows at {len(counts)} zoom settings are too few; the diagnosis "
+            f"needs {MIN_SETTINGS} or more settings and {need} rows outside any one setting "
+            f"(so {need + 1} rows with one per setting): its largest model has {k} parameters, "
+            f"2 per row, fitted with each setting held out in turn")
+    if fx is not None:
+        fx = np.asarray(fx, dtype=float)
+        mid = float(np.median(fx))
+        if np.ptp(fx) <= ONE_STATE_SPREAD * mid:
+            raise ValueError(
+                f"{source}: all {n} rows are one lens state (fx {mid:.1f} px, within "
+                f"{ONE_STATE_SPREAD:.1%}); the diagnosis needs rows across the zoom range")
 
 
 def load_zoom_table(path: str | Path) -> ZoomTable:
@@ -63,13 +130,26 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
         Passed to :func:`zoomcalib.calibrate.run.calibrate_folder` for an image folder.
     """
     source, out = Path(source), Path(out)
+    groups = moving_groups(lens)
+    failures: list[str] = []
     if source.is_dir():
         if not pattern:
             raise ValueError(f"{source}: an image folder needs --pattern to be calibrated first")
+        from ..calibrate.io import zoom_steps
         from ..calibrate.run import calibrate_folder
 
+        steps = zoom_steps(source)
+        # one row per step; an unknown zoom counts as a setting of its own until refused below
+        zooms = np.array([-1.0 - i if zoom is None else zoom
+                          for i, (_, _, zoom, _) in enumerate(steps)])
+        check_table_size(zooms, None, str(source), groups)
+        unknown = [step for step, _, zoom, _ in steps if zoom is None]
+        if unknown:
+            raise ValueError(f"{source}: the zoom of step {unknown[0]} is unknown (no steps.csv "
+                             f"row, no number in the folder name, no EXIF focal length)")
         cal = calibrate_folder(source, pattern, out / "calibration", backends,
                                workers=workers, progress=progress, log=log)
+        failures = list(cal.failures)
         table_path = out / "calibration" / "zoom_calibration.csv"
         if not table_path.exists():
             raise ValueError(f"{source}: no zoom table could be made "
@@ -79,10 +159,11 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
     else:
         raise FileNotFoundError(f"{source}: no such file or folder")
     table = load_zoom_table(table_path)
+    check_table_size(table.zoom, table.fx, table.source, groups)
     fit_pitch = isinstance(pixel_pitch, str)
     if fit_pitch and pixel_pitch != "auto":
         raise ValueError(f"pixel pitch must be a number (mm) or 'auto', got {pixel_pitch!r}")
     response = LensResponse.of(lens, 0.00645 if fit_pitch else float(pixel_pitch))
     diag = diagnose_table(table, response, tolerances, fit_pitch=fit_pitch)
     files = write_diagnosis(diag, out)
-    return DiagnoseRun(diag, table_path, files)
+    return DiagnoseRun(diag, table_path, files, failures)

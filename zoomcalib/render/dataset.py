@@ -44,10 +44,13 @@ from .image import (
     Radiometry,
     camera_mapping,
     project_points,
+    psf_sigma_px,
     render_image,
 )
 
-__all__ = ["generate_poses", "render_dataset", "scaled_target_for_view", "write_image"]
+__all__ = ["check_render_inputs", "generate_poses", "render_dataset",
+           "scaled_target_for_view", "psf_limit_px", "write_image", "MAX_PSF_FRACTION",
+           "MIN_PSF_LIMIT_PX"]
 
 
 def write_image(path: str | Path, image: np.ndarray, jpeg_quality: int | None = None) -> Path:
@@ -136,8 +139,53 @@ def generate_poses(target: Target, mapping, sensor: Sensor, n_views: int, distan
             poses.append((R, t))
     if len(poses) < n_views:
         raise RuntimeError(f"found only {len(poses)} of {n_views} poses that keep the target in "
-                           f"view; reduce --fill or the number of views")
+                           f"view with a {margin_px:g} px margin on a {sensor.width_px}x"
+                           f"{sensor.height_px} px sensor")
     return poses
+
+
+MAX_PSF_FRACTION = 0.01
+"""Largest PSF sigma, as a fraction of the image's shorter side (but at least
+``MIN_PSF_LIMIT_PX``). Beyond it the renderer's time and memory grow with the blur's reach (the
+measured cost is in ``docs/commands.md``) while the corners it renders are too soft to
+calibrate."""
+
+MIN_PSF_LIMIT_PX = 3.0
+"""The PSF sigma limit of small images, px (cheap to render at any image size)."""
+
+
+def psf_limit_px(sensor: Sensor) -> float:
+    """Largest PSF sigma the renderer accepts for ``sensor``, px."""
+    return max(MIN_PSF_LIMIT_PX, MAX_PSF_FRACTION * min(sensor.width_px, sensor.height_px))
+
+
+def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
+    """Refuse inputs that cannot give a data set, before any work.
+
+    Raises
+    ------
+    ValueError
+        One line naming the quantity and the limit: a non-finite optics value, an empty sensor,
+        no views, or a PSF sigma (blur, diffraction and defocus combined, px) above
+        :func:`psf_limit_px`.
+    """
+    if sensor.width_px < 1 or sensor.height_px < 1:
+        raise ValueError(f"sensor {sensor.width_px}x{sensor.height_px} px has no pixels")
+    if n_views < 1:
+        raise ValueError(f"{n_views} views: at least one is needed")
+    values = {"blur_px": optics.blur_px, "defocus_mm": optics.defocus_mm,
+              "f_number": optics.f_number, "wavelength_um": optics.wavelength_um}
+    for name, value in values.items():
+        if not np.isfinite(value):
+            raise ValueError(f"optics {name} is {value}, not a finite number")
+    sigma = psf_sigma_px(optics, sensor.pixel_pitch_mm)
+    limit = psf_limit_px(sensor)
+    if sigma > limit:
+        raise ValueError(f"PSF sigma {sigma:.1f} px (blur {optics.blur_px:g} px, defocus "
+                         f"{optics.defocus_mm:g} mm at f/{optics.f_number:g}) exceeds the "
+                         f"limit of {limit:.1f} px for a {sensor.width_px}x{sensor.height_px} "
+                         f"image ({MAX_PSF_FRACTION:.0%} of its shorter side, at least "
+                         f"{MIN_PSF_LIMIT_PX:g} px)")
 
 
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
@@ -172,12 +220,18 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     -------
     dataset : dict
         What was written to ``dataset.json``.
+
+    Raises
+    ------
+    ValueError
+        Before any file is written: inputs refused by :func:`check_render_inputs`, or a step
+        for which ``n_views`` poses keeping the target in view cannot be found.
     """
     optics = optics or Optics()
     radiometry = radiometry or Radiometry()
     check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
+    check_render_inputs(optics, sensor, n_views)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     base = parse_pattern(pattern)
     ss = np.random.SeedSequence(seed)
     mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
@@ -188,16 +242,27 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     else:
         draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
                              np.zeros((len(zoom), 1, n_groups, 2)))
-    steps, rows = [], []
+    # Every step's mapping and poses first: a step whose poses cannot be found stops the run
+    # before any file is written. Each step keeps its own generator, so the images do not
+    # depend on this order.
+    plans = []
     for i, z in enumerate(zoom):
         rng = np.random.default_rng(step_seeds[i])
         mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
         em = exact_mapping(lens, z, mis, sensor)
         mapping = em if through == "exact" else camera_mapping(em.camera)
         target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
+        try:
+            poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
+        except RuntimeError as exc:
+            raise ValueError(f"zoom {z:g}: {exc}") from None
+        plans.append((rng, mis, em, mapping, target, poses))
+    out.mkdir(parents=True, exist_ok=True)
+    steps, rows = [], []
+    for i, (z, (rng, mis, em, mapping, target, poses)) in enumerate(zip(zoom, plans,
+                                                                          strict=True)):
         name = f"zoom_{i:02d}"
         (out / name).mkdir(exist_ok=True)
-        poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
         surface = board_surface
         if isinstance(board_surface, int | float):
             surface = BoardSurface.random(target.extent_mm, float(board_surface),
