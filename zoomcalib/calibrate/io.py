@@ -1,5 +1,6 @@
-"""Calibration files (DESIGN.md section 4): ``calibration.json`` and ``calibration.yml``, the
-per-zoom table ``zoom_calibration.csv``, and the zoom steps of an image folder.
+"""Calibration files (docs/conventions.md, "File contracts"): ``calibration.json`` and
+``calibration.yml``, the per-zoom table ``zoom_calibration.csv``, and the zoom steps of an image
+folder.
 
 Conventions: pixels in OpenCV's convention (centre of the top-left pixel = (0, 0)); distortion in
 OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``; poses ``rvecs, tvecs`` are ``Rt_cam_board``
@@ -565,7 +566,7 @@ def ignored_top_images(folder: str | os.PathLike) -> list[Path]:
 
 
 def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None, dict]]:
-    """The zoom steps of an image folder (DESIGN.md section 4).
+    """The zoom steps of an image folder (docs/conventions.md, "File contracts").
 
     * ``DIR`` has subfolders that hold images (hidden ones and the calibrate job's own output
       folders skipped): every such subfolder is a step, named after

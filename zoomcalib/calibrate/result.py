@@ -117,7 +117,7 @@ class CalibrationResult:
         return bool(self.info.get("converged", False))
 
     def to_dict(self) -> dict:
-        """The ``calibration.json`` entry of this backend (DESIGN.md section 4)."""
+        """The ``calibration.json`` entry of this backend (docs/conventions.md)."""
         d = {"K": self.K.tolist(), "dist": [float(v) for v in self.dist],
              "sd": {k: float(v) for k, v in self.sd.items()}, "rms_px": float(self.rms_px),
              "per_view_rms_px": [float(v) for v in self.per_view_rms_px],

@@ -757,7 +757,7 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
 
 def write_detections(path: str | os.PathLike, detections: Iterable[Detection],
                      spec: str | Target, provenance: dict | None = None) -> Path:
-    """Write a detections file (DESIGN.md section 4).
+    """Write a detections file (the contract in docs/conventions.md).
 
     ``{"pattern": SPEC, "images": [{"file", "points", "ids", "error"}, ...]}``, one entry per
     image, points in pixels (OpenCV convention), one image per line. Each entry also carries

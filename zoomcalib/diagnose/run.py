@@ -2,7 +2,7 @@
 
 Layout written to OUT::
 
-    OUT/diagnosis.json      cause, baseline, extended, gain, candidates (contract in DESIGN.md)
+    OUT/diagnosis.json      cause, baseline, extended, gain, candidates (docs/conventions.md)
     OUT/report.md           the same for people
     OUT/path.png            measured principal points against the simulated path
     OUT/residuals.png       residuals against focal length, before and after the extension
