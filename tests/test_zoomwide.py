@@ -163,3 +163,28 @@ def test_conditioning_flags_name_the_reason(sweep):
     flags = conditioning_flags(res, SIZE)
     assert any("outside the central region" in f for f in flags)
     assert any(f.startswith("sd cy 40.0 px") for f in flags)
+
+
+def test_in_and_out_sweeps_are_separate_chains(rng):
+    # the same settings reached zooming in and zooming out, the principal point offset by a
+    # backlash of 4 px between the two: one chain would tie states 0.1 % apart in fx together
+    obs, truth, _ = sweep_observations(rng, steps=4, views=8, fx_range=(2300, 6000))
+    both = {f"in_{k}": v for k, v in obs.items()}
+    for k, o in obs.items():  # the out sweep: the same views, every point 4 px to the right
+        views = [(ids, pts + np.array([4.0, 0.0])) for ids, pts in o.views]
+        both[f"out_{k}"] = Observations(o.object_points, views, o.image_size, o.names)
+    labels = {s: s.split("_")[0] for s in both}
+    zw = calibrate_zoom_wide(both, chains=labels)
+    for k in obs:
+        d = zw.results[f"out_{k}"].cx - zw.results[f"in_{k}"].cx
+        sd = np.hypot(zw.results[f"out_{k}"].sd["cx"], zw.results[f"in_{k}"].sd["cx"])
+        assert abs(d - 4.0) < 4 * sd, (k, d, sd)
+
+
+def test_diagnose_refuses_zoom_wide_rows():
+    from zoomcalib.diagnose.table import ZoomTable
+
+    rows = [{"step": f"s{i}", "zoom": float(i), "fx": 1000.0 + i, "fy": 1000.0, "cx": 640.0,
+             "cy": 360.0, "mode": "zoom-wide"} for i in range(5)]
+    with pytest.raises(ValueError, match="--per-step"):
+        ZoomTable.from_rows(rows, "t.csv")

@@ -266,7 +266,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         run.results[step] = step_results  # empty: left to the zoom-wide adjustment
         extras_of[step] = extras
     if zoom_wide and len(run.observations) >= 2:
-        _zoom_wide(run, model, target, log)
+        _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
+                                             extras_of.items()})
     for step in [s for s, r in run.results.items() if not r]:
         del run.results[step]
         run.backend_failures.pop(step, None)
@@ -393,10 +394,11 @@ def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[s
     return kept
 
 
-def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None]
-               ) -> None:
+def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
+               directions: dict[str, str]) -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
-    ``"zoom-wide"``; a failure is logged and recorded (the per-step results stay)."""
+    ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
+    a failure is logged and recorded (the per-step results stay)."""
     from .zoomwide import calibrate_zoom_wide
 
     if model != "standard":
@@ -410,7 +412,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
                if run.results.get(s) else o for s, o in obs.items()}
     try:
-        zw = calibrate_zoom_wide(obs)
+        zw = calibrate_zoom_wide(obs, chains=directions)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")

@@ -36,7 +36,9 @@ divided differences
 
 (a path that is linear in log focal length costs nothing). ``tau_q`` is estimated from the data
 by restricted maximum likelihood from the per-step estimates ``q_hat_s`` and their sigmas
-(:func:`prior_strength`). ``fx`` and ``fy`` are free per step.
+(:func:`prior_strength`). ``fx`` and ``fy`` are free per step. Steps reached from different
+zoom directions (backlash) form separate chains, and neighbours closer than 0.1 % in focal length
+are not differenced: a lens state met twice is two measurements, not a curvature.
 
 The cost is ``sum_s sum_obs |uv_obs - uv(theta_s, pose_v, X_j)|^2 / sigma_s^2 + |D q / tau|^2 +
 |a / board_prior|^2``, ``sigma_s`` each step's image noise per coordinate, re-estimated from
@@ -69,7 +71,8 @@ from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 
 __all__ = ["PARAMS", "SMOOTHED", "DISTORTION_SETS", "ZoomWideResult", "calibrate_zoom_wide",
-           "select_distortion", "prior_strength", "second_difference", "board_height_modes"]
+           "select_distortion", "prior_strength", "pooled_prior_strength", "second_difference",
+           "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -128,22 +131,34 @@ def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray) -> tuple[f
     at_bound : bool
         The maximum lies at the grid's lower end: the data are as smooth as their noise shows.
     """
-    values, sd, u = (np.asarray(a, float) for a in (values, sd, u))
-    n = len(values)
-    if n < 3:
+    return pooled_prior_strength([(values, sd, u)])
+
+
+def pooled_prior_strength(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+                          ) -> tuple[float, bool]:
+    """:func:`prior_strength` of one ``tau`` shared by several chains ``(values, sd, u)`` (e.g.
+    the zoom-in and the zoom-out sweep of one lens): the chains' restricted likelihoods add."""
+    terms = [_restricted_terms(*c) for c in chains if len(c[0]) >= 3]
+    if not terms:
         return float("inf"), False
-    sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
-    L = np.column_stack([np.ones(n), u - u.mean()])
-    N = scipy.linalg.null_space(L.T)  # (n, n - 2)
-    B = np.linalg.inv(second_difference(u) @ N)
-    y = N.T @ values
-    noise = N.T @ (sd[:, None] ** 2 * N)
-    shape = B @ B.T
-    scale = max(float(np.std(values)) / max(np.ptp(u), 1e-9) ** 2, 1e-12)
+    scale = max(max(t[3] for t in terms), 1e-12)
     grid = scale * np.logspace(-6, 4, 201)
-    loglik = [_gauss_loglik(y, t * t * shape + noise) for t in grid]
+    loglik = [sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, _ in terms)
+              for g in grid]
     best = int(np.argmax(loglik))
     return float(grid[best]), best == 0
+
+
+def _restricted_terms(values, sd, u):
+    """``y = N^T q_hat``, the prior's shape ``(D N)^-1 (D N)^-T``, the noise ``N^T S N`` and a
+    scale for the grid, of one chain (see :func:`prior_strength`)."""
+    values, sd, u = (np.asarray(a, float) for a in (values, sd, u))
+    n = len(values)
+    sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
+    N = scipy.linalg.null_space(np.column_stack([np.ones(n), u - u.mean()]).T)  # (n, n - 2)
+    B = np.linalg.inv(second_difference(u) @ N)
+    scale = float(np.std(values)) / max(np.ptp(u), 1e-9) ** 2
+    return N.T @ values, B @ B.T, N.T @ (sd[:, None] ** 2 * N), scale
 
 
 def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
@@ -257,10 +272,11 @@ class _ZoomProblem:
     """
 
     def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
-                 free: np.ndarray, order: np.ndarray, u: np.ndarray, tau: dict[str, float],
+                 free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
+                 tau: dict[str, float],
                  board_prior_mm: float):
         self.steps, self.board, self.phi = steps, board, modes_basis
-        self.free, self.order, self.u, self.tau = free, order, u, tau
+        self.free, self.chains, self.u, self.tau = free, chains, u, tau
         self.board_prior = board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
@@ -274,14 +290,15 @@ class _ZoomProblem:
         rows = []
         for name in SMOOTHED:
             j = PARAMS.index(name)
-            steps = [s for s in self.order if self.free[s, j]]
             tau = self.tau.get(name, np.inf)
-            if len(steps) < 3 or not np.isfinite(tau):
-                continue
-            D = second_difference(self.u[steps]) / tau
-            block = np.zeros((len(D), self.n_unknowns))
-            block[:, self.cam_col[steps, j]] = D
-            rows.append(block)
+            for chain in self.chains:
+                steps = [s for s in chain if self.free[s, j]]
+                if len(steps) < 3 or not np.isfinite(tau):
+                    continue
+                D = second_difference(self.u[steps]) / tau
+                block = np.zeros((len(D), self.n_unknowns))
+                block[:, self.cam_col[steps, j]] = D
+                rows.append(block)
         if self.n_modes:
             block = np.zeros((self.n_modes, self.n_unknowns))
             block[:, self.n_cam:self.n_cam + self.n_modes] = np.eye(self.n_modes) / self.board_prior
@@ -508,17 +525,33 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
     return _State(cams, np.zeros(0), rvecs, tvecs), free, sds
 
 
-def _estimate_tau(cams: np.ndarray, sds, free: np.ndarray, order: np.ndarray, u: np.ndarray
-                  ) -> tuple[dict[str, float], dict[str, bool]]:
+def _estimate_tau(cams: np.ndarray, sds, free: np.ndarray, chains: list[np.ndarray],
+                  u: np.ndarray) -> tuple[dict[str, float], dict[str, bool]]:
     tau, at_bound = {}, {}
     sds = np.asarray(sds, float)
     for name in SMOOTHED:
         j = PARAMS.index(name)
-        steps = [s for s in order if free[s, j]]
-        if len(steps) < 3:
-            continue
-        tau[name], at_bound[name] = prior_strength(cams[steps, j], sds[steps, j], u[steps])
+        series = []
+        for chain in chains:
+            steps = [s for s in chain if free[s, j]]
+            if len(steps) >= 3:
+                series.append((cams[steps, j], sds[steps, j], u[steps]))
+        if series:
+            tau[name], at_bound[name] = pooled_prior_strength(series)
     return tau, at_bound
+
+
+def _chains(u: np.ndarray, labels: list[str], min_gap: float = 1e-3) -> list[np.ndarray]:
+    """Step indices of each chain of the smoothness prior: the steps of one label (e.g. one
+    zoom direction), sorted by ``u``, cut where two neighbours are closer than ``min_gap`` in
+    ``u`` (0.1 % in focal length: one lens state met twice is not a second difference)."""
+    chains = []
+    for label in dict.fromkeys(labels):
+        idx = np.array([i for i, lab in enumerate(labels) if lab == label])
+        idx = idx[np.argsort(u[idx], kind="stable")]
+        cuts = np.flatnonzero(np.diff(u[idx]) < min_gap) + 1
+        chains += [c for c in np.split(idx, cuts) if len(c)]
+    return chains
 
 
 def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
@@ -542,7 +575,8 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
-                        max_rounds: int = 4) -> ZoomWideResult:
+                        max_rounds: int = 4, chains: Mapping[str, str] | None = None
+                        ) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -558,6 +592,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         Prior sd of each height amplitude, mm.
     max_rounds : int
         Rounds of noise re-estimation and outlier rejection.
+    chains : mapping of step name to str, optional
+        Steps with different labels (e.g. the direction of the last zoom move, ``in`` or
+        ``out``) are not tied by the smoothness prior: each label's steps form their own chain
+        (with one shared ``tau``). Default: one chain.
 
     Returns
     -------
@@ -583,14 +621,15 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     terms, held, init = _initial(observations, select)
     state, free, sds = _start(init, terms)
     u = np.log(state.cams[:, 0])
-    order = np.argsort(u, kind="stable")
-    tau, tau_at_bound = _estimate_tau(state.cams, sds, free, order, u)
+    labels = [str((chains or {}).get(n, "")) for n in names]
+    chain_idx = _chains(u, labels)
+    tau, tau_at_bound = _estimate_tau(state.cams, sds, free, chain_idx, u)
     phi = (board_height_modes(board, board_degree) if board_degree >= 2
            else np.zeros((len(board), 0)))
     state.modes = np.zeros(phi.shape[1])
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
              for n in names]
-    prob = _ZoomProblem(steps, board, phi, free, order, u, tau, board_prior_mm)
+    prob = _ZoomProblem(steps, board, phi, free, chain_idx, u, tau, board_prior_mm)
     total_iterations = 0
     for _ in range(max_rounds):
         solve = _levenberg_marquardt(prob, state)

@@ -147,8 +147,10 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
         if unknown:
             raise ValueError(f"{source}: the zoom of step {unknown[0]} is unknown (no steps.csv "
                              f"row, no number in the folder name, no EXIF focal length)")
+        # per-step calibrations: the diagnosis treats the rows as independent measurements,
+        # which the zoom-wide adjustment's rows (tied by its smoothness prior) are not
         cal = calibrate_folder(source, pattern, out / "calibration", backends,
-                               workers=workers, progress=progress, log=log)
+                               workers=workers, progress=progress, log=log, zoom_wide=False)
         failures = list(cal.failures)
         table_path = out / "calibration" / "zoom_calibration.csv"
         if not table_path.exists():

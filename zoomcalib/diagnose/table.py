@@ -127,6 +127,10 @@ class ZoomTable:
         """
         if len(rows) == 0:
             raise ValueError(f"{source}: the table has no rows")
+        if any(str(r.get("mode") or "").strip() == "zoom-wide" for r in rows):
+            raise ValueError(f"{source}: rows of the zoom-wide adjustment are tied by its "
+                             "smoothness prior, and the diagnosis needs independent rows: "
+                             "calibrate with --per-step (or diagnose the image folder)")
         req = {}
         for key in ("zoom", "fx", "fy", "cx", "cy"):
             col = _column(rows, key)
