@@ -538,7 +538,8 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--backend", type=click.Choice(["opencv", "bundle", "both"]),
               help="Per-step calibration: cv2.calibrateCameraExtended, our photogrammetric "
                    "bundle (refines the target points), or both on the same detections. "
-                   "Default: opencv beside the zoom-wide adjustment, both with --per-step.")
+                   "Default: opencv beside the zoom-wide adjustment; both with --per-step or "
+                   "for a single image set.")
 @click.option("--per-step", is_flag=True,
               help="Calibrate each zoom step on its own only (no zoom-wide adjustment); the "
                    "zoom table then comes from the per-step backends.")
@@ -572,17 +573,18 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     from .detect import image_files
 
     _parse_target(pattern)
-    backend = backend or ("both" if per_step else "opencv")
-    backends = ("opencv", "bundle") if backend == "both" else (backend,)
-    if model != "standard" and not per_step:
-        raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
-                                 f"--per-step with --model {model}", param_hint="--model")
     from .calibrate.io import zoom_steps
 
     try:
         steps = zoom_steps(folder)
     except (ValueError, FileNotFoundError) as exc:
         raise click.BadParameter(str(exc), param_hint="FOLDER") from None
+    per_step = per_step or len(steps) < 2  # one set of images: nothing to adjust zoom-wide
+    backend = backend or ("both" if per_step else "opencv")
+    backends = ("opencv", "bundle") if backend == "both" else (backend,)
+    if model != "standard" and not per_step:
+        raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
+                                 f"--per-step with --model {model}", param_hint="--model")
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
