@@ -166,7 +166,12 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from zoomcalib.calibrate.result import DIST_NAMES, CalibrationResult, Observations
+from zoomcalib.calibrate.result import (
+    DIST_NAMES,
+    CalibrationResult,
+    Observations,
+    one_opencv_thread,
+)
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -1004,9 +1009,11 @@ def _initial_camera(image_size, X0: np.ndarray, ids_list, pts_list, fix_aspect: 
         w, h = image_size
         K = np.array([[max(w, h), 0, (w - 1) / 2], [0, max(w, h), (h - 1) / 2], [0, 0, 1.0]])
     try:
-        _, K, d, rv, tv = cv2.calibrateCamera(
-            objp, imgp, tuple(int(v) for v in image_size), K, None, flags=flags,
-            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, INIT_ITERATIONS, 2.2e-16))
+        with one_opencv_thread():
+            _, K, d, rv, tv = cv2.calibrateCamera(
+                objp, imgp, tuple(int(v) for v in image_size), K, None, flags=flags,
+                criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, INIT_ITERATIONS,
+                          2.2e-16))
     except cv2.error as exc:
         raise ValueError(f"the initial cv2.calibrateCamera failed ({exc.err}); the views may be "
                          "degenerate (e.g. all fronto-parallel)") from exc

@@ -46,7 +46,12 @@ import cv2
 import numpy as np
 
 from zoomcalib.calibrate.bundle import _Problem, _schur_solve, _State
-from zoomcalib.calibrate.result import DIST_NAMES, CalibrationResult, Observations
+from zoomcalib.calibrate.result import (
+    DIST_NAMES,
+    CalibrationResult,
+    Observations,
+    one_opencv_thread,
+)
 from zoomcalib.detect.opencv import Detection
 from zoomcalib.targets import Target, parse_pattern
 
@@ -367,7 +372,8 @@ def _criteria(criteria):
 
 def _run(fn, what: str, *args, **kwargs):
     try:
-        return fn(*args, **kwargs)
+        with one_opencv_thread():
+            return fn(*args, **kwargs)
     except cv2.error as exc:
         msg = " ".join(str(exc).split())
         raise RuntimeError(f"{what}: OpenCV failed: {msg}") from None

@@ -7,11 +7,13 @@ coordinates (``Rt_cam_board``), in the units of the object points (mm unless sta
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-__all__ = ["Observations", "CalibrationResult", "DIST_NAMES"]
+__all__ = ["Observations", "CalibrationResult", "DIST_NAMES", "one_opencv_thread"]
 
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
@@ -130,3 +132,16 @@ class CalibrationResult:
         d["info"] = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                      for k, v in self.info.items()}
         return d
+
+
+@contextlib.contextmanager
+def one_opencv_thread():
+    """Run OpenCV on one thread inside the block: its parallel sums make calibrateCamera's
+    result differ in the last digits from run to run (1e-9 px in fx), and a rerun must give the
+    same files."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
