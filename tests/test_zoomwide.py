@@ -188,3 +188,16 @@ def test_diagnose_refuses_zoom_wide_rows():
              "cy": 360.0, "mode": "zoom-wide"} for i in range(5)]
     with pytest.raises(ValueError, match="--per-step"):
         ZoomTable.from_rows(rows, "t.csv")
+
+
+def test_a_step_that_cannot_start_is_left_out_not_fatal(rng):
+    obs, truth, _ = sweep_observations(rng, steps=4, views=8, fx_range=(2300, 6000))
+    short = obs["step2"]
+    obs["step2"] = Observations(short.object_points, short.views[:2], short.image_size,
+                                short.names[:2])
+    zw = calibrate_zoom_wide(obs)
+    assert set(zw.skipped) == {"step2"}
+    assert zw.skipped["step2"].startswith("step step2: no starting calibration"), zw.skipped
+    assert set(zw.results) == {"step0", "step1", "step3"}
+    for name, r in zw.results.items():
+        assert abs(r.fx / truth[name]["fx"] - 1) < 0.003

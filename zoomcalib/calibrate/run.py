@@ -297,6 +297,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                              "board_modes_mm": zw.board_modes.tolist(),
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
+                             "skipped": zw.skipped,
                              "held_out_mse_px2": zw.held_out}
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
@@ -421,6 +422,9 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         return
     if not zw.converged:
         log(f"zoom-wide adjustment did not converge ({zw.stop_reason}); its rows are marked")
+    for step, why in zw.skipped.items():
+        run.failures.append(f"step {step}: left out of the zoom-wide adjustment: {why}")
+        log(run.failures[-1])
     for step, res in zw.results.items():
         run.results[step]["zoom-wide"] = res
         # a per-step backend that failed here is reported, but the step's result is complete

@@ -470,6 +470,8 @@ class ZoomWideResult:
     converged : bool
     stop_reason : str
     iterations : int
+    skipped : dict of str to str
+        Steps left out (no starting calibration), with the reason.
     """
 
     results: dict[str, CalibrationResult]
@@ -483,18 +485,23 @@ class ZoomWideResult:
     converged: bool = False
     stop_reason: str = ""
     iterations: int = 0
+    skipped: dict[str, str] = field(default_factory=dict)
 
 
 def _initial(observations: Mapping[str, Observations], select: bool):
-    """Per step: chosen terms, their held-out errors and an OpenCV calibration with them."""
-    terms, held, init = {}, {}, {}
+    """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
+    step that cannot be started is left out (``skipped``: step -> reason)."""
+    terms, held, init, skipped = {}, {}, {}, {}
     for name, obs in observations.items():
         if select:
             terms[name], held[name] = select_distortion(obs)
         else:
             terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
-        init[name] = _opencv_start(name, obs, terms)
-    return terms, held, init
+        try:
+            init[name] = _opencv_start(name, obs, terms)
+        except ValueError as exc:
+            skipped[name] = str(exc)
+    return terms, held, init, skipped
 
 
 def _opencv_start(name: str, obs: Observations, terms: dict) -> CalibrationResult:
@@ -618,7 +625,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         if tuple(observations[n].image_size) != size:
             raise ValueError(f"step {n}: image size {observations[n].image_size} differs from "
                              f"step {names[0]}'s {size} (one camera has one sensor)")
-    terms, held, init = _initial(observations, select)
+    terms, held, init, skipped = _initial(observations, select)
+    names = [n for n in names if n in init]
+    if len(names) < 2:
+        raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
+                         + "; ".join(skipped.values()))
     state, free, sds = _start(init, terms)
     u = np.log(state.cams[:, 0])
     labels = [str((chains or {}).get(n, "")) for n in names]
@@ -639,7 +650,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     else:
         solve = _levenberg_marquardt(prob, state)
         state, total_iterations = solve.state, total_iterations + solve.iterations
-    return _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
+    result = _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
+    result.skipped = skipped
+    return result
 
 
 def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
