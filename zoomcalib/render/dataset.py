@@ -24,7 +24,7 @@ the surface under ``board_surface``). JPEG compression changes the images only, 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import cv2
@@ -188,6 +188,16 @@ def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
                          f"{MIN_PSF_LIMIT_PX:g} px)")
 
 
+def _axis_tilted(em, axis_tilt_mrad):
+    """``em`` with its image moved by ``(fx theta_x, fy theta_y)`` px (see render_dataset)."""
+    if axis_tilt_mrad is None:
+        return em
+    cam = em.camera
+    moved = replace(cam, cx=cam.cx + cam.fx * 1e-3 * axis_tilt_mrad[0],
+                    cy=cam.cy + cam.fy * 1e-3 * axis_tilt_mrad[1])
+    return replace(em, camera=moved)
+
+
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
                    zoom: list[float], n_views: int, pattern: str, optics: Optics | None = None,
                    radiometry: Radiometry | None = None, seed: int = 0,
@@ -196,7 +206,8 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
                    direction: str | Sequence[str] = "random",
                    progress: Callable[[int], None] | None = None,
                    board_surface: BoardSurface | float | None = None,
-                   jpeg_quality: int | None = None) -> dict:
+                   jpeg_quality: int | None = None,
+                   axis_tilt_mrad: tuple[float, float] | None = None) -> dict:
     """Render a multi-zoom calibration data set (layout in the module docstring).
 
     Parameters
@@ -215,6 +226,10 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         recorded in the step's ``board_surface``. None: flat.
     jpeg_quality : int, optional
         Write JPEG files of this quality (1-100, 8-bit images only) instead of PNG.
+    axis_tilt_mrad : (float, float), optional
+        The lens's optical axis tilted against the sensor normal by ``(theta_x, theta_y)`` mrad:
+        to first order the image moves by ``(fx theta_x, fy theta_y)`` px at every zoom, which
+        is how it is rendered (the step's ``camera`` carries the moved principal point).
 
     Returns
     -------
@@ -249,7 +264,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     for i, z in enumerate(zoom):
         rng = np.random.default_rng(step_seeds[i])
         mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
-        em = exact_mapping(lens, z, mis, sensor)
+        em = _axis_tilted(exact_mapping(lens, z, mis, sensor), axis_tilt_mrad)
         mapping = em if through == "exact" else camera_mapping(em.camera)
         target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
         try:
@@ -293,6 +308,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     doc = {
         "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
         "sensor": asdict(sensor), "seed": seed, "through": through,
+        "axis_tilt_mrad": None if axis_tilt_mrad is None else [float(v) for v in axis_tilt_mrad],
         "tolerances": None if tolerances is None else tolerances.to_dict(),
         "optics": asdict(optics), "radiometry": asdict(radiometry),
         "distance_mm": distance_mm, "fill": fill, "supersample": supersample,
