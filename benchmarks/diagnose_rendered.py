@@ -1,12 +1,16 @@
-"""End-to-end diagnosis of a rendered zoom sweep with hidden backlash (the test's set, printed).
+"""End-to-end diagnosis of a rendered zoom sweep with hidden backlash (the test's set, printed),
+or with a hidden axis tilt.
 
 Renders 5 zoom settings (lens states 0-0.4) swept in and then out, 10 chessboard views each, at
 640x480 with 12.9 um pixels through ``laikin-10x`` whose compensator has 100 um of backlash;
-calibrates every step with OpenCV and diagnoses the per-zoom table.
+calibrates every step with OpenCV and diagnoses the per-zoom table. With ``--axis-tilt TX,TY``
+(mrad) it renders instead 8 settings over the whole range (0-1) in a shuffled capture order,
+all approached zooming in, no backlash, the lens axis tilted against the sensor.
 
 Usage::
 
     python benchmarks/diagnose_rendered.py [--out DIR] [--backlash-um 100] [--views 10]
+                                           [--axis-tilt TX,TY]
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ def main() -> None:
     ap.add_argument("--backlash-um", type=float, default=100.0)
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--axis-tilt", default="", help="TX,TY mrad: the axis-tilt sweep instead")
     a = ap.parse_args()
+    tilt = tuple(float(v) for v in a.axis_tilt.split(",")) if a.axis_tilt else None
     out = Path(a.out or tempfile.mkdtemp(prefix="diagnose-rendered-"))
     lens = load_prescription("laikin-10x")
     phase = 120.0
@@ -39,13 +45,19 @@ def main() -> None:
         "variator": GroupTolerance(locked_decenter_um=15.0, locked_tilt_arcmin=1.0,
                                    locked_tilt_phase_deg=90.0, play_um=1.0),
         "compensator": GroupTolerance(locked_decenter_um=10.0, locked_decenter_phase_deg=phase,
-                                      play_um=1.0, backlash_um=a.backlash_um)}, "benchmark")
-    settings = list(np.linspace(0.0, 0.4, 5))
+                                      play_um=1.0,
+                                      backlash_um=0.0 if tilt else a.backlash_um)}, "benchmark")
     sensor = Sensor(640, 480, 0.0129)
     t0 = time.perf_counter()
-    render_dataset(lens, tol, out / "set", settings + settings[::-1], a.views,
-                   "chessboard:9x6:25", seed=a.seed, sensor=sensor,
-                   direction=["in"] * 5 + ["out"] * 5)
+    if tilt:
+        settings = list(np.random.default_rng(a.seed).permutation(np.linspace(0.0, 1.0, 8)))
+        render_dataset(lens, tol, out / "set", settings, a.views, "chessboard:9x6:25",
+                       seed=a.seed, sensor=sensor, direction="in", axis_tilt_mrad=tilt)
+    else:
+        settings = list(np.linspace(0.0, 0.4, 5))
+        render_dataset(lens, tol, out / "set", settings + settings[::-1], a.views,
+                       "chessboard:9x6:25", seed=a.seed, sensor=sensor,
+                       direction=["in"] * 5 + ["out"] * 5)
     t1 = time.perf_counter()
     run = diagnose_input(out / "set", out / "diag", lens, sensor.pixel_pitch_mm, tol,
                          "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
@@ -53,7 +65,8 @@ def main() -> None:
     d = run.diagnosis
     doc = d.to_dict()
     ang = np.deg2rad(phase + 90.0)
-    truth = 0.5 * a.backlash_um * np.array([np.cos(ang), np.sin(ang)])
+    truth = np.array(tilt) if tilt else 0.5 * a.backlash_um * np.array([np.cos(ang),
+                                                                        np.sin(ang)])
     print(f"render {t1 - t0:.0f} s, calibrate + diagnose {t2 - t1:.0f} s; output in {out}")
     print(f"cause: {d.cause}  variant: {doc['extended']['variant']}")
     for c in doc["candidates"]:
@@ -64,8 +77,8 @@ def main() -> None:
     print(f"extended: rms {e['rms_px']:.2f} px, chi2/dof {e['chi2_dof']:.2f}, cv_rms "
           f"{e['cv_rms_px']:.2f} px; gain {doc['gain']['cv_rms_ratio']:.2f}")
     for (k, v), t in zip(e["params"].items(), truth, strict=False):
-        print(f"  {k} = {v:.1f} +- {e['params_sd'][k]:.1f}  (truth for the compensator "
-              f"{t:.1f})")
+        print(f"  {k} = {v:.2f} +- {e['params_sd'][k]:.2f}  (hidden: "
+              f"{'axis tilt' if tilt else 'compensator backlash'} {t:.2f})")
 
 
 if __name__ == "__main__":
