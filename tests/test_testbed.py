@@ -340,3 +340,19 @@ def test_axis_tilt_moves_the_image_by_fx_theta(tmp_path, laikin):
     np.testing.assert_allclose(np.asarray(view["points_px"]) - plain,
                                np.broadcast_to(shift, plain.shape), atol=1e-4)
     assert docs[1]["axis_tilt_mrad"] == pytest.approx(list(tilt))
+
+
+def test_a_new_render_replaces_an_older_one_in_the_same_folder(tmp_path):
+    from zoomcalib.render.sweep import render_zoom_sweep
+
+    out = tmp_path / "sweep"
+    (tmp_path / "sweep").mkdir()
+    (out / "notes.txt").write_text("the user's own file")
+    kw = dict(fx_range=(900.0, 1400.0), steps=2, size=(160, 120), pattern="chessboard:5x4:20")
+    render_zoom_sweep(out, views=3, **kw)
+    render_zoom_sweep(out, views=2, jpeg_quality=90, **kw)
+    images = sorted(p.relative_to(out).as_posix() for p in out.rglob("view_*"))
+    truth = json.loads((out / "truth.json").read_text())
+    assert images == sorted(v["file"] for st in truth["steps"] for v in st["views"])
+    assert len(images) == 4 and all(i.endswith(".jpg") for i in images)
+    assert (out / "notes.txt").read_text() == "the user's own file"

@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import __version__
 from ..camera import DEFAULT_SENSOR, Sensor
-from ..io import write_csv, write_json
+from ..io import read_json, write_csv, write_json
 from ..optics.lens_camera import exact_mapping
 from ..optics.mechanics import Tolerances, draw_misalignment
 from ..optics.misalignment import Misalignment
@@ -48,7 +48,7 @@ from .image import (
     render_image,
 )
 
-__all__ = ["check_render_inputs", "generate_poses", "render_dataset",
+__all__ = ["check_render_inputs", "clear_previous_render", "generate_poses", "render_dataset",
            "scaled_target_for_view", "psf_limit_px", "write_image", "MAX_PSF_FRACTION",
            "MIN_PSF_LIMIT_PX"]
 
@@ -188,6 +188,38 @@ def check_render_inputs(optics: Optics, sensor: Sensor, n_views: int) -> None:
                          f"{MIN_PSF_LIMIT_PX:g} px)")
 
 
+def clear_previous_render(out: Path) -> list[Path]:
+    """Remove what an earlier ``render`` or ``render-sweep`` wrote in ``out``: the images its
+    ``dataset.json`` or ``truth.json`` lists, that file and ``steps.csv``; step folders left
+    empty go too. Other files are never touched, so a new render never sits beside an older
+    one's extra views.
+
+    Returns
+    -------
+    list of Path
+        The files removed.
+    """
+    removed = []
+    root = out.resolve()
+    for name in ("dataset.json", "truth.json"):
+        doc_path = out / name
+        try:
+            doc = read_json(doc_path) if doc_path.is_file() else None
+        except ValueError:
+            doc = None
+        steps = doc.get("steps", []) if isinstance(doc, dict) else []
+        files = [out / str(v.get("file", "")) for st in steps if isinstance(st, dict)
+                 for v in st.get("views", []) if isinstance(v, dict)]
+        for f in [*files, doc_path, out / "steps.csv"]:
+            if f.is_file() and f.resolve().is_relative_to(root):
+                f.unlink()
+                removed.append(f)
+        for folder in {f.parent for f in files}:
+            if folder != out and folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+    return removed
+
+
 def _axis_tilted(em, axis_tilt_mrad):
     """``em`` with its image moved by ``(fx theta_x, fy theta_y)`` px (see render_dataset)."""
     if axis_tilt_mrad is None:
@@ -272,6 +304,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         except RuntimeError as exc:
             raise ValueError(f"zoom {z:g}: {exc}") from None
         plans.append((rng, mis, em, mapping, target, poses))
+    clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
     steps, rows = [], []
     for i, (z, (rng, mis, em, mapping, target, poses)) in enumerate(zip(zoom, plans,

@@ -47,7 +47,7 @@ from .. import __version__
 from ..camera import CameraModel, Sensor
 from ..io import write_csv, write_json
 from ..targets import Target, parse_pattern
-from .dataset import check_jpeg_quality, write_image
+from .dataset import check_jpeg_quality, clear_previous_render, write_image
 from .image import BoardSurface, Optics, Radiometry, camera_mapping, project_points, render_image
 
 __all__ = ["SWEEP_SENSOR", "sweep_cameras", "sweep_poses", "render_zoom_sweep"]
@@ -179,6 +179,7 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         surface = BoardSurface.random(target.extent_mm, float(board_surface),
                                       np.random.default_rng(surface_seed))
     out = Path(out)
+    clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
     max_tilt = np.geomspace(tilt_deg[0], tilt_deg[1], steps)
     doc_steps, rows = [], []
