@@ -356,3 +356,33 @@ def test_a_new_render_replaces_an_older_one_in_the_same_folder(tmp_path):
     assert images == sorted(v["file"] for st in truth["steps"] for v in st["views"])
     assert len(images) == 4 and all(i.endswith(".jpg") for i in images)
     assert (out / "notes.txt").read_text() == "the user's own file"
+
+
+def test_an_interrupted_sweep_rerun_equals_one_run(tmp_path):
+    from zoomcalib.render.sweep import render_zoom_sweep
+
+    kw = dict(fx_range=(900.0, 1400.0), steps=2, views=2, size=(160, 120),
+              pattern="chessboard:5x4:20", seed=9)
+    render_zoom_sweep(tmp_path / "once", **kw)
+
+    def interrupt(n, left=[3]):  # noqa: B006 (a counter shared across calls)
+        left[0] -= n
+        if left[0] <= 0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        render_zoom_sweep(tmp_path / "twice", progress=interrupt, **kw)
+    render_zoom_sweep(tmp_path / "twice", **kw)
+
+    def contents(root):
+        files = {p.relative_to(root).as_posix(): p.read_bytes() for p in root.rglob("*")
+                 if p.is_file()}
+        truth = json.loads(files.pop("truth.json"))
+        for key in ("render_s", "render_cpu_s"):  # timings differ between runs
+            truth.pop(key)
+        files["truth.json"] = json.dumps(truth, sort_keys=True).encode()
+        return files
+
+    once, twice = contents(tmp_path / "once"), contents(tmp_path / "twice")
+    assert once.keys() == twice.keys()
+    assert all(once[k] == twice[k] for k in once)
