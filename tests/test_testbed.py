@@ -386,3 +386,25 @@ def test_an_interrupted_sweep_rerun_equals_one_run(tmp_path):
     once, twice = contents(tmp_path / "once"), contents(tmp_path / "twice")
     assert once.keys() == twice.keys()
     assert all(once[k] == twice[k] for k in once)
+
+
+def test_an_interrupted_lens_render_rerun_equals_one_run(tmp_path, laikin):
+    from zoomcalib.render.dataset import render_dataset
+
+    sensor = Sensor(160, 120, 0.0516)
+    kw = dict(sensor=sensor, seed=4, direction="in")
+    render_dataset(laikin, None, tmp_path / "once", [0.1, 0.6], 2, "chessboard:5x4:25", **kw)
+
+    def interrupt(n, left=[3]):  # noqa: B006 (a counter shared across calls)
+        left[0] -= n
+        if left[0] <= 0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        render_dataset(laikin, None, tmp_path / "twice", [0.1, 0.6], 2, "chessboard:5x4:25",
+                       progress=interrupt, **kw)
+    render_dataset(laikin, None, tmp_path / "twice", [0.1, 0.6], 2, "chessboard:5x4:25", **kw)
+    once, twice = ({p.relative_to(r).as_posix(): p.read_bytes() for p in r.rglob("*")
+                    if p.is_file()} for r in (tmp_path / "once", tmp_path / "twice"))
+    assert once.keys() == twice.keys()
+    assert [k for k in once if once[k] != twice[k]] == []
