@@ -273,3 +273,23 @@ def test_a_write_failing_during_the_work_is_one_line(tmp_path, monkeypatch):
     monkeypatch.setattr(zoomcalib.simulate, "simulate", disk_full)
     res = CliRunner().invoke(main, ["simulate", "--out", str(tmp_path / "sim")])
     one_line_error(res, 1, f"{tmp_path / 'sim' / 'spiral.png'}: No space left on device")
+
+
+@pytest.mark.parametrize("failed, code", [(1, 3), ("all", 4)])
+def test_study_exit_codes_name_failed_sets(tmp_path, monkeypatch, failed, code):
+    import zoomcalib.study.run as study_run
+
+    real_tasks = study_run.detection_tasks
+
+    def fake_run(config, out, **kw):  # the CLI's handling of failed sets, not the study
+        n = len(real_tasks(config)) if failed == "all" else failed
+        return {"failures": [f"set{i}: detection failed" for i in range(n)], "comparison": [],
+                "timing": {"render_s": 0, "detect_s": 0, "calibrate_s": 0, "mechanics_s": 0,
+                           "wall_s": 0}}
+
+    monkeypatch.setattr(study_run, "run_study", fake_run)
+    res = CliRunner().invoke(main, ["study", "--quick", "--out", str(tmp_path / "st")])
+    assert res.exit_code == code, res.output
+    last = res.output.strip().splitlines()[-1]
+    assert ("partial result" if code == 3 else "nothing usable") in last
+    assert "set0" in res.output and "Traceback" not in res.output
