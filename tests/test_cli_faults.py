@@ -293,3 +293,26 @@ def test_study_exit_codes_name_failed_sets(tmp_path, monkeypatch, failed, code):
     last = res.output.strip().splitlines()[-1]
     assert ("partial result" if code == 3 else "nothing usable") in last
     assert "set0" in res.output and "Traceback" not in res.output
+
+
+def test_calibrate_warns_of_a_solve_that_did_not_converge(tmp_path, monkeypatch):
+    import shutil
+
+    from zoomcalib.calibrate import opencv_backend
+
+    samples = Path(__file__).parent / "data" / "opencv-samples"
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for f in sorted(samples.glob("left*.jpg"))[:8]:
+        shutil.copy(f, folder / f.name)
+    real = opencv_backend.calibrate_opencv
+
+    def capped(obs, *a, **kw):  # OpenCV stopped after 2 iterations: far from its minimum
+        kw["criteria"] = (3, 2, 1e-12)
+        return real(obs, *a, **kw)
+
+    monkeypatch.setattr(zoomcalib.calibrate.run, "calibrate_opencv", capped)
+    res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", "chessboard:9x6:25",
+                                    "--backend", "both", "--workers", "1",
+                                    "--out", str(tmp_path / "out")])
+    assert "step . (opencv) did not converge" in res.output, res.output

@@ -631,6 +631,11 @@ def _print_calibration(run) -> None:
             click.echo(f"{step:>12s} " + " ".join(f"z_{q} {v:+6.2f}" for q, v in z.items()))
         for step, why in cv.failures.items():
             click.echo(f"{step:>12s} halves not calibrated: {why}")
+    for step, res in run.results.items():
+        for name, r in res.items():
+            if not r.converged and run.table_backend.get(step) != name:  # the table's: flagged
+                click.echo(f"warning: step {step} ({name}) did not converge "
+                           f"({r.info.get('stop_reason', 'no reason reported')})")
     for step, reasons in run.flags.items():
         click.echo(f"FLAGGED step {step}: " + "; ".join(reasons))
 
