@@ -285,3 +285,18 @@ def test_a_distortion_model_without_an_export_is_reported(tmp_path):
     assert run.failures == logged
     assert tmp_path / "mrcal" / "a.cameramodel" in files
     assert not (tmp_path / "mrcal" / "b.cameramodel").exists()
+
+
+def test_calibrate_refuses_a_camera_name_ros_would_not_accept(tmp_path):
+    from click.testing import CliRunner
+
+    from zoomcalib.cli import main
+
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "view.png"), np.zeros((8, 8), np.uint8))
+    res = CliRunner().invoke(main, ["calibrate", str(images), "--pattern", "chessboard:9x6:25",
+                                    "--camera-name", "zoom cam", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2
+    assert "'zoom cam': ROS camera names are letters, digits and _" in res.output
+    assert not (tmp_path / "o").exists()

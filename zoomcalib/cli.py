@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -591,6 +592,9 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     if model != "standard" and not per_step:
         raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
                                  f"--per-step with --model {model}", param_hint="--model")
+    if camera_name is not None and not re.fullmatch(r"[A-Za-z0-9_]+", camera_name):
+        raise click.BadParameter(f"{camera_name!r}: ROS camera names are letters, digits and _",
+                                 param_hint="--camera-name")
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
