@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -555,14 +556,20 @@ def detect(folder, pattern, methods, workers, out):
               help="Detection processes (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
-def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out):
+@click.option("--grid-points", default=50, show_default=True, type=click.IntRange(min=2),
+              help="Zoom values of OUT/zoom_model_grid.csv, spread over the calibrated range.")
+@click.option("--camera-name", help="camera_name of the ROS files in OUT/ros (default: "
+                                    "FOLDER's name).")
+def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
+              grid_points, camera_name):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
     else the images' EXIF focal length. A zoom set is calibrated by one zoom-wide adjustment
     (every step together: one board, a smoothness prior across zoom; --per-step turns it off)
-    beside per-step OpenCV. Writes OUT/calibration.json and .yml, and for zoom sets
-    OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
+    beside per-step OpenCV. Writes OUT/calibration.json and .yml, per step OpenCV, ROS and
+    mrcal files (OUT/opencv, OUT/ros, OUT/mrcal), and for zoom sets OUT/zoom_calibration.csv,
+    OUT/zoom_model.json, OUT/zoom_model_grid.csv and figures. Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
     again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
     on a step, or an image skipped).
@@ -585,13 +592,17 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     if model != "standard" and not per_step:
         raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
                                  f"--per-step with --model {model}", param_hint="--model")
+    if camera_name is not None and not re.fullmatch(r"[A-Za-z0-9_]+", camera_name):
+        raise click.BadParameter(f"{camera_name!r}: ROS camera names are letters, digits and _",
+                                 param_hint="--camera-name")
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
         run = calibrate_folder(folder, pattern, out, backends, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
-                               zoom_wide=not per_step, cross_validate=cross_validate)
+                               zoom_wide=not per_step, cross_validate=cross_validate,
+                               grid_points=grid_points, camera_name=camera_name)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

@@ -15,6 +15,8 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
   default for a zoom set), else the bundle when it calibrated every step, else OpenCV;
 - ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
   (four or more steps with known zoom);
+- ``opencv/``, ``ros/``, ``mrcal/`` and ``zoom_model_grid.csv`` — the results in the formats
+  of other tools (:mod:`zoomcalib.calibrate.export`);
 - figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
 - ``manifest.json`` — the files this run wrote, the command and the inputs. A run first
   removes the files an earlier run left (listed in its manifest, or named as this job names
@@ -27,6 +29,7 @@ the others are kept. An image of another size than most of its step is left out 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +39,7 @@ import numpy as np
 
 from ..detect import image_files
 from ..targets import Target, parse_pattern
+from .export import write_exports
 from .guards import (
     clear_previous_outputs,
     detect_with_cache,
@@ -188,7 +192,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      method: str | None = None, workers: int = 1,
                      progress: Callable[[int], None] | None = None,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
-                     cross_validate: bool = False) -> CalibrateRun:
+                     cross_validate: bool = False, grid_points: int = 50,
+                     camera_name: str | None = None) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -214,6 +219,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
         and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
+    grid_points : int
+        Zoom values of ``zoom_model_grid.csv`` (:mod:`zoomcalib.calibrate.export`).
+    camera_name : str, optional
+        ``camera_name`` of the ROS files; default the image folder's name, with characters
+        other than ``[A-Za-z0-9_]`` replaced by ``_``.
 
     Returns
     -------
@@ -320,6 +330,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 run.failures.append(f"zoom model: {exc}")
                 log(run.failures[-1])
     if run.results:
+        run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
+                                   log)
         run.files += _figures(run, out, zoom_set)
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "detection_settings": settings}
@@ -329,6 +341,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
 # ----------------------------------------------------------------------------------------------
 # helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+
+
+def _camera_name(folder: str | Path) -> str:
+    """The image folder's name made a ROS camera name (``[A-Za-z0-9_]``)."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", Path(folder).resolve().name) or "camera"
 
 
 def _zoom_model_row(row: dict) -> dict:
