@@ -231,19 +231,30 @@ def _parse_target(spec):
               help="Resolution of the PNG.")
 @click.option("--out", default="target", show_default=True,
               help="Output stem: writes STEM.png, STEM.svg (mm) and STEM.json (geometry).")
-def target(pattern, dpi, out):
+@click.option("--paper", type=click.Choice(["A4", "A3", "letter"], case_sensitive=False),
+              default=None,
+              help="Lay the board out on this paper (portrait, or landscape if it fits only "
+                   "that way); warns when it does not fit the printable area.")
+def target(pattern, dpi, out, paper):
     """Write a printable target for PATTERN.
 
     PATTERN is chessboard:COLSxROWS:SQUARE (inner corners, mm), circles:COLSxROWS:SPACING,
-    acircles:COLSxROWS:SPACING or charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT.
+    acircles:COLSxROWS:SPACING or charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT. The PNG carries
+    its DPI; under the board are its spec and a 100 mm bar to check the print with a ruler.
     """
-    from .targets import write_printable
+    from .targets import PAPER_MM, write_printable
 
     t = _parse_target(pattern)
     _check_out_file(out, suffixes=(".png", ".svg", ".json"))
-    files = write_printable(t, out, dpi)
+    if paper is not None:
+        paper = next(p for p in PAPER_MM if p.lower() == paper.lower())
+    files, layout = write_printable(t, out, dpi, paper)
     w, h = t.size_mm
     click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
+    if layout.orientation is not None:
+        click.echo(f"laid out on {paper} {layout.orientation}; print at 100 % (no fit to page)")
+    if layout.problem is not None:
+        click.echo(f"warning: {files[0]}: {layout.problem}", err=True)
 
 
 def _testbed_options(func):

@@ -536,18 +536,19 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
     steps = list(run.results)
     best = {s: run.results[s][run.table_backend[s]] for s in steps}
     if zoom_set and len(steps) > 1:
-        zoom = np.array([run.zoom[s] if run.zoom[s] is not None else i
-                         for i, s in enumerate(steps)], dtype=float)
-        zmin, zmax = zoom.min(), zoom.max()
-        zn = (zoom - zmin) / (zmax - zmin) if zmax > zmin else np.zeros_like(zoom)
+        known = all(run.zoom[s] is not None for s in steps)
+        zoom = np.array([run.zoom[s] if known else i for i, s in enumerate(steps)], dtype=float)
+        label = ("zoom (the table's zoom column)" if known
+                 else "step index (zoom unknown: no steps.csv or zoom in the step names)")
         mean = np.array([[best[s].cx, best[s].cy] for s in steps])
         sd = np.array([[best[s].sd.get("cx", 0.0), best[s].sd.get("cy", 0.0)] for s in steps])
         files.append(plot_principal_point_spiral(
-            zn, mean, sd, out / "principal_point_path.png",
-            title="Calibrated principal point across zoom (1-sigma ellipses)"))
+            zoom, mean, sd, out / "principal_point_path.png",
+            title="Calibrated principal point across zoom (1-sigma ellipses)",
+            zoom_label=label))
         f = np.array([[best[s].fx, best[s].sd.get("fx", 0.0)] for s in steps])
         files.append(plot_focal_length(zoom, f[:, 0], f[:, 1], out / "focal_length.png",
-                                       run.zoom_model))
+                                       run.zoom_model if known else None, zoom_label=label))
     cv = run.cross_validation
     if cv is not None and cv.z:
         from ..plots import plot_cross_validation

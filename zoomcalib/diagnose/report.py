@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json
-from ..plots import _pyplot
+from ..plots import _pyplot, wrap_title
 from .discrepancy import Diagnosis, LinearFit
 from .model import Context, design_matrix
 from .table import ZoomTable
@@ -41,25 +41,32 @@ def _focal(diag: Diagnosis) -> tuple[np.ndarray, str]:
     return diag.table.fx * diag.pitch_mm, "focal length [mm] (from measured fx)"
 
 
+ZOOM_LABEL = "zoom (the table's zoom column)"
+
+
 def plot_path(diag: Diagnosis, path: str | Path) -> Path:
     """Measured principal points against the simulation's path (baseline fit) and the extension.
 
-    The baseline is drawn along the whole measured focal range (its terms depend on the lens
-    state only); the extended model at the measured rows, because its extra terms may depend on
-    the direction, capture order or focus of each row.
+    The measured points are coloured by the table's zoom (the user's unit), their mean per zoom
+    setting joined in zoom order. The baseline is drawn along the whole measured focal range
+    (its terms depend on the lens state only); the extended model at the measured rows, because
+    its extra terms may depend on the direction, capture order or focus of each row.
     """
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 6.0), dpi=120)
+    fig, ax = plt.subplots(figsize=(6.4, 6.0), dpi=120, layout="constrained")
     dense = _dense_context(diag)
     curve = _fitted(diag.baseline, dense)
     ax.plot(curve[:, 0], curve[:, 1], "-", color="0.45", lw=1.0,
             label="simulated path (baseline fit)" if diag.response is not None
             else "smooth path in log f (baseline fit)")
     meas = diag.table.principal_point
+    groups = diag.table.zoom_groups()  # labels in increasing zoom
+    per_zoom = np.array([meas[groups == g].mean(0) for g in np.unique(groups)])
+    ax.plot(per_zoom[:, 0], per_zoom[:, 1], ":", color="0.55", lw=0.9, zorder=1,
+            label="measured, mean per zoom, in zoom order")
     sd = np.maximum(diag.sigma_px, 1e-9)
-    focal, focal_label = _focal(diag)
-    sc = ax.scatter(meas[:, 0], meas[:, 1], c=focal, cmap="viridis",
-                    s=16, zorder=3, label="measured")
+    sc = ax.scatter(meas[:, 0], meas[:, 1], c=diag.table.zoom, cmap="viridis", s=16, zorder=3,
+                    label="measured")
     ax.errorbar(meas[:, 0], meas[:, 1], xerr=sd, yerr=sd, fmt="none", ecolor="0.7", lw=0.6,
                 zorder=2)
     if diag.extended is not None:
@@ -72,54 +79,61 @@ def plot_path(diag: Diagnosis, path: str | Path) -> Path:
     ax.set_xlabel("cx [px]")
     ax.set_ylabel("cy [px]")
     ax.legend(fontsize=7, loc="best")
-    fig.colorbar(sc, ax=ax, label=focal_label, shrink=0.8)
-    ax.set_title(f"Principal point: measured vs simulated ({diag.table.source})", fontsize=9)
-    fig.tight_layout()
+    fig.colorbar(sc, ax=ax, label=ZOOM_LABEL, shrink=0.8)
+    ax.set_title(wrap_title(f"Principal point: measured vs simulated ({diag.table.source})",
+                            5.0), fontsize=9)
     fig.savefig(path)
     plt.close(fig)
     return Path(path)
 
 
+def _order_colour(table: ZoomTable) -> tuple[np.ndarray, str, str]:
+    """Values that colour the right-hand residual panels, the colour bar's label and the
+    panel's title: capture order if the table has it, else the zoom."""
+    if table.sequence is not None:
+        return table.sequence, "capture order (the table's sequence column)", "capture order"
+    return table.zoom, f"{ZOOM_LABEL}; no capture order in the table", "zoom"
+
+
 def plot_residuals(diag: Diagnosis, path: str | Path) -> Path:
     """Residuals against focal length, before (baseline) and after the extension, coloured by
-    the direction of the last zoom move (left) and by capture order (right)."""
+    the direction of the last zoom move (left) and by capture order, or by the zoom when the
+    table has no capture order (right)."""
     plt = _pyplot()
     from matplotlib.ticker import NullFormatter, ScalarFormatter
 
-    fig, axes = plt.subplots(2, 2, figsize=(10, 6.4), dpi=110, sharex=True, sharey="row")
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6.8), dpi=110, sharex=True, sharey="row",
+                             layout="constrained")
     efl, focal_label = _focal(diag)
     after = diag.extended.fit if diag.extended is not None else diag.baseline
-    order = (diag.table.sequence if diag.table.sequence is not None
-             else np.arange(diag.table.n, dtype=float))
+    colour, colour_label, colour_name = _order_colour(diag.table)
     direction = (diag.table.direction if diag.table.direction is not None
                  else np.zeros(diag.table.n))
     for row, (fit, name) in enumerate([(diag.baseline, "baseline"),
                                        (after, f"extended: {diag.cause}")]):
         r = fit.residual_px
         ax = axes[row, 0]
-        for sign, colour, label in [(1.0, "C0", "in"), (-1.0, "C1", "out"),
-                                    (0.0, "0.5", "unknown")]:
+        for sign, tint, label in [(1.0, "C0", "in"), (-1.0, "C1", "out"),
+                                  (0.0, "0.5", "unknown")]:
             m = direction == sign
             if m.any():
-                ax.plot(efl[m], r[m, 0], "o", color=colour, ms=4, label=f"cx, {label}")
-                ax.plot(efl[m], r[m, 1], "s", color=colour, ms=4, mfc="none",
+                ax.plot(efl[m], r[m, 0], "o", color=tint, ms=4, label=f"cx, {label}")
+                ax.plot(efl[m], r[m, 1], "s", color=tint, ms=4, mfc="none",
                         label=f"cy, {label}")
-        ax.set_ylabel(f"{name}\nresidual [px]")
         ax.legend(fontsize=6, ncol=2)
         ax = axes[row, 1]
-        sc = ax.scatter(efl, r[:, 0], c=order, cmap="plasma", s=14, marker="o")
-        ax.scatter(efl, r[:, 1], c=order, cmap="plasma", s=18, marker="x")
-        fig.colorbar(sc, ax=ax, label="capture order")
+        sc = ax.scatter(efl, r[:, 0], c=colour, cmap="plasma", s=14, marker="o")
+        ax.scatter(efl, r[:, 1], c=colour, cmap=sc.cmap, norm=sc.norm, s=18, marker="x")
+        fig.colorbar(sc, ax=ax, label=wrap_title(colour_label, 2.2, 8.0))
         for a in axes[row]:
+            a.set_ylabel(f"{name}\nresidual [px]")
+            a.set_xlabel(focal_label)
             a.axhline(0.0, color="0.6", lw=0.6)
             a.set_xscale("log")
             a.xaxis.set_major_formatter(ScalarFormatter())
             a.xaxis.set_minor_formatter(NullFormatter())
     axes[0, 0].set_title("by direction of the last zoom move (o cx, square cy)", fontsize=8)
-    axes[0, 1].set_title("by capture order (o cx, x cy)", fontsize=8)
-    for a in axes[1]:
-        a.set_xlabel(focal_label)
-    fig.tight_layout()
+    axes[0, 1].set_title(f"by {colour_name} (o cx, x cy)", fontsize=8)
     fig.savefig(path)
     plt.close(fig)
     return Path(path)
