@@ -751,7 +751,10 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
 
 @main.command(epilog=EXIT_CODES)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
-@click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
+@click.option("--lens", default="laikin-10x", show_default=True,
+              help=LENS_HELP + " 'none': no lens model; the baseline is a principal-point path "
+                   "smooth in log focal length and only the causes that need no optics are "
+                   "tested.")
 @click.option("--pixel-pitch", default="0.00645", show_default=True,
               help="Sensor pixel pitch in mm, or 'auto' to fit it (a scale between the "
                    "measured px and the lens's mm).")
@@ -775,17 +778,22 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     the zoom column may be in any unit.
 
     The paper's model (sensor offset, barrel-locked decentre and tilt of each moving group) is
-    fitted, then each cause (axis_tilt, backlash, thermal_drift, cam_harmonic,
-    static_decenter, focus_shift) added in turn. A cause is named when it beats the model by
-    BIC and predicts held-out zoom steps better; else 'none'. Writes OUT/diagnosis.json,
-    OUT/report.md, OUT/path.png and OUT/residuals.png.
+    fitted with the noise scales estimated from the table, then causes (axis_tilt, backlash,
+    thermal_drift, cam_harmonic, static_decenter, focus_shift) are selected together: a cause
+    enters when it beats the model by BIC and predicts held-out zoom steps better. The
+    selected model is then checked: when it leaves structure over zoom, direction or capture
+    order, the answer is 'unexplained' with what remains; with no cause, 'none'. Writes
+    OUT/diagnosis.json, OUT/report.md, OUT/path.png and OUT/residuals.png.
     """
     import os
 
     from .diagnose.model import FocalRangeError
     from .diagnose.run import diagnose_input
 
-    lens_rx = _load_lens(lens)
+    lens_rx = None if lens.strip().lower() == "none" else _load_lens(lens)
+    if lens_rx is None and tolerances:
+        raise click.BadParameter("a tolerance file needs a lens model (not --lens none)",
+                                 param_hint="--tolerances")
     tol = _load_tolerances(tolerances, lens_rx) if tolerances else None
     if pixel_pitch != "auto":
         try:
@@ -824,19 +832,40 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
         click.echo(f"pixel pitch fitted: {d.pitch_mm:.5g} +- {d.pitch_fit['sd_mm']:.2g} mm"
                    + (" (at an end of the admissible range: not determined by the data)"
                       if d.pitch_fit["at_range_end"] else ""))
-    b, e = doc["baseline"], doc["extended"]
-    click.echo(f"{'model':<28s} {'rms px':>8s} {'chi2/dof':>9s} {'cv_rms px':>10s}")
-    click.echo(f"{'baseline':<28s} {b['rms_px']:8.3f} {b['chi2_dof']:9.2f} {b['cv_rms_px']:10.3f}")
-    for c in doc["candidates"]:
-        click.echo(f"{'+ ' + c['cause']:<28s} {c['rms_px']:8.3f} {c['chi2_dof']:9.2f} "
-                   f"{c['cv_rms_px']:10.3f}  dBIC {c['delta_bic']:7.1f}")
-    click.echo(f"cause: {d.cause}" + (f" ({e['variant']}); gain in held-out rms "
-                                      f"{doc['gain']['cv_rms_ratio']:.2f}x" if d.extended
-                                      else ""))
-    if doc["ambiguous_with"]:
-        click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
+    _print_diagnosis(d, doc)
     click.echo(f"wrote {out}/diagnosis.json, report.md, path.png, residuals.png")
     _exit_if_partial(_calibration_problems(run.failures, messages), "not calibrated or skipped")
+
+
+def _print_diagnosis(d, doc: dict) -> None:
+    """The models' table, the selected causes, the fit check and the noise, in a few lines."""
+    b = doc["baseline"]
+    click.echo(f"{'model':<28s} {'rms px':>8s} {'cv_rms px':>10s} {'cv_norm':>8s}")
+    click.echo(f"{'baseline':<28s} {b['rms_px']:8.3f} {b['cv_rms_px']:10.3f} "
+               f"{b['cv_norm_rms']:8.2f}")
+    for c in doc["candidates"]:
+        click.echo(f"{'+ ' + c['cause']:<28s} {c['rms_px']:8.3f} {c['cv_rms_px']:10.3f} "
+                   f"{c['cv_norm_rms']:8.2f}  dBIC {c['delta_bic']:7.1f}")
+    for s in doc["skipped"]:
+        click.echo(f"not tested: {s['cause']} ({s['reason']})")
+    noise = doc["noise"]
+    if "sigma_scale" in noise:
+        click.echo(f"noise: table sigmas x{noise['sigma_scale']:.2f}, play "
+                   f"x{noise['play_scale']:.2f} ({noise['play_shape']})")
+    names = ", ".join(f"{c['cause']} ({c['variant']})" for c in doc["causes"])
+    gain = (f"; held-out gain {doc['gain']['cv_norm_ratio']:.2f}x (sigma-normalised), "
+            f"{doc['gain']['cv_rms_ratio']:.2f}x (px)" if doc["causes"] else "")
+    check = doc["explained"]
+    if d.cause == "unexplained":
+        click.echo(f"cause: unexplained: {check['remaining']}"
+                   + (f"; improving but not explaining: {names}" if names else ""))
+    else:
+        click.echo(f"cause: {d.cause}" + (f"; selected: {names}" if names else "") + gain)
+        if check["explained"] is None:
+            click.echo("the fit could not be checked (no repeated settings, sigmas or lens "
+                       "model)")
+    if doc["ambiguous_with"]:
+        click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
 
 
 if __name__ == "__main__":

@@ -82,8 +82,9 @@ ALPHA = 0.01
 NOISE_SCALE_MAX = 3.0
 #: most causes selected together
 MAX_CAUSES = 3
-#: highest degree of the smooth path of a lens without a model
-MAX_PATH_DEGREE = 5
+#: highest degree of the smooth path of a lens without a model (and at most the number of
+#: zoom settings less 2)
+MAX_PATH_DEGREE = 8
 
 
 def baseline_terms(groups: tuple[str, ...], locked_tilt: bool = False) -> tuple[Term, ...]:
@@ -98,6 +99,10 @@ def baseline_terms(groups: tuple[str, ...], locked_tilt: bool = False) -> tuple[
 
 def _varies(col: np.ndarray | None) -> bool:
     return col is not None and np.ptp(col) > 0
+
+
+def _both_directions(table: ZoomTable) -> bool:
+    return table.direction is not None and {-1.0, 1.0} <= set(np.unique(table.direction))
 
 
 NEEDS_OPTICS = "needs the lens model's barrel angle and sensitivities (--lens none)"
@@ -118,10 +123,15 @@ def cause_variants(table: ZoomTable, groups: tuple[str, ...] | None
         skipped["axis_tilt"] = TILT_NOT_IDENTIFIABLE
     else:
         variants["axis_tilt"] = [(axis_tilt_term(),)]
-    if table.direction is not None and {-1.0, 1.0} <= set(np.unique(table.direction)):
+    if _both_directions(table):
         variants["backlash"] = [(direction_offset_term(),)] + [
             (group_term(g, "decenter", 1, "backlash", signed_by="direction"),)
             for g in groups or ()]
+        if groups is None:
+            fx = table.fx
+            variants["backlash"] += [
+                (smooth_path_term(d, float(fx.min()), float(fx.max()), signed=True),)
+                for d in range(1, _max_path_degree(table) + 1)]
     else:
         skipped["backlash"] = "needs a direction column with both 'in' and 'out' rows"
     if _varies(table.temperature):
@@ -166,7 +176,8 @@ class LinearFit:
     bic : float
         ``-2 ln L + K ln n`` without the constant ``n ln 2 pi``.
     cv_residual_px : (N, 2) ndarray
-        Held-out residuals (every row of a zoom setting left out together).
+        Held-out residuals (every row of a zoom setting left out together; without a lens
+        model every row on its own).
     rank : int
         Number of independent columns: a linear least-squares fit is solved in one step, and
         its solution is the minimum only of the directions the data determine.
@@ -225,7 +236,7 @@ class LinearFit:
 
 
 def _held_out(A: np.ndarray, y: np.ndarray, w: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """(2N,) residuals of every zoom setting's rows predicted from the other settings."""
+    """(2N,) residuals of every group's rows predicted from the other groups' rows."""
     rows = np.repeat(groups, 2)
     cv = np.empty_like(y)
     for label in np.unique(groups):
@@ -274,14 +285,21 @@ class Fitter:
     """``fit_terms`` over one table and noise, remembering the fits it has made (the selection
     revisits the same models)."""
 
-    def __init__(self, ctx: Context, noise: NoiseShape | np.ndarray, groups: np.ndarray):
+    def __init__(self, ctx: Context, noise: NoiseShape | np.ndarray, groups: np.ndarray,
+                 holdout: np.ndarray | None = None):
         self.ctx, self.noise, self.groups = ctx, noise, groups
+        self.holdout = groups if holdout is None else holdout
         self._fits: dict[tuple[str, ...], LinearFit] = {}
+
+    def can_fit(self, terms: tuple[Term, ...]) -> bool:
+        """Whether the rows outside any one zoom setting determine every parameter."""
+        _, counts = np.unique(self.groups, return_counts=True)
+        return sum(len(t.params) for t in terms) <= 2 * (len(self.groups) - counts.max())
 
     def __call__(self, terms: tuple[Term, ...]) -> LinearFit:
         key = tuple(sorted(t.name for t in terms))
         if key not in self._fits:
-            self._fits[key] = fit_terms(terms, self.ctx, self.noise, self.groups)
+            self._fits[key] = fit_terms(terms, self.ctx, self.noise, self.holdout)
         return self._fits[key]
 
 
@@ -343,10 +361,14 @@ def _better(current: LinearFit, trial: LinearFit) -> bool:
             and trial.cv_norm_rms() < current.cv_norm_rms(trial.variance))
 
 
-def _best_variant(fitter: Fitter, base, chosen, cause, options) -> tuple[LinearFit, Selected]:
+def _best_variant(fitter: Fitter, base, chosen, cause, options
+                  ) -> tuple[LinearFit, Selected] | None:
+    """The variant of ``cause`` that, added to ``base`` and ``chosen``, has the lowest BIC
+    (None when the table has too few rows for any)."""
     trials = [(fitter(_with(base, chosen + [Selected(cause, extra)])), Selected(cause, extra))
-              for extra in options]
-    return min(trials, key=lambda fs: fs[0].bic)
+              for extra in options
+              if fitter.can_fit(_with(base, chosen + [Selected(cause, extra)]))]
+    return min(trials, key=lambda fs: fs[0].bic, default=None)
 
 
 def select_causes(fitter: Fitter, base: tuple[Term, ...],
@@ -374,7 +396,7 @@ def select_causes(fitter: Fitter, base: tuple[Term, ...],
         if len(chosen) < MAX_CAUSES:
             trials = [_best_variant(fitter, base, chosen, c, opts)
                       for c, opts in variants.items() if c not in names]
-            trials = [(f, s) for f, s in trials if _better(current, f)
+            trials = [(f, s) for f, s in filter(None, trials) if _better(current, f)
                       and frozenset(names | {s.cause}) not in seen]
             if trials:
                 current, new = min(trials, key=lambda fs: fs[0].bic)
@@ -420,11 +442,18 @@ def _structure_terms(ctx: Context, groups: np.ndarray) -> list[tuple[str, tuple[
     else:
         zoom = smooth_path_term(min(3, n_settings - 2), table.fx.min(), table.fx.max())
     tests = [("zoom", (zoom,))]
-    if table.direction is not None and {-1.0, 1.0} <= set(np.unique(table.direction)):
-        tests.append(("direction", (direction_offset_term(),)))
+    if _both_directions(table):
+        if _each_setting_both_ways(table, groups):  # any in/out difference at any setting
+            tests.append(("direction", (setting_term(groups, signed=True),)))
+        else:
+            tests.append(("direction", (direction_offset_term(),)))
     if _varies(table.sequence):
         tests.append(("order", (covariate_term("sequence", "capture", "capture order"),)))
     return tests
+
+
+def _each_setting_both_ways(table: ZoomTable, groups: np.ndarray) -> bool:
+    return all({-1.0, 1.0} <= set(table.direction[groups == g]) for g in np.unique(groups))
 
 
 def _f_test(fit: LinearFit, ctx: Context, extra: tuple[Term, ...]) -> dict:
@@ -451,7 +480,8 @@ def fit_check(fit: LinearFit, ctx: Context, groups: np.ndarray,
 
     - ``zoom``: the zoom setting (a free principal point per setting when settings were
       visited more than once, else a cubic in log f);
-    - ``direction``: the direction of the last zoom move (an offset signed by it);
+    - ``direction``: the direction of the last zoom move (a free difference between moves in
+      and out at every setting when each was reached both ways, else an offset signed by it);
     - ``order``: the capture order (a linear drift),
 
     each at the fit's noise, ``F = ((chi2 - chi2_alt) / q) / (chi2_alt / dof_alt)``, significant
@@ -689,13 +719,21 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
             "stop_reason": "range end" if at_end else "grid minimum"}
 
 
-def _lens_free_baseline(fitter: Fitter) -> tuple[Term, ...]:
-    """Offset + a path smooth in log f, of the degree with the lowest BIC."""
+def _max_path_degree(table: ZoomTable) -> int:
+    """Highest degree of a lens-free path: two below the number of zoom settings."""
+    return max(1, min(MAX_PATH_DEGREE, len(np.unique(table.zoom_groups())) - 2))
+
+
+def _lens_free_baseline(fitter: Fitter, chosen: list[Selected] | None = None
+                        ) -> tuple[Term, ...]:
+    """Offset + a path smooth in log f, of the degree with the lowest BIC (with the
+    ``chosen`` causes beside it)."""
     fx = fitter.ctx.table.fx
-    top = min(MAX_PATH_DEGREE, len(np.unique(fitter.groups)) - 2)
+    chosen = chosen or []
     options = [(offset_term(), smooth_path_term(degree, float(fx.min()), float(fx.max())))
-               for degree in range(1, max(top, 1) + 1)]
-    return min(options, key=lambda terms: fitter(terms).bic)
+               for degree in range(1, _max_path_degree(fitter.ctx.table) + 1)]
+    options = [terms for terms in options if fitter.can_fit(_with(terms, chosen))] or options[:1]
+    return min(options, key=lambda terms: fitter(_with(terms, chosen)).bic)
 
 
 def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
@@ -703,7 +741,10 @@ def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
     base_fit = fitter(base)
     out = []
     for cause, options in variants.items():
-        f, sel = _best_variant(fitter, base, [], cause, options)
+        best = _best_variant(fitter, base, [], cause, options)
+        if best is None:
+            continue
+        f, sel = best
         out.append(Candidate(cause, f, len(base_fit.params), f.bic - base_fit.bic, sel.variant))
     return sorted(out, key=lambda c: c.delta_bic)
 
@@ -756,7 +797,10 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
             raise ValueError(f"{table.source}: a pixel pitch can only be fitted with a lens model")
         z = 0.5 * (log_focal_coordinate(table.fx, table.fx.min(), table.fx.max()) + 1.0)
         shape = noise_shape(table, np.zeros(table.n), with_lens=False)
-        fitter = Fitter(Context.build(table, z, None), shape, groups)
+        # a lens-free path cannot predict a zoom setting it has not seen (a polynomial
+        # extrapolates, and between settings it can swing): rows are held out one at a time
+        fitter = Fitter(Context.build(table, z, None), shape, groups,
+                        holdout=np.arange(table.n))
         base = _lens_free_baseline(fitter)
         variants, skipped = cause_variants(table, None)
     else:
@@ -769,9 +813,13 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
         fitter = Fitter(Context.build(table, z, response), shape, groups)
         base = baseline_terms(response.groups, locked_tilt)
         variants, skipped = cause_variants(table, response.groups)
+    final, chosen = select_causes(fitter, base, variants)
+    if response is None and chosen and _lens_free_baseline(fitter, chosen) != base:
+        # the path's degree chosen with the causes beside it, and the causes again
+        base = _lens_free_baseline(fitter, chosen)
+        final, chosen = select_causes(fitter, base, variants)
     base_fit = fitter(base)
     candidates = _single_causes(fitter, base, variants)
-    final, chosen = select_causes(fitter, base, variants)
     check = fit_check(final, fitter.ctx, groups, shape)
     extended = (Candidate(" + ".join(s.cause for s in chosen), final, len(base_fit.params),
                           final.bic - base_fit.bic, " + ".join(s.variant for s in chosen))

@@ -246,34 +246,46 @@ def log_focal_coordinate(fx: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return 2.0 * (np.log(fx) - np.log(lo)) / (np.log(hi) - np.log(lo)) - 1.0
 
 
-def smooth_path_term(degree: int, lo: float, hi: float) -> Term:
+def smooth_path_term(degree: int, lo: float, hi: float, signed: bool = False) -> Term:
     """A principal-point path smooth in log focal length, for a lens without a model:
     ``Delta c = sum_{d=1..degree} P_d(u) b_d`` (px per axis; Legendre ``P_d``, ``u`` from
     :func:`log_focal_coordinate` on the table's range ``[lo, hi]`` px; the constant is the
-    offset term's)."""
-    names = tuple(f"path_{axis}_p{d}_px" for d in range(1, degree + 1) for axis in "xy")
+    offset term's). ``signed``: half the difference between moves in and out, ``Delta c =
+    s sum_{d=0..degree} P_d(u) b_d`` with ``s`` the direction (+1 in, -1 out), constant
+    included."""
+    first = 0 if signed else 1
+    label = "direction-signed path" if signed else "smooth path"
+    names = tuple(f"{'half_' if signed else ''}path_{axis}_p{d}_px"
+                  for d in range(first, degree + 1) for axis in "xy")
 
     def columns(ctx: Context) -> np.ndarray:
         u = log_focal_coordinate(ctx.table.fx, lo, hi)
-        vander = np.polynomial.legendre.legvander(u, degree)[:, 1:]  # shape (N, degree)
-        eye = np.eye(2)
-        return np.einsum("nd,ak->nadk", vander, eye).reshape(len(u), 2, 2 * degree)
+        vander = np.polynomial.legendre.legvander(u, degree)[:, first:]  # shape (N, D)
+        if signed:
+            vander = vander * ctx.table.direction[:, None]
+        cols = np.einsum("nd,ak->nadk", vander, np.eye(2))
+        return cols.reshape(len(u), 2, 2 * vander.shape[1])
 
-    return Term(f"smooth path in log f, degree {degree}", names, columns)
+    return Term(f"{label} in log f, degree {degree}", names, columns)
 
 
-def setting_term(labels: np.ndarray) -> Term:
+def setting_term(labels: np.ndarray, signed: bool = False) -> Term:
     """A free principal point for every distinct zoom setting (``labels``, (N,) int): any
-    function of the zoom at all, for testing what a model leaves at the settings."""
+    function of the zoom at all, for testing what a model leaves at the settings. ``signed``:
+    multiplied by the direction of the last move (any difference between in and out)."""
     n_settings = int(labels.max()) + 1
-    names = tuple(f"setting{k}_{axis}_px" for k in range(n_settings) for axis in "xy")
+    names = tuple(f"{'half_' if signed else ''}setting{k}_{axis}_px"
+                  for k in range(n_settings) for axis in "xy")
 
     def columns(ctx: Context) -> np.ndarray:
         onehot = np.eye(n_settings)[labels]  # shape (N, S)
+        if signed:
+            onehot = onehot * ctx.table.direction[:, None]
         return np.einsum("ns,ak->nask", onehot, np.eye(2)).reshape(len(labels), 2,
                                                                    2 * n_settings)
 
-    return Term("free principal point per zoom setting", names, columns)
+    return Term(f"{'direction-signed ' if signed else ''}free principal point per zoom "
+                f"setting", names, columns)
 
 
 def design_matrix(terms: tuple[Term, ...], ctx: Context) -> np.ndarray:
