@@ -555,14 +555,20 @@ def detect(folder, pattern, methods, workers, out):
               help="Detection processes (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
-def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out):
+@click.option("--no-report", is_flag=True, help="Do not write OUT/report.html.")
+@click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
+              help="Distance (mm) of the report's projection-uncertainty maps; default: each "
+                   "step's median board distance.")
+def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
+              no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
     else the images' EXIF focal length. A zoom set is calibrated by one zoom-wide adjustment
     (every step together: one board, a smoothness prior across zoom; --per-step turns it off)
     beside per-step OpenCV. Writes OUT/calibration.json and .yml, and for zoom sets
-    OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
+    OUT/zoom_calibration.csv, OUT/zoom_model.json and figures, and OUT/report.html (every
+    figure in one page; --no-report skips it). Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
     again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
     on a step, or an image skipped).
@@ -591,7 +597,8 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
         run = calibrate_folder(folder, pattern, out, backends, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
-                               zoom_wide=not per_step, cross_validate=cross_validate)
+                               zoom_wide=not per_step, cross_validate=cross_validate,
+                               report=not no_report, report_distance=report_distance)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

@@ -16,6 +16,8 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
 - ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
   (four or more steps with known zoom);
 - figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
+- ``report.html`` — every step's and the zoom range's figures in one page
+  (:mod:`zoomcalib.calibrate.report`), unless ``report=False``;
 - ``manifest.json`` — the files this run wrote, the command and the inputs. A run first
   removes the files an earlier run left (listed in its manifest, or named as this job names
   its files), so the folder never mixes two runs.
@@ -62,7 +64,9 @@ class CalibrateRun:
     :attr:`partial`. ``reused`` counts, per step, the images whose cached detections were
     reused; ``left_out`` names, per step, the images of another size than the step's;
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
-    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems.
+    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
+    ``skipped_images`` the one-line errors of the images whose detection failed, per step;
+    ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -82,6 +86,8 @@ class CalibrateRun:
     zoom_wide: object | None = None
     cross_validation: object | None = None
     flags: dict[str, list[str]] = field(default_factory=dict)
+    skipped_images: dict[str, list[str]] = field(default_factory=dict)
+    zoom_source: dict[str, str | None] = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -188,7 +194,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      method: str | None = None, workers: int = 1,
                      progress: Callable[[int], None] | None = None,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
-                     cross_validate: bool = False) -> CalibrateRun:
+                     cross_validate: bool = False, report: bool = True,
+                     report_distance: float | None = None) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -214,6 +221,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
         and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
+    report : bool
+        Write ``report.html`` (:func:`zoomcalib.calibrate.report.write_report`).
+    report_distance : float, optional
+        Distance (mm) of the report's projection-uncertainty maps; default each step's median
+        board distance.
 
     Returns
     -------
@@ -239,6 +251,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         for d in dets:
             if d.error:
                 log(f"step {step}: skipped {d.error}")
+                run.skipped_images.setdefault(step, []).append(d.error)
         good = [d for d in dets if d.error is None]
         if not good:
             _drop(run, step, "no image with a detected target", log)
@@ -250,6 +263,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             continue
         run.observations[step] = obs
         run.zoom[step] = zoom
+        run.zoom_source[step] = extras.get("zoom_source")
         step_results = {}
         for backend in backends:
             try:
@@ -321,6 +335,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 log(run.failures[-1])
     if run.results:
         run.files += _figures(run, out, zoom_set)
+    if report and run.results:
+        _report(run, out, report_distance, log)
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "detection_settings": settings}
     run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
@@ -496,6 +512,17 @@ def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, 
         log("the zoom table mixes backends (no backend calibrated every step): "
             + ", ".join(f"{s} {b}" for s, b in chosen.items()))
     return chosen
+
+
+def _report(run: CalibrateRun, out: Path, distance: float | None,
+            log: Callable[[str], None]) -> None:
+    """Write ``report.html``; a failure is logged in one line (the other outputs stand)."""
+    from .report import write_report
+
+    try:
+        run.files.append(write_report(run, out, distance))
+    except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as exc:
+        log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
 
 
 def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance: dict,
