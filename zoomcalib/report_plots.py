@@ -29,6 +29,14 @@ def _pyplot():
 
 
 def _png(fig) -> bytes:
+    """The figure as PNG; axes get at most four value ticks each (tick labels are most of
+    the drawing time)."""
+    from matplotlib.ticker import MaxNLocator
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if isinstance(axis.get_major_locator(), MaxNLocator):  # the Auto locators
+                axis.set_major_locator(MaxNLocator(4))
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=_DPI, pil_kwargs={"compress_level": 1})
     _pyplot().close(fig)
@@ -70,7 +78,7 @@ def per_view_figure(names: Sequence[str], rms_px: np.ndarray, marked: dict[str, 
     ax.set_ylabel("reprojection RMS [px]")
     ax.set_title("per-image reprojection error (red: rejected points; hatched: not in the fit)",
                  fontsize=9)
-    fig.subplots_adjust(bottom=0.38, left=0.08, right=0.98, top=0.9)
+    fig.subplots_adjust(bottom=0.38, left=0.1, right=0.98, top=0.9)
     return _png(fig)
 
 
@@ -161,13 +169,13 @@ def coverage_figure(points: Sequence[np.ndarray], image_size: tuple[int, int],
 
 
 def uncertainty_figure(xs: np.ndarray, ys: np.ndarray, sigma: np.ndarray,
-                       image_size: tuple[int, int], distance_mm: float,
-                       diff: np.ndarray | None = None, corners: np.ndarray | None = None
-                       ) -> bytes:
+                       image_size: tuple[int, int], distance_mm: float, hull: np.ndarray,
+                       inside: np.ndarray, diff: np.ndarray | None = None) -> bytes:
     """Projection 1-sigma (px) over the image at ``distance_mm`` as a heat map with contour
-    lines at fifths of its colour range,
-    and, when given, the cross-validation difference map (px) beside it; ``corners`` (n, 2)
-    detected points drawn faintly for reference."""
+    lines at fifths of its colour range and, when given, the cross-validation difference map
+    (px) beside it. ``hull`` (k, 2) px outlines where points were detected; ``inside`` (R, C)
+    marks the grid cells within it, and the colour saturates at the largest value there (the
+    maps grow without bound where the model is extrapolated)."""
     plt = _pyplot()
     panels = [(sigma, f"projection uncertainty at {distance_mm:.0f} mm (worst direction, "
                       "1-sigma)", "1-sigma [px]")]
@@ -175,17 +183,16 @@ def uncertainty_figure(xs: np.ndarray, ys: np.ndarray, sigma: np.ndarray,
         panels.append((diff, "cross-validation: even-half vs odd-half projection",
                        "|difference| [px]"))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.8 * len(panels), 4.0), squeeze=False)
+    outline = np.vstack([hull, hull[:1]])
     for ax, (values, title, unit) in zip(axes[0], panels, strict=True):
-        top = float(np.nanpercentile(values, 95))
+        top = float(np.max(values[inside])) if inside.any() else float(np.max(values))
         im = ax.imshow(values, cmap="magma_r", vmin=0.0, vmax=max(top, 1e-9),
                        extent=(xs[0], xs[-1], ys[-1], ys[0]), interpolation="bilinear")
-        levels = np.unique(np.round(np.linspace(0.0, top, 6)[1:], 6))
+        levels = np.unique(np.round(np.linspace(0.0, top, 6)[1:], 12))
         if len(levels) > 1:
             ax.contour(xs, ys, values, levels=levels, colors="k", linewidths=0.6)
-        if corners is not None:
-            ax.scatter(corners[:, 0], corners[:, 1], s=0.5, color="tab:cyan", alpha=0.3)
-        fig.colorbar(im, ax=ax, label=unit + " (colour clipped at the 95th percentile)",
-                     shrink=0.85)
+        ax.plot(outline[:, 0], outline[:, 1], "--", color="tab:cyan", lw=1.2)
+        fig.colorbar(im, ax=ax, label=unit + ", saturated beyond the detections", shrink=0.85)
         _image_axes(ax, image_size)
         ax.set_title(title, fontsize=9)
     fig.subplots_adjust(left=0.07, right=0.97, bottom=0.13, top=0.9, wspace=0.3)

@@ -65,7 +65,7 @@ from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",
            "intrinsics_covariance", "projection_uncertainty", "projection_difference",
-           "pixel_grid", "MIN_TILT_DEG", "MIN_REACH", "MIN_CELLS", "GRID",
+           "pixel_grid", "observed_region", "MIN_TILT_DEG", "MIN_REACH", "MIN_CELLS", "GRID",
            "MIN_DISTANCE_RATIO"]
 
 #: Largest view tilt (deg) below which the views are called fronto-parallel.
@@ -296,6 +296,21 @@ def _largest_sd(cov: np.ndarray) -> np.ndarray:
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     half_trace = 0.5 * (a + c)
     return np.sqrt(half_trace + np.sqrt(np.maximum((0.5 * (a - c)) ** 2 + b * b, 0.0)))
+
+
+def observed_region(points: np.ndarray, xs: np.ndarray, ys: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull ``(k, 2)`` px of the detected ``points`` (n, 2) and which cells of the grid
+    ``xs`` x ``ys`` lie inside it, ``(R, C)`` bool: where the calibration saw the target (the
+    rest of a map is extrapolated)."""
+    hull = cv2.convexHull(np.asarray(points, np.float32).reshape(-1, 1, 2)).reshape(-1, 2)
+    hull = hull.astype(np.float64)
+    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    edge = np.roll(hull, -1, axis=0) - hull  # (k, 2)
+    rel = q[:, None, :] - hull[None, :, :]  # (n, k, 2)
+    cross = edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]
+    inside = np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)
+    return hull, inside.reshape(len(ys), len(xs))
 
 
 def projection_difference(a: CalibrationResult, b: CalibrationResult,

@@ -26,6 +26,7 @@ from .quality import (
     GRID,
     MIN_REACH,
     coverage_verdict,
+    observed_region,
     projection_difference,
     projection_uncertainty,
     view_geometry,
@@ -202,22 +203,29 @@ def _uncertainty(run, step: str, res: CalibrationResult, obs: Observations, geom
                  distance_mm: float | None, points: np.ndarray) -> str:
     d = float(np.median(geometry.distance)) if distance_mm is None else float(distance_mm)
     xs, ys, sigma = projection_uncertainty(res, obs, d)
+    hull, inside = observed_region(points, xs, ys)
     diff, note = None, ""
     cv = run.cross_validation
     if cv is not None and step in cv.halves:
         diff = projection_difference(*cv.halves[step], obs.image_size)[2]
-        note = (f" Right: each pixel unprojected with the even half's intrinsics and projected "
-                f"with the odd half's; largest {np.max(diff):.3g} px.")
+        note = (" Right: each pixel unprojected with the even half's intrinsics and projected "
+                f"with the odd half's: up to {_largest(diff, inside)} px where points were "
+                "detected.")
     elif cv is not None and step in cv.failures:
         note = f" Cross-validation: halves not calibrated ({_e(cv.failures[step])})."
     centre = sigma[len(ys) // 2, len(xs) // 2]
     return ("<h3>Projection uncertainty</h3>"
-            + _img(figs.uncertainty_figure(xs, ys, sigma, obs.image_size, d, diff, points),
-                   f"projection uncertainty of step {step}")
+            + _img(figs.uncertainty_figure(xs, ys, sigma, obs.image_size, d, hull, inside,
+                                           diff), f"projection uncertainty of step {step}")
             + f"<p>1-sigma of the projection of points {d:.0f} mm away "
               f"({'the median board distance' if distance_mm is None else 'chosen'}), from "
               f"the intrinsics' covariance and the poses: {centre:.3g} px at the image centre, "
-              f"{np.max(sigma):.3g} px at most.{note}</p>")
+              f"up to {_largest(sigma, inside)} px where points were detected (inside the "
+              f"dashed outline), {np.max(sigma):.3g} px at most over the image.{note}</p>")
+
+
+def _largest(values: np.ndarray, inside: np.ndarray) -> str:
+    return f"{np.max(values[inside]):.3g}" if inside.any() else "(no grid cell)"
 
 
 def _zoom_section(run, steps: list[str]) -> str:
