@@ -18,6 +18,7 @@ from __future__ import annotations
 import base64
 import html
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from .. import report_plots as figs
 from .quality import (
     GRID,
     MIN_REACH,
+    ViewGeometry,
     coverage_verdict,
     observed_region,
     projection_difference,
@@ -32,6 +34,9 @@ from .quality import (
     view_geometry,
 )
 from .result import CalibrationResult, Observations
+
+if TYPE_CHECKING:
+    from .run import CalibrateRun
 
 __all__ = ["write_report", "report_html", "ZOOM_LABELS"]
 
@@ -59,7 +64,8 @@ window.addEventListener('load', function () {
 """
 
 
-def write_report(run, out: str | Path, distance_mm: float | None = None) -> Path:
+def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None = None
+                 ) -> Path:
     """Write ``out/report.html`` for a :class:`zoomcalib.calibrate.run.CalibrateRun`.
 
     Parameters
@@ -81,7 +87,7 @@ def write_report(run, out: str | Path, distance_mm: float | None = None) -> Path
     return path
 
 
-def report_html(run, distance_mm: float | None = None) -> str:
+def report_html(run: CalibrateRun, distance_mm: float | None = None) -> str:
     """The report's HTML text (see :func:`write_report`)."""
     steps = list(run.results)
     body = [f"<h1>Calibration report</h1>{_summary(run, steps)}"]
@@ -107,7 +113,7 @@ def _img(png: bytes, alt: str) -> str:
     return f"<p><img alt='{_e(alt)}' src='data:image/png;base64,{data}'></p>"
 
 
-def _summary(run, steps: list[str]) -> str:
+def _summary(run: CalibrateRun, steps: list[str]) -> str:
     rows = []
     for s in steps:
         r = run.results[s][run.table_backend[s]]
@@ -138,16 +144,16 @@ def _view_names(obs: Observations) -> list[str]:
         f"view {i}" for i in range(obs.n_views)]
 
 
-def _absent_images(run, step: str) -> list[tuple[str, str]]:
+def _absent_images(run: CalibrateRun, step: str) -> list[tuple[str, str]]:
     """(image, why) of the step's images that are not in the fit."""
     out = [(name, "not the step's image size") for name in run.left_out.get(step, [])]
-    for error in getattr(run, "skipped_images", {}).get(step, []):
+    for error in run.skipped_images.get(step, []):
         name, _, why = error.partition(": ")
         out.append((name, why or error))
     return out
 
 
-def _step_section(run, step: str, distance_mm: float | None) -> str:
+def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> str:
     from .run import residual_vectors
 
     res = run.results[step][run.table_backend[step]]
@@ -199,8 +205,8 @@ def _verdict(problems: list[str], summary: str) -> str:
             + "".join(f"<li>{_e(p)}</li>" for p in problems) + "</ul>")
 
 
-def _uncertainty(run, step: str, res: CalibrationResult, obs: Observations, geometry,
-                 distance_mm: float | None, points: np.ndarray) -> str:
+def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Observations,
+                 geometry: ViewGeometry, distance_mm: float | None, points: np.ndarray) -> str:
     d = float(np.median(geometry.distance)) if distance_mm is None else float(distance_mm)
     xs, ys, sigma = projection_uncertainty(res, obs, d)
     hull, inside = observed_region(points, xs, ys)
@@ -228,10 +234,10 @@ def _largest(values: np.ndarray, inside: np.ndarray) -> str:
     return f"{np.max(values[inside]):.3g}" if inside.any() else "(no grid cell)"
 
 
-def _zoom_section(run, steps: list[str]) -> str:
+def _zoom_section(run: CalibrateRun, steps: list[str]) -> str:
     best = [run.results[s][run.table_backend[s]] for s in steps]
     zooms = [run.zoom.get(s) for s in steps]
-    sources = {getattr(run, "zoom_source", {}).get(s) for s in steps}
+    sources = {run.zoom_source.get(s) for s in steps}
     if any(z is None for z in zooms):
         zoom, label = np.arange(len(steps), dtype=float), "step index (zoom unknown)"
     else:
@@ -251,7 +257,7 @@ def _zoom_section(run, steps: list[str]) -> str:
             + _img(png, "intrinsics against zoom") + text + _holdout_text(run) + "</section>")
 
 
-def _model_curves(run, zoom: np.ndarray) -> dict:
+def _model_curves(run: CalibrateRun, zoom: np.ndarray) -> dict:
     model = run.zoom_model
     if model is None:
         return {}
@@ -262,7 +268,7 @@ def _model_curves(run, zoom: np.ndarray) -> dict:
             if k in pred}
 
 
-def _holdout_text(run) -> str:
+def _holdout_text(run: CalibrateRun) -> str:
     if not run.holdout:
         return ("<p>No zoom model (it needs four or more steps of known zoom).</p>"
                 if run.zoom_model is None else "")
