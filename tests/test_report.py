@@ -13,16 +13,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from zoomcalib.calibrate import quality
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv
-from zoomcalib.calibrate.quality import (
-    MIN_TILT_DEG,
-    ViewGeometry,
-    coverage_verdict,
-    observed_region,
-    projection_difference,
-    projection_uncertainty,
-    view_geometry,
-)
 from zoomcalib.calibrate.report import write_report
 from zoomcalib.calibrate.result import CalibrationResult, Observations
 from zoomcalib.calibrate.synthetic import calibrated_run, sweep_detections
@@ -62,7 +54,7 @@ def test_view_geometry_recovers_tilt_and_distance(rng):
         R = cv2.Rodrigues(r)[0]
         tvecs.append(np.array([0.0, 0.0, d]) - R @ board.mean(axis=0))
     obs = Observations(board, [], SIZE)
-    got = view_geometry(_result(*_camera(), rvecs, tvecs), obs)
+    got = quality.view_geometry(_result(*_camera(), rvecs, tvecs), obs)
     np.testing.assert_allclose(got.tilt_deg, angles, atol=1e-9)
     np.testing.assert_allclose(got.distance, ranges, rtol=1e-12)
 
@@ -72,21 +64,22 @@ def _full_field(rng, n=400):
 
 
 def test_coverage_verdict_names_fronto_parallel_views_and_a_centred_board(rng):
-    tilted = ViewGeometry(np.array([5.0, 25.0, 35.0]), np.array([500.0, 650.0, 800.0]))
-    flat = ViewGeometry(np.full(3, MIN_TILT_DEG - 2), np.array([500.0, 650.0, 800.0]))
+    distances = np.array([500.0, 650.0, 800.0])
+    tilted = quality.ViewGeometry(np.array([5.0, 25.0, 35.0]), distances)
+    flat = quality.ViewGeometry(np.full(3, quality.MIN_TILT_DEG - 2), distances)
     # full field, tilted views at three distances: no problem
-    problems, summary = coverage_verdict(_full_field(rng), SIZE, tilted)
+    problems, summary = quality.coverage_verdict(_full_field(rng), SIZE, tilted)
     assert problems == [] and "largest tilt 35.0 deg" in summary
-    problems, _ = coverage_verdict(_full_field(rng), SIZE, flat)
+    problems, _ = quality.coverage_verdict(_full_field(rng), SIZE, flat)
     assert len(problems) == 1 and "fronto-parallel" in problems[0]
     # a board in the middle third of the image: outer region and corners not reached
     centre = rng.uniform([SIZE[0] / 3, SIZE[1] / 3], [2 * SIZE[0] / 3, 2 * SIZE[1] / 3],
                          (400, 2))
-    problems, _ = coverage_verdict(centre, SIZE, tilted)
+    problems, _ = quality.coverage_verdict(centre, SIZE, tilted)
     assert any("outer region" in p for p in problems)
     assert any("a corner of the image has no point" in p for p in problems)
-    one_distance = ViewGeometry(tilted.tilt_deg, np.array([600.0, 610.0, 620.0]))
-    problems, _ = coverage_verdict(_full_field(rng), SIZE, one_distance)
+    one_distance = quality.ViewGeometry(tilted.tilt_deg, np.array([600.0, 610.0, 620.0]))
+    problems, _ = quality.coverage_verdict(_full_field(rng), SIZE, one_distance)
     assert len(problems) == 1 and "one distance" in problems[0]
 
 
@@ -95,7 +88,7 @@ def test_projection_difference_of_a_principal_point_shift_is_the_shift():
     K2 = K.copy()
     K2[0, 2] += 3.0
     K2[1, 2] -= 4.0
-    _, _, diff = projection_difference(_result(K, dist), _result(K2, dist), SIZE, columns=9)
+    _, _, diff = quality.projection_difference(_result(K, dist), _result(K2, dist), SIZE, columns=9)
     np.testing.assert_allclose(diff, 5.0, atol=1e-6)  # undistortPoints: float32 input
 
 
@@ -103,7 +96,7 @@ def test_observed_region_is_the_hull_of_the_points():
     square = np.array([[100.0, 100.0], [300.0, 100.0], [300.0, 300.0], [100.0, 300.0],
                        [200.0, 200.0]])
     xs, ys = np.array([50.0, 150.0, 250.0, 350.0]), np.array([50.0, 150.0, 250.0])
-    hull, inside = observed_region(square, xs, ys)
+    hull, inside = quality.observed_region(square, xs, ys)
     assert len(hull) == 4
     np.testing.assert_array_equal(inside, [[0, 0, 0, 0], [0, 1, 1, 0], [0, 1, 1, 0]])
 
@@ -131,7 +124,7 @@ def test_projection_uncertainty_matches_monte_carlo_of_refits(rng):
     fit = calibrate_opencv(draw())
     refits = [calibrate_opencv(draw()) for _ in range(60)]
     for distance in (600.0, 3000.0):
-        xs, ys, sigma = projection_uncertainty(fit, draw(), distance, columns=12)
+        xs, ys, sigma = quality.projection_uncertainty(fit, draw(), distance, columns=12)
         grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
         ray = cv2.undistortPoints(grid.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
         ray = np.column_stack([ray, np.ones(len(ray))])
@@ -149,7 +142,7 @@ def test_projection_uncertainty_matches_monte_carlo_of_refits(rng):
         mc = np.sqrt(np.linalg.eigvalsh(cov)[:, 1]).reshape(sigma.shape)
         # where the boards were seen (outside, the model is extrapolated and far from
         # linear); 60 draws give a sigma to ~9 % (1-sigma), 0.7-1.4 allows > 3.5 of them
-        inside = observed_region(np.concatenate(clean), xs, ys)[1]
+        inside = quality.observed_region(np.concatenate(clean), xs, ys)[1]
         assert inside.sum() >= 10
         ratio = sigma[inside] / mc[inside]
         assert np.all((ratio > 0.7) & (ratio < 1.4)), (distance, ratio)
