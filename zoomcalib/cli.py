@@ -571,8 +571,12 @@ def detect(folder, pattern, methods, workers, out):
               help="Zoom values of OUT/zoom_model_grid.csv, spread over the calibrated range.")
 @click.option("--camera-name", help="camera_name of the ROS files in OUT/ros (default: "
                                     "FOLDER's name).")
+@click.option("--no-report", is_flag=True, help="Do not write OUT/report.html.")
+@click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
+              help="Distance (mm) of the report's projection-uncertainty maps; default: each "
+                   "step's median board distance.")
 def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
-              grid_points, camera_name):
+              grid_points, camera_name, no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -580,7 +584,8 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     (every step together: one board, a smoothness prior across zoom; --per-step turns it off)
     beside per-step OpenCV. Writes OUT/calibration.json and .yml, per step OpenCV, ROS and
     mrcal files (OUT/opencv, OUT/ros, OUT/mrcal), and for zoom sets OUT/zoom_calibration.csv,
-    OUT/zoom_model.json, OUT/zoom_model_grid.csv and figures. Detections are cached in
+    OUT/zoom_model.json, OUT/zoom_model_grid.csv and figures, and OUT/report.html (every
+    figure in one page; --no-report skips it). Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
     again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
     on a step, or an image skipped).
@@ -613,7 +618,8 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
         run = calibrate_folder(folder, pattern, out, backends, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
                                zoom_wide=not per_step, cross_validate=cross_validate,
-                               grid_points=grid_points, camera_name=camera_name)
+                               grid_points=grid_points, camera_name=camera_name,
+                               report=not no_report, report_distance=report_distance)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

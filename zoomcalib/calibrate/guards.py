@@ -51,6 +51,7 @@ MANIFEST = "manifest.json"
 _OWN_FILES: tuple[str, ...] = (
     "calibration.json", "calibration.yml", "zoom_calibration.csv", "zoom_model.json",
     "principal_point_path.png", "focal_length.png", "residuals_*.png", "cross_validation.png",
+    "report.html",
     MANIFEST,
     "detections/*.json", "opencv/*.yml", "ros/*.yaml", "mrcal/*.cameramodel",
     "zoom_model_grid.csv")

@@ -18,6 +18,8 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
 - ``opencv/``, ``ros/``, ``mrcal/`` and ``zoom_model_grid.csv`` — the results in the formats
   of other tools (:mod:`zoomcalib.calibrate.export`);
 - figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
+- ``report.html`` — every step's and the zoom range's figures in one page
+  (:mod:`zoomcalib.calibrate.report`), unless ``report=False``;
 - ``manifest.json`` — the files this run wrote, the command and the inputs. A run first
   removes the files an earlier run left (listed in its manifest, or named as this job names
   its files), so the folder never mixes two runs.
@@ -66,7 +68,9 @@ class CalibrateRun:
     :attr:`partial`. ``reused`` counts, per step, the images whose cached detections were
     reused; ``left_out`` names, per step, the images of another size than the step's;
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
-    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems.
+    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
+    ``skipped_images`` the one-line errors of the images whose detection failed, per step;
+    ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -86,6 +90,8 @@ class CalibrateRun:
     zoom_wide: object | None = None
     cross_validation: object | None = None
     flags: dict[str, list[str]] = field(default_factory=dict)
+    skipped_images: dict[str, list[str]] = field(default_factory=dict)
+    zoom_source: dict[str, str | None] = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -193,7 +199,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      progress: Callable[[int], None] | None = None,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
                      cross_validate: bool = False, grid_points: int = 50,
-                     camera_name: str | None = None) -> CalibrateRun:
+                     camera_name: str | None = None, report: bool = True,
+                     report_distance: float | None = None) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -224,6 +231,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     camera_name : str, optional
         ``camera_name`` of the ROS files; default the image folder's name, with characters
         other than ``[A-Za-z0-9_]`` replaced by ``_``.
+    report : bool
+        Write ``report.html`` (:func:`zoomcalib.calibrate.report.write_report`).
+    report_distance : float, optional
+        Distance (mm) of the report's projection-uncertainty maps; default each step's median
+        board distance.
 
     Returns
     -------
@@ -249,6 +261,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         for d in dets:
             if d.error:
                 log(f"step {step}: skipped {d.error}")
+                run.skipped_images.setdefault(step, []).append(d.error)
         good = [d for d in dets if d.error is None]
         if not good:
             _drop(run, step, "no image with a detected target", log)
@@ -260,6 +273,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             continue
         run.observations[step] = obs
         run.zoom[step] = zoom
+        run.zoom_source[step] = extras.get("zoom_source")
         step_results = {}
         for backend in backends:
             try:
@@ -333,6 +347,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
                                    log)
         run.files += _figures(run, out, zoom_set)
+    if report and run.results:
+        _report(run, out, report_distance, log)
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "detection_settings": settings}
     run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
@@ -513,6 +529,17 @@ def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, 
         log("the zoom table mixes backends (no backend calibrated every step): "
             + ", ".join(f"{s} {b}" for s, b in chosen.items()))
     return chosen
+
+
+def _report(run: CalibrateRun, out: Path, distance: float | None,
+            log: Callable[[str], None]) -> None:
+    """Write ``report.html``; a failure is logged in one line (the other outputs stand)."""
+    from .report import write_report
+
+    try:
+        run.files.append(write_report(run, out, distance))
+    except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as exc:
+        log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
 
 
 def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance: dict,
