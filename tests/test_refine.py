@@ -188,6 +188,20 @@ def test_noise_free_corners_exact(rng):
     np.testing.assert_allclose(res.sigma, SIGMA, atol=2e-3)
 
 
+@pytest.mark.parametrize("sigma", [0.55, 1.0, 1.6])
+def test_noise_free_corners_exact_with_a_shared_blur(rng, sigma):
+    # The detector's setting (one blur shared by all corners). From 1 px of blur on, the fit
+    # ends on the variance-matched Gaussian pixel model instead of the pixel quadrature: it must
+    # stay as exact. Bound 3e-4 px: 30x below the noise-limited errors of real corners; the
+    # Gaussian pixel model misses it at 0.55 px (6e-4 px here), the quadrature does not.
+    img, truth, init, _, _ = corner_mosaic(rng, 24, noise=0.0, sigma=sigma, min_angle=35.0)
+    res = refine_corners(img, init, sigma="shared")
+    assert res.converged.all()
+    err = np.hypot(*(res.points - truth).T)
+    assert err.max() < 3e-4, err.max()
+    np.testing.assert_allclose(res.sigma, sigma, atol=5e-3)
+
+
 def test_noisy_corners_unbiased_and_efficient(rng):
     # 400 corners at the reference noise (2/255, Gaussian, float image), blur 0.7 px, 11 x 11.
     # Statistics: for a 2-D Gaussian error the squared radial error is ~exponential, so the mean
