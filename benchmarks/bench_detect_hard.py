@@ -1,6 +1,6 @@
 """The default chessboard detector on hard frames: time and accuracy per condition, against SB.
 
-``python benchmarks/bench_detect_hard.py [--views N] [--seed S] [--only NAME ...]``
+``python benchmarks/bench_detect_hard.py [--views N] [--seed S] [--only NAME ...] [--real]``
 
 Renders (seeded) 1280 x 720 frames of a 22 x 15 chessboard (330 corners) near fronto-parallel
 through a pinhole camera with barrel distortion, under one hard condition at a time: strong
@@ -11,6 +11,9 @@ all of these at once. ``model`` (the default method) and ``sb`` run on the same 
 thread. Printed per condition: seconds per frame of each, their ratio, RMS corner error
 against the renderer's truth (corners both methods found, so the two RMS compare the same
 corners), and the fraction of ``model``'s corners flagged as fallback.
+
+``--real`` first times both methods on the real photos in ``tests/data/opencv-samples`` (13
+frames, 640 x 480, 9 x 6 corners; best of 3 runs per frame): seconds per frame and per corner.
 """
 
 from __future__ import annotations
@@ -155,6 +158,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=2, help="frames per condition")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", nargs="*", default=None, help="condition names to run")
+    ap.add_argument("--real", action="store_true", help="also time the real photos")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     target = parse_pattern(PATTERN)
@@ -166,6 +170,8 @@ def main() -> None:
           "in frames both methods found; fallback: model's corners flagged")
     print(f"{'condition':24s} {'found m/sb':>10s} {'model s':>8s} {'sb s':>7s} {'m/sb':>6s} "
           f"{'model RMS':>10s} {'sb RMS':>8s} {'fallback':>9s}")
+    if args.real:
+        _time_real_photos()
     worst = 0.0
     for k, cond in enumerate(CONDITIONS):
         if args.only and cond.name not in args.only:
@@ -197,6 +203,24 @@ def main() -> None:
         print(f"{cond.name:24s} {found_m:4d}/{found_s:<5d} {np.mean(t_m):8.3f} {np.mean(t_s):7.3f} "
               f"{np.mean(t_m) / np.mean(t_s):6.2f} {rms_m:10.4f} {rms_s:8.4f} {fb}", flush=True)
     print(f"# slowest model frame: {worst:.3f} s")
+
+
+def _time_real_photos() -> None:
+    """Seconds per frame and ms per corner of ``model`` and ``sb`` on the OpenCV sample photos."""
+    files = sorted((ROOT / "tests" / "data" / "opencv-samples").glob("left*.jpg"))
+    target = parse_pattern("chessboard:9x6:25")
+    images = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+    for method in ("model", "sb"):
+        times, corners, fallback = [], 0, 0
+        for image in images:
+            runs = [_timed(image, target, method) for _ in range(3)]
+            times.append(min(t for _, t in runs))
+            det = runs[0][0]
+            corners += len(det.ids)
+            fallback += det.n_fallback if det.ok else 0
+        print(f"# real photos, {method:5s}: {len(images)} frames 640x480, {np.mean(times):.3f} s "
+              f"per frame (max {np.max(times):.3f}), {1e3 * np.sum(times) / corners:.2f} ms per "
+              f"corner, {corners} corners, {fallback} fallback", flush=True)
 
 
 def _rms(errors: list[np.ndarray]) -> float:
