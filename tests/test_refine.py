@@ -21,6 +21,7 @@ from scipy.stats import multivariate_normal
 
 from zoomcalib.detect.crlb import corner_crlb, dot_crlb
 from zoomcalib.detect.refine import (
+    _batched_lm,
     bivariate_normal_cdf,
     refine_corners,
     refine_dots,
@@ -186,6 +187,40 @@ def test_noise_free_corners_exact(rng):
     err = np.hypot(*(res.points - truth).T)
     assert err.max() < 1e-3, err.max()
     np.testing.assert_allclose(res.sigma, SIGMA, atol=2e-3)
+
+
+@pytest.mark.parametrize("sigma", [0.55, 1.0, 1.6])
+def test_noise_free_corners_exact_with_a_shared_blur(rng, sigma):
+    # The detector's setting (one blur shared by all corners). From 1 px of blur on, the fit
+    # ends on the variance-matched Gaussian pixel model instead of the pixel quadrature: it must
+    # stay as exact. Bound 3e-4 px: 30x below the noise-limited errors of real corners; the
+    # Gaussian pixel model misses it at 0.55 px (6e-4 px here), the quadrature does not.
+    img, truth, init, _, _ = corner_mosaic(rng, 24, noise=0.0, sigma=sigma, min_angle=35.0)
+    res = refine_corners(img, init, sigma="shared")
+    assert res.converged.all()
+    err = np.hypot(*(res.points - truth).T)
+    assert err.max() < 3e-4, err.max()
+    np.testing.assert_allclose(res.sigma, sigma, atol=5e-3)
+
+
+def test_levenberg_marquardt_keeps_each_problems_iteration_budget(rng):
+    # The final quadrature stage gives corners the cheap model did not converge a smaller
+    # budget than the others. Straight lines fitted with tol = 0 never meet the stopping test,
+    # so every problem runs exactly its own budget, and the fit is still the least-squares line.
+    x = np.linspace(-1.0, 1.0, 21)
+    truth = rng.normal(size=(3, 2))
+    data = truth[:, :1] + truth[:, 1:] * x + rng.normal(0.0, 0.01, (3, x.size))
+
+    def fun(p, idx):
+        jac = np.broadcast_to(np.stack([np.ones_like(x), x], axis=-1), (len(p), x.size, 2))
+        return p[:, :1] + p[:, 1:] * x, jac.copy()
+
+    budget = np.array([1, 4, 9])
+    out = _batched_lm(fun, np.zeros((3, 2)), data, np.ones_like(data), max_iter=budget, tol=0.0)
+    np.testing.assert_array_equal(out.n_iter, budget)
+    assert not out.converged.any()
+    lsq = np.polynomial.polynomial.polyfit(x, data.T, 1).T
+    np.testing.assert_allclose(out.p[2], lsq[2], atol=1e-6)
 
 
 def test_noisy_corners_unbiased_and_efficient(rng):

@@ -14,6 +14,8 @@ W. F. Sheppard, Phil. Trans. R. Soc. A 192 (1899) 101-167; A. Genz, Statistics a
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.special import ndtr
 
@@ -25,6 +27,16 @@ _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 def _phi(x: np.ndarray) -> np.ndarray:
     """Standard normal density."""
     return _INV_SQRT_2PI * np.exp(-0.5 * x * x)
+
+
+@lru_cache(maxsize=32)
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes and weights of the ``n``-point Gauss-Legendre rule on [-1, 1] (cached, read-only:
+    the model evaluations ask for the same few rules thousands of times per image)."""
+    t, w = np.polynomial.legendre.leggauss(n)
+    t.flags.writeable = False
+    w.flags.writeable = False
+    return t, w
 
 
 def _n_rho_nodes(rho_abs_max: float) -> int:
@@ -85,7 +97,7 @@ def _sheppard(h: np.ndarray, k: np.ndarray, rho: np.ndarray, n_nodes: int | None
     """
     if n_nodes is None:
         n_nodes = _n_rho_nodes(float(np.max(np.abs(rho), initial=0.0)))
-    t, w = np.polynomial.legendre.leggauss(n_nodes)
+    t, w = _gauss_legendre(int(n_nodes))
     half = 0.5 * np.arcsin(rho)
     s = np.sin(half[..., None] * (t + 1.0))
     c2 = 1.0 - s * s
@@ -116,7 +128,7 @@ def pixel_nodes(n_sub: int) -> tuple[np.ndarray, np.ndarray]:
     >>> off.shape, float(w.sum())
     ((4, 2), 1.0)
     """
-    t, w = np.polynomial.legendre.leggauss(n_sub)
+    t, w = _gauss_legendre(int(n_sub))
     t, w = 0.5 * t, 0.5 * w
     gx, gy = np.meshgrid(t, t)
     return np.stack([gx.ravel(), gy.ravel()], axis=1), np.outer(w, w).ravel()
