@@ -54,6 +54,7 @@ from .model import (
     LensResponse,
     Term,
     axis_tilt_term,
+    covariate_curve_term,
     covariate_term,
     design_matrix,
     direction_offset_term,
@@ -80,6 +81,8 @@ ALPHA = 0.01
 #: the rows may scatter up to this factor more than the table's sigmas and the tolerance
 #: file's play say (RMS over the rows) and the model still explain them
 NOISE_SCALE_MAX = 3.0
+#: degree of the capture-order drift the fit check tests against (the drift causes go to 3)
+ORDER_TEST_DEGREE = 5
 #: most causes selected together
 MAX_CAUSES = 3
 #: highest degree of the smooth path of a lens without a model (and at most the number of
@@ -135,10 +138,12 @@ def cause_variants(table: ZoomTable, groups: tuple[str, ...] | None
     else:
         skipped["backlash"] = "needs a direction column with both 'in' and 'out' rows"
     if _varies(table.temperature):
-        variants["thermal_drift"] = [(covariate_term("temperature", "K", "thermal drift"),)]
+        variants["thermal_drift"] = [(covariate_term("temperature", "K", "thermal drift"),)] + [
+            (covariate_curve_term("temperature", d, "thermal drift"),) for d in (2, 3)]
     elif _varies(table.sequence):
-        variants["thermal_drift"] = [(covariate_term("sequence", "capture",
-                                                     "drift with capture order"),)]
+        variants["thermal_drift"] = [
+            (covariate_term("sequence", "capture", "drift with capture order"),)] + [
+            (covariate_curve_term("sequence", d, "drift with capture order"),) for d in (2, 3)]
     else:
         skipped["thermal_drift"] = "needs a temperature or sequence column"
     if groups is None:
@@ -448,7 +453,8 @@ def _structure_terms(ctx: Context, groups: np.ndarray) -> list[tuple[str, tuple[
         else:
             tests.append(("direction", (direction_offset_term(),)))
     if _varies(table.sequence):
-        tests.append(("order", (covariate_term("sequence", "capture", "capture order"),)))
+        tests.append(("order", (covariate_curve_term("sequence", ORDER_TEST_DEGREE,
+                                                     "capture order"),)))
     return tests
 
 
@@ -482,7 +488,8 @@ def fit_check(fit: LinearFit, ctx: Context, groups: np.ndarray,
       visited more than once, else a cubic in log f);
     - ``direction``: the direction of the last zoom move (a free difference between moves in
       and out at every setting when each was reached both ways, else an offset signed by it);
-    - ``order``: the capture order (a linear drift),
+    - ``order``: the capture order (a drift of degree :data:`ORDER_TEST_DEGREE`, above the
+      drifts the causes fit),
 
     each at the fit's noise, ``F = ((chi2 - chi2_alt) / q) / (chi2_alt / dof_alt)``, significant
     below ``ALPHA / (number of tests)`` (Bonferroni). With a lens model and a table with

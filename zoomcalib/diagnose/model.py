@@ -38,7 +38,8 @@ from .table import ZoomTable
 
 __all__ = ["LensResponse", "Context", "Term", "moving_groups", "play_sd_px", "FocalRangeError",
            "offset_term", "group_term", "axis_tilt_term", "direction_offset_term",
-           "covariate_term", "design_matrix", "DEFAULT_PITCH_MM", "smooth_path_term",
+           "covariate_term", "covariate_curve_term", "design_matrix", "DEFAULT_PITCH_MM",
+           "smooth_path_term",
            "setting_term", "log_focal_coordinate"]
 
 DEFAULT_PITCH_MM = 0.00645
@@ -239,6 +240,21 @@ def covariate_term(column: str, unit: str, label: str) -> Term:
         return (v - v.mean())[:, None, None] * np.eye(2)[None]
 
     return Term(label, (f"rate_x_px_per_{unit}", f"rate_y_px_per_{unit}"), columns)
+
+
+def covariate_curve_term(column: str, degree: int, label: str) -> Term:
+    """A drift smooth in a table column: ``Delta c = sum_{d=1..degree} P_d(t) b_d`` (px per
+    axis; Legendre ``P_d`` of the column mapped to ``t`` on [-1, 1]), e.g. a warm-up that
+    levels off."""
+    names = tuple(f"{column}_{axis}_p{d}_px" for d in range(1, degree + 1) for axis in "xy")
+
+    def columns(ctx: Context) -> np.ndarray:
+        v = getattr(ctx.table, column)
+        t = 2.0 * (v - v.min()) / np.ptp(v) - 1.0
+        vander = np.polynomial.legendre.legvander(t, degree)[:, 1:]  # shape (N, degree)
+        return np.einsum("nd,ak->nadk", vander, np.eye(2)).reshape(len(t), 2, 2 * degree)
+
+    return Term(f"{label}, degree {degree}", names, columns)
 
 
 def log_focal_coordinate(fx: np.ndarray, lo: float, hi: float) -> np.ndarray:
