@@ -134,7 +134,7 @@ def cause_variants(table: ZoomTable, groups: tuple[str, ...] | None
             fx = table.fx
             variants["backlash"] += [
                 (smooth_path_term(d, float(fx.min()), float(fx.max()), signed=True),)
-                for d in range(1, _max_path_degree(table) + 1)]
+                for d in range(1, min(3, _max_path_degree(table)) + 1)]
     else:
         skipped["backlash"] = "needs a direction column with both 'in' and 'out' rows"
     if _varies(table.temperature):

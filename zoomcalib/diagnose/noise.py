@@ -185,9 +185,9 @@ def estimate_noise(A: np.ndarray, y: np.ndarray, shape: NoiseShape) -> NoiseFit:
     rms2 = float(np.mean((y - A @ beta) ** 2))
     start_s = 0.5 * np.log(max(rms2, 1e-12) / max(np.mean(shape.measured_var), 1e-12))
     starts = [np.array([0.0, 0.0]), np.array([np.clip(start_s, *LOG_BOUNDS), -3.0])]
-    best = min((minimize(objective, s0, method="Nelder-Mead", bounds=[LOG_BOUNDS] * 2,
-                         options={"xatol": 1e-3, "fatol": 1e-5})
-                for s0 in starts), key=lambda res: res.fun)
+    start = min(starts, key=objective)  # the better start only: one search per model
+    best = minimize(objective, start, method="Nelder-Mead", bounds=[LOG_BOUNDS] * 2,
+                    options={"xatol": 1e-3, "fatol": 1e-5})
     theta = best.x
     # a scale at the lower bound is a variance component the data do not see (a valid
     # estimate of zero); one at the upper bound is a search that ran out of room

@@ -46,10 +46,11 @@ class DiagnoseRun:
 
 
 def largest_model(groups: tuple[str, ...] | None, locked_tilt: bool = False) -> int:
-    """Parameters of the largest single-cause model the diagnosis fits: the baseline plus the
-    largest variant of any cause, as if the table had every optional column (``groups`` None:
-    no lens model, the smallest smooth path; larger paths and several causes at once are
-    fitted only where the rows allow)."""
+    """Parameters of the largest model every cause needs in its simplest form: the baseline
+    plus, over the causes, the largest of their smallest variants, as if the table had every
+    optional column (``groups`` None: no lens model, the smallest smooth path). Richer variants
+    (a drift curve, a signed path) and several causes at once are fitted only where the rows
+    allow."""
     two = np.arange(2.0)
     probe = ZoomTable(zoom=two, fx=two + 1, fy=two + 1, cx=two, cy=two, sd_cx=two, sd_cy=two,
                       direction=np.array([1.0, -1.0]), sequence=two, focus=two,
@@ -59,7 +60,7 @@ def largest_model(groups: tuple[str, ...] | None, locked_tilt: bool = False) -> 
     def size(terms) -> int:
         return sum(len(t.params) for t in terms)
 
-    extra = max((size(v) for options in variants.values() for v in options), default=0)
+    extra = max((min(size(v) for v in options) for options in variants.values()), default=0)
     if groups is None:
         return 4 + extra  # offset and a path linear in log f
     return size(baseline_terms(groups, locked_tilt)) + extra
