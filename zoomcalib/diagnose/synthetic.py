@@ -467,7 +467,8 @@ def independent_zoom_table(
         ``params``, ``group`` or None, ``effect_px`` (N, 2)); ``unlisted`` (None, or a dict with
         ``magnitude``, ``effect_px``, ``captured``, ``coefficients``, ``draws``); ``play``
         (``scale``, ``distribution``, ``sd_px`` (N,) its linearised 1-sigma per axis,
-        ``effect_px`` (N, 2) from the tracer); ``sd`` (``factor``, ``growth``, ``true_px``,
+        ``effect_px`` (N, 2) from the tracer, ``decenter_mm`` and ``tilt_rad`` (N, G, 2) the
+        draws per lens group); ``sd`` (``factor``, ``growth``, ``true_px``,
         ``reported_px``); ``locked_px`` (N, 2) the principal points of the offset and locked
         errors alone; ``measurement_noise_px`` (N, 2); ``noise_rms_px`` (true) and
         ``assumed_noise_rms_px`` (from the reported sigmas and the tolerance file's play);
@@ -528,7 +529,7 @@ def independent_zoom_table(
     truth = {
         "causes": truth_causes, "unlisted": extra,
         "play": {"scale": p_scale, "distribution": play_distribution, "sd_px": play_true,
-                 "effect_px": play_effect},
+                 "effect_px": play_effect, "decenter_mm": play_dec, "tilt_rad": play_tilt},
         "sd": {"factor": factor, "growth": growth, "true_px": sd_true,
                "reported_px": factor * sd_true},
         "locked_px": locked, "measurement_noise_px": noise, "noise_rms_px": noise_rms,
