@@ -6,6 +6,9 @@ These tests check each departure from the rows and the separately returned truth
 columns of :mod:`zoomcalib.diagnose.model` and the play of the tolerance file as the yardsticks.
 """
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -190,3 +193,19 @@ def test_two_cause_tables_hold_both_effects(pair, response):
         assert captured[cause] > 0.97, (cause, captured)
         other = next(o for o, _ in pair if o != cause)
         assert captured[other] < 0.9, (cause, other, captured)
+
+
+def test_benchmark_reads_old_and_new_diagnosis_documents():
+    """The benchmark's one adapter: the single ``cause`` of today's document (which claims to
+    explain the data), and a list of ``causes`` with an ``explained`` verdict."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "diagnose_independent.py"
+    spec = importlib.util.spec_from_file_location("diagnose_independent", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.read_diagnosis({"cause": "none"}) == ([], True)
+    assert bench.read_diagnosis({"cause": "backlash"}) == (["backlash"], True)
+    doc = {"cause": "backlash", "causes": [{"cause": "backlash"}, {"cause": "axis_tilt"}],
+           "explained": {"explained": False}}
+    assert bench.read_diagnosis(doc) == (["backlash", "axis_tilt"], False)
+    assert bench.read_diagnosis({"cause": "none", "causes": [],
+                                 "explained": {"explained": True}}) == ([], True)
