@@ -174,7 +174,8 @@ def test_unlisted_effect_is_visible_and_no_cause_captures_it(response):
 
 
 @pytest.mark.parametrize("pair", [(("cam_harmonic", 10.0), ("static_decenter", 7.0)),
-                                  (("backlash", 12.0), ("thermal_drift", 6.0))])
+                                  (("backlash", 12.0), ("thermal_drift", 6.0)),
+                                  (("axis_tilt", 8.0), ("backlash", 12.0))])
 def test_two_cause_tables_hold_both_effects(pair, response):
     rows, truth = independent_zoom_table(LENS, np.random.default_rng(5), causes=list(pair),
                                          play_scale=2.0, sd_factor=0.7, unlisted=2.0)

@@ -169,12 +169,14 @@ def _covariates(b: _Bench, rng: np.random.Generator, with_focus: bool,
 @dataclass
 class _State:
     """The lens as perturbed so far: decentre (mm) and tilt (rad) per row and group, offset (px),
-    and the principal points they give (px)."""
+    the principal points (px) they give together with ``linear``, the (N, 2) sum of the causes
+    added outside the tracer (axis tilt, drifts; px)."""
 
     decenter: np.ndarray
     tilt: np.ndarray
     offset: np.ndarray
     pp: np.ndarray
+    linear: np.ndarray | float = 0.0
 
 
 def _add_cause(b: _Bench, state: _State, cause: str, m: float, noise_rms: float,
@@ -200,7 +202,7 @@ def _add_cause(b: _Bench, state: _State, cause: str, m: float, noise_rms: float,
         def with_amplitude(a_um: float) -> tuple[np.ndarray, np.ndarray]:
             dec = state.decenter.copy()
             dec[:, b.gi[g]] += a_um * UM * shift
-            return b.principal_points(dec, state.tilt, state.offset), dec
+            return b.principal_points(dec, state.tilt, state.offset) + state.linear, dec
 
         per_um = with_amplitude(1.0)[0] - state.pp
         a_um = m * noise_rms / _visible_rms(per_um)
@@ -221,6 +223,7 @@ def _add_cause(b: _Bench, state: _State, cause: str, m: float, noise_rms: float,
         names = ("rate_x_px_per_focus_unit", "rate_y_px_per_focus_unit")
     a = m * noise_rms / _visible_rms(per_unit)
     state.pp = state.pp + a * per_unit
+    state.linear = state.linear + a * per_unit
     return state.pp, {names[0]: a * unit[0], names[1]: a * unit[1]}, None
 
 
