@@ -4,6 +4,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+import yaml
 from click.testing import CliRunner
 
 from zoomcalib.cli import main
@@ -55,6 +56,18 @@ def test_calibrate_zoom_set_recovers_rendered_cameras(zoom_set, tmp_path):
     fs = cv2.FileStorage(str(out / "calibration.yml"), cv2.FILE_STORAGE_READ)
     assert fs.isOpened()
     fs.release()
+    # the exports: every calibrated step in each tool's format, listed in the manifest; three
+    # steps are too few for a zoom model, so no grid
+    listed = set(json.loads((out / "manifest.json").read_text())["files"])
+    for step in ("zoom_00", "zoom_01", "zoom_02"):
+        for rel in (f"opencv/{step}_opencv.yml", f"opencv/{step}_zoom_wide.yml",
+                    f"mrcal/{step}.cameramodel"):
+            assert rel in listed and (out / rel).is_file(), rel
+    index = yaml.safe_load((out / "ros" / "camera_info_index.yaml").read_text())
+    assert index["camera_name"] == "set"  # the image folder's name
+    assert [e["step"] for e in index["steps"]] == ["zoom_00", "zoom_01", "zoom_02"]
+    assert all(f"ros/{e['file']}" in listed for e in index["steps"])
+    assert not (out / "zoom_model_grid.csv").exists()
     # a rerun reuses the cached detections
     stamp = (out / "detections" / "zoom_00.json").stat().st_mtime_ns
     res = CliRunner().invoke(main, ["calibrate", str(zoom_set), "--pattern", "chessboard:9x6:25",

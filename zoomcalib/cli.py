@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -230,19 +231,30 @@ def _parse_target(spec):
               help="Resolution of the PNG.")
 @click.option("--out", default="target", show_default=True,
               help="Output stem: writes STEM.png, STEM.svg (mm) and STEM.json (geometry).")
-def target(pattern, dpi, out):
+@click.option("--paper", type=click.Choice(["A4", "A3", "letter"], case_sensitive=False),
+              default=None,
+              help="Lay the board out on this paper (portrait, or landscape if it fits only "
+                   "that way); warns when it does not fit the printable area.")
+def target(pattern, dpi, out, paper):
     """Write a printable target for PATTERN.
 
     PATTERN is chessboard:COLSxROWS:SQUARE (inner corners, mm), circles:COLSxROWS:SPACING,
-    acircles:COLSxROWS:SPACING or charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT.
+    acircles:COLSxROWS:SPACING or charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT. The PNG carries
+    its DPI; under the board are its spec and a 100 mm bar to check the print with a ruler.
     """
-    from .targets import write_printable
+    from .targets import PAPER_MM, write_printable
 
     t = _parse_target(pattern)
     _check_out_file(out, suffixes=(".png", ".svg", ".json"))
-    files = write_printable(t, out, dpi)
+    if paper is not None:
+        paper = next(p for p in PAPER_MM if p.lower() == paper.lower())
+    files, layout = write_printable(t, out, dpi, paper)
     w, h = t.size_mm
     click.echo(f"{t.spec}: {t.n_points} points, board {w:g} x {h:g} mm; wrote {', '.join(files)}")
+    if layout.orientation is not None:
+        click.echo(f"laid out on {paper} {layout.orientation}; print at 100 % (no fit to page)")
+    if layout.problem is not None:
+        click.echo(f"warning: {files[0]}: {layout.problem}", err=True)
 
 
 def _testbed_options(func):
@@ -555,14 +567,25 @@ def detect(folder, pattern, methods, workers, out):
               help="Detection processes (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
-def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out):
+@click.option("--grid-points", default=50, show_default=True, type=click.IntRange(min=2),
+              help="Zoom values of OUT/zoom_model_grid.csv, spread over the calibrated range.")
+@click.option("--camera-name", help="camera_name of the ROS files in OUT/ros (default: "
+                                    "FOLDER's name).")
+@click.option("--no-report", is_flag=True, help="Do not write OUT/report.html.")
+@click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
+              help="Distance (mm) of the report's projection-uncertainty maps; default: each "
+                   "step's median board distance.")
+def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
+              grid_points, camera_name, no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
     else the images' EXIF focal length. A zoom set is calibrated by one zoom-wide adjustment
     (every step together: one board, a smoothness prior across zoom; --per-step turns it off)
-    beside per-step OpenCV. Writes OUT/calibration.json and .yml, and for zoom sets
-    OUT/zoom_calibration.csv, OUT/zoom_model.json and figures. Detections are cached in
+    beside per-step OpenCV. Writes OUT/calibration.json and .yml, per step OpenCV, ROS and
+    mrcal files (OUT/opencv, OUT/ros, OUT/mrcal), and for zoom sets OUT/zoom_calibration.csv,
+    OUT/zoom_model.json, OUT/zoom_model_grid.csv and figures, and OUT/report.html (every
+    figure in one page; --no-report skips it). Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
     again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
     on a step, or an image skipped).
@@ -585,13 +608,18 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
     if model != "standard" and not per_step:
         raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
                                  f"--per-step with --model {model}", param_hint="--model")
+    if camera_name is not None and not re.fullmatch(r"[A-Za-z0-9_]+", camera_name):
+        raise click.BadParameter(f"{camera_name!r}: ROS camera names are letters, digits and _",
+                                 param_hint="--camera-name")
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
     with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
         run = calibrate_folder(folder, pattern, out, backends, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
-                               zoom_wide=not per_step, cross_validate=cross_validate)
+                               zoom_wide=not per_step, cross_validate=cross_validate,
+                               grid_points=grid_points, camera_name=camera_name,
+                               report=not no_report, report_distance=report_distance)
     for m in messages:
         click.echo(m)
     _print_calibration(run)
@@ -729,7 +757,10 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
 
 @main.command(epilog=EXIT_CODES)
 @click.argument("input_path", metavar="INPUT", type=click.Path(exists=True))
-@click.option("--lens", default="laikin-10x", show_default=True, help=LENS_HELP)
+@click.option("--lens", default="laikin-10x", show_default=True,
+              help=LENS_HELP + " 'none': no lens model; the baseline is a principal-point path "
+                   "smooth in log focal length and only the causes that need no optics are "
+                   "tested.")
 @click.option("--pixel-pitch", default="0.00645", show_default=True,
               help="Sensor pixel pitch in mm, or 'auto' to fit it (a scale between the "
                    "measured px and the lens's mm).")
@@ -753,17 +784,22 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     the zoom column may be in any unit.
 
     The paper's model (sensor offset, barrel-locked decentre and tilt of each moving group) is
-    fitted, then each cause (axis_tilt, backlash, thermal_drift, cam_harmonic,
-    static_decenter, focus_shift) added in turn. A cause is named when it beats the model by
-    BIC and predicts held-out zoom steps better; else 'none'. Writes OUT/diagnosis.json,
-    OUT/report.md, OUT/path.png and OUT/residuals.png.
+    fitted with the noise scales estimated from the table, then causes (axis_tilt, backlash,
+    thermal_drift, cam_harmonic, static_decenter, focus_shift) are selected together: a cause
+    enters when it beats the model by BIC and predicts held-out zoom steps better. The
+    selected model is then checked: when it leaves structure over zoom, direction or capture
+    order, the answer is 'unexplained' with what remains; with no cause, 'none'. Writes
+    OUT/diagnosis.json, OUT/report.md, OUT/path.png and OUT/residuals.png.
     """
     import os
 
     from .diagnose.model import FocalRangeError
     from .diagnose.run import diagnose_input
 
-    lens_rx = _load_lens(lens)
+    lens_rx = None if lens.strip().lower() == "none" else _load_lens(lens)
+    if lens_rx is None and tolerances:
+        raise click.BadParameter("a tolerance file needs a lens model (not --lens none)",
+                                 param_hint="--tolerances")
     tol = _load_tolerances(tolerances, lens_rx) if tolerances else None
     if pixel_pitch != "auto":
         try:
@@ -802,19 +838,40 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
         click.echo(f"pixel pitch fitted: {d.pitch_mm:.5g} +- {d.pitch_fit['sd_mm']:.2g} mm"
                    + (" (at an end of the admissible range: not determined by the data)"
                       if d.pitch_fit["at_range_end"] else ""))
-    b, e = doc["baseline"], doc["extended"]
-    click.echo(f"{'model':<28s} {'rms px':>8s} {'chi2/dof':>9s} {'cv_rms px':>10s}")
-    click.echo(f"{'baseline':<28s} {b['rms_px']:8.3f} {b['chi2_dof']:9.2f} {b['cv_rms_px']:10.3f}")
-    for c in doc["candidates"]:
-        click.echo(f"{'+ ' + c['cause']:<28s} {c['rms_px']:8.3f} {c['chi2_dof']:9.2f} "
-                   f"{c['cv_rms_px']:10.3f}  dBIC {c['delta_bic']:7.1f}")
-    click.echo(f"cause: {d.cause}" + (f" ({e['variant']}); gain in held-out rms "
-                                      f"{doc['gain']['cv_rms_ratio']:.2f}x" if d.extended
-                                      else ""))
-    if doc["ambiguous_with"]:
-        click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
+    _print_diagnosis(d, doc)
     click.echo(f"wrote {out}/diagnosis.json, report.md, path.png, residuals.png")
     _exit_if_partial(_calibration_problems(run.failures, messages), "not calibrated or skipped")
+
+
+def _print_diagnosis(d, doc: dict) -> None:
+    """The models' table, the selected causes, the fit check and the noise, in a few lines."""
+    b = doc["baseline"]
+    click.echo(f"{'model':<28s} {'rms px':>8s} {'cv_rms px':>10s} {'cv_norm':>8s}")
+    click.echo(f"{'baseline':<28s} {b['rms_px']:8.3f} {b['cv_rms_px']:10.3f} "
+               f"{b['cv_norm_rms']:8.2f}")
+    for c in doc["candidates"]:
+        click.echo(f"{'+ ' + c['cause']:<28s} {c['rms_px']:8.3f} {c['cv_rms_px']:10.3f} "
+                   f"{c['cv_norm_rms']:8.2f}  dBIC {c['delta_bic']:7.1f}")
+    for s in doc["skipped"]:
+        click.echo(f"not tested: {s['cause']} ({s['reason']})")
+    noise = doc["noise"]
+    if "sigma_scale" in noise:
+        click.echo(f"noise: table sigmas x{noise['sigma_scale']:.2f}, play "
+                   f"x{noise['play_scale']:.2f} ({noise['play_shape']})")
+    names = ", ".join(f"{c['cause']} ({c['variant']})" for c in doc["causes"])
+    gain = (f"; held-out gain {doc['gain']['cv_norm_ratio']:.2f}x (sigma-normalised), "
+            f"{doc['gain']['cv_rms_ratio']:.2f}x (px)" if doc["causes"] else "")
+    check = doc["explained"]
+    if d.cause == "unexplained":
+        click.echo(f"cause: unexplained: {check['remaining']}"
+                   + (f"; improving but not explaining: {names}" if names else ""))
+    else:
+        click.echo(f"cause: {d.cause}" + (f"; selected: {names}" if names else "") + gain)
+        if check["explained"] is None:
+            click.echo("the fit could not be checked (no repeated settings, sigmas or lens "
+                       "model)")
+    if doc["ambiguous_with"]:
+        click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Target", "parse_pattern", "PatternError", "write_printable"]
+__all__ = ["Target", "parse_pattern", "PatternError", "write_printable", "plan_print",
+           "PrintLayout", "PAPER_MM"]
 
 
 class PatternError(ValueError):
@@ -238,52 +239,266 @@ def parse_pattern(spec: str) -> Target:
         "charuco:SQUARESXxSQUARESY:SQUARE:MARKER:DICT")
 
 
-def write_printable(target: Target, stem: str, dpi: float = 300.0) -> list[str]:
-    """Write a printable target: ``STEM.png`` at ``dpi``, ``STEM.svg`` in mm, and ``STEM.json``
-    with the geometry (object points in mm, board frame).
+# --- printable targets -------------------------------------------------------------------------
+
+PAPER_MM: dict[str, tuple[float, float]] = {"A4": (210.0, 297.0), "A3": (297.0, 420.0),
+                                            "letter": (215.9, 279.4)}
+"""Paper sizes, portrait (width, height), mm."""
+PRINTER_MARGIN_MM = 6.35
+"""Edge of the paper most printers cannot print on, each side, mm (a quarter inch)."""
+SCALE_BAR_MM = 100.0
+MM_PER_INCH = 25.4
+"""Length of the scale bar printed under the board, mm."""
+_TEXT_MM = 3.0  # height of the legend's capital letters, mm
+_LINE_MM = 5.5  # legend line spacing, mm
+_BAR_MM = 2.0  # thickness of the scale bar, mm
+_PAD_MM = 4.0  # white space around the legend, mm
+_FONT = 0  # cv2.FONT_HERSHEY_SIMPLEX
+
+
+@dataclass
+class PrintLayout:
+    """Where the board, the legend and the scale bar go on the printed image.
+
+    Sheet frame: millimetres from the top-left corner of the image, x right, y down.
+
+    Attributes
+    ----------
+    sheet_mm : (2,) ndarray
+        Width and height of the image, mm (the whole page when ``orientation`` is set).
+    board_mm : (2,) ndarray
+        Top-left corner of the board's white extent on the sheet, mm.
+    bar_mm : (4,) ndarray
+        The scale bar: x0, y0, x1, y1, mm (``x1 - x0`` is :data:`SCALE_BAR_MM`).
+    lines : list of (float, float, str)
+        Legend text: left end and baseline of each line, mm, and the text.
+    paper : str or None
+        Requested paper (a key of :data:`PAPER_MM`).
+    orientation : {'portrait', 'landscape'} or None
+        Orientation the board fits the paper in; None without paper or when it does not fit.
+    problem : str or None
+        Why the board does not fit the paper (None when it fits or no paper was asked for).
+    """
+
+    sheet_mm: np.ndarray
+    board_mm: np.ndarray
+    bar_mm: np.ndarray
+    lines: list[tuple[float, float, str]]
+    paper: str | None = None
+    orientation: str | None = None
+    problem: str | None = None
+
+
+def legend_text(target: Target, dpi: float) -> list[str]:
+    """The two lines printed under the board: its spec, and how to check the print."""
+    w, h = target.size_mm
+    if target.kind == "chessboard":
+        what = (f"{target.pattern_size[0]} x {target.pattern_size[1]} inner corners, "
+                f"square {target.pitch_mm:g} mm")
+    elif target.kind == "charuco":
+        what = (f"{target.squares[0]} x {target.squares[1]} squares of {target.pitch_mm:g} mm, "
+                f"marker {target.marker_mm:g} mm, {target.dictionary}")
+    else:
+        what = (f"{target.pattern_size[0]} x {target.pattern_size[1]} circles, "
+                f"spacing {target.pitch_mm:g} mm")
+    return [f"{target.spec}: {what}; board {w:g} x {h:g} mm; {dpi:g} dpi",
+            f"Print at 100 % (no fit to page). The bar below must measure {SCALE_BAR_MM:g} mm."]
+
+
+def _text_size_mm(text: str) -> tuple[float, float]:
+    """Width and cap height of ``text`` in the legend's font, mm."""
+    import cv2
+
+    (w, h), _ = cv2.getTextSize(text, _FONT, 1.0, 2)
+    return w * _TEXT_MM / h, _TEXT_MM
+
+
+def _fit_paper(content_mm: np.ndarray, paper: str) -> tuple[str | None, np.ndarray]:
+    """The orientation (portrait first) in which ``content_mm`` fits the printable area of
+    ``paper``, or None; and that area (portrait), mm."""
+    area = np.array(PAPER_MM[paper]) - 2 * PRINTER_MARGIN_MM
+    for name, a in (("portrait", area), ("landscape", area[::-1])):
+        if np.all(content_mm <= a + 1e-9):
+            return name, area
+    return None, area
+
+
+def _largest_pitch(target: Target, strip_mm: float, area_mm: np.ndarray) -> str:
+    """``'; a square of at most P mm fits'`` (spacing for circle grids): the pitch, rounded
+    down to 0.5 mm, at which the board and the strip fit ``area_mm`` in either orientation."""
+    board = target.size_mm
+    factor = max(min(a[0] / board[0], (a[1] - strip_mm) / board[1])
+                 for a in (area_mm, area_mm[::-1]))
+    pitch = np.floor(2 * target.pitch_mm * factor) / 2
+    what = "spacing" if target.kind in ("circles", "acircles") else "square"
+    return f"; a {what} of at most {pitch:g} mm fits" if pitch > 0 else ""
+
+
+def plan_print(target: Target, dpi: float, paper: str | None = None) -> PrintLayout:
+    """Lay out the board with its legend and scale bar underneath, on ``paper`` if given.
+
+    The content is the board's white extent with a strip below it (two lines of text and the
+    :data:`SCALE_BAR_MM` bar), at least as wide as the text. With a paper whose printable area
+    (:data:`PRINTER_MARGIN_MM` in from each edge) holds the content, portrait or else landscape,
+    the sheet is the whole page and the content is centred on it; otherwise the sheet is the
+    content and ``problem`` says why it does not fit.
+    """
+    lines = legend_text(target, dpi)
+    text_w = max(_text_size_mm(t)[0] for t in lines)
+    board = target.size_mm
+    strip = _PAD_MM + 2 * _LINE_MM + _BAR_MM + _PAD_MM
+    content = np.array([max(board[0], text_w + 2 * _PAD_MM, SCALE_BAR_MM + 2 * _PAD_MM),
+                        board[1] + strip])
+    sheet, origin, orientation, problem = content, np.zeros(2), None, None
+    if paper is not None:
+        orientation, area = _fit_paper(content, paper)
+        if orientation is None:
+            problem = (f"the board with its legend ({content[0]:.0f} x {content[1]:.0f} mm) "
+                       f"does not fit the printable area of {paper} ({area[0]:.0f} x "
+                       f"{area[1]:.0f} mm, {PRINTER_MARGIN_MM:g} mm margins) either way round"
+                       + _largest_pitch(target, strip, area))
+        else:
+            page = np.array(PAPER_MM[paper])
+            sheet = page if orientation == "portrait" else page[::-1]
+            origin = (sheet - content) / 2
+    board_at = origin + np.array([(content[0] - board[0]) / 2, 0.0])
+    x_text = origin[0] + _PAD_MM
+    y0 = origin[1] + board[1] + _PAD_MM
+    text = [(x_text, y0 + _TEXT_MM + i * _LINE_MM, t) for i, t in enumerate(lines)]
+    y_bar = y0 + 2 * _LINE_MM
+    bar = np.array([x_text, y_bar, x_text + SCALE_BAR_MM, y_bar + _BAR_MM])
+    return PrintLayout(sheet, board_at, bar, text, paper, orientation, problem)
+
+
+def _coverage_1d(lo: float, hi: float, n: int) -> tuple[int, np.ndarray]:
+    """First pixel and the covered fraction of pixels ``[first, first + len)`` by the interval
+    ``[lo, hi]`` in pixel-edge units (pixel ``i`` spans ``[i, i + 1)``), clipped to ``n``."""
+    first, last = max(int(np.floor(lo)), 0), min(int(np.ceil(hi)), n)
+    edges = np.arange(first, last + 1, dtype=float)
+    return first, np.clip(np.minimum(edges[1:], hi) - np.maximum(edges[:-1], lo), 0.0, 1.0)
+
+
+def _is_box(p: np.ndarray) -> bool:
+    """True if polygon ``p`` is an axis-aligned rectangle."""
+    xs, ys = np.unique(np.round(p[:, 0], 9)), np.unique(np.round(p[:, 1], 9))
+    return len(p) == 4 and len(xs) == 2 and len(ys) == 2
+
+
+def _darkness(target: Target, layout: PrintLayout, px_per_mm: float,
+              shape: tuple[int, int]) -> np.ndarray:
+    """Fraction of each pixel covered by the board's dark shapes and the scale bar: exact for
+    axis-aligned rectangles, to first order in pixel size over the curvature for discs."""
+    import cv2
+
+    h, w = shape
+    dark = np.zeros(shape)
+    to_sheet = layout.board_mm - target.extent_mm[:2]
+    x0, y0, x1, y1 = layout.bar_mm
+    bar = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    others = []
+    for p in [q + to_sheet for q in target.polygons] + [bar]:
+        if not _is_box(p):
+            others.append(np.round((p * px_per_mm - 0.5) * 16).astype(np.int32))
+            continue
+        (lx, ly), (hx, hy) = p.min(0) * px_per_mm, p.max(0) * px_per_mm
+        cx, fx = _coverage_1d(lx, hx, w)
+        cy, fy = _coverage_1d(ly, hy, h)
+        dark[cy:cy + len(fy), cx:cx + len(fx)] += np.outer(fy, fx)
+    for x, y, r in target.discs:
+        cx, cy, rp = (x + to_sheet[0]) * px_per_mm, (y + to_sheet[1]) * px_per_mm, r * px_per_mm
+        i0, i1 = max(int(cy - rp) - 1, 0), min(int(cy + rp) + 2, h)
+        j0, j1 = max(int(cx - rp) - 1, 0), min(int(cx + rp) + 2, w)
+        d = np.hypot(np.arange(j0, j1) + 0.5 - cx, np.arange(i0, i1)[:, None] + 0.5 - cy)
+        dark[i0:i1, j0:j1] += np.clip(rp - d + 0.5, 0.0, 1.0)
+    if others:  # general polygons: OpenCV's anti-aliased fill
+        mask = np.zeros(shape, np.uint8)
+        cv2.fillPoly(mask, others, 255, lineType=cv2.LINE_AA, shift=4)
+        dark += mask / 255.0
+    return np.minimum(dark, 1.0)
+
+
+def _raster(target: Target, layout: PrintLayout, dpi: float) -> np.ndarray:
+    """The layout as an 8-bit grey image at ``dpi`` (0 black, 255 white). Sheet point ``s``
+    (mm) is at pixel ``s * dpi / 25.4 - 0.5`` (pixel centres at integers)."""
+    import cv2
+
+    px_per_mm = dpi / MM_PER_INCH
+    w, h = np.ceil(layout.sheet_mm * px_per_mm - 1e-6).astype(int)
+    dark = _darkness(target, layout, px_per_mm, (h, w))
+    img = np.round(255.0 * (1.0 - dark)).astype(np.uint8)
+    (_, cap), _ = cv2.getTextSize("H", _FONT, 1.0, 1)
+    scale = _TEXT_MM * px_per_mm / cap
+    thick = max(1, int(round(0.1 * _TEXT_MM * px_per_mm)))  # stroke a tenth of the height
+    for x, y, text in layout.lines:
+        cv2.putText(img, text, (int(round(x * px_per_mm)), int(round(y * px_per_mm))), _FONT,
+                    scale, 0, thick, cv2.LINE_AA)
+    return img
+
+
+def _svg(target: Target, layout: PrintLayout) -> str:
+    """The layout as SVG in mm (board, legend and scale bar)."""
+    from xml.sax.saxutils import escape
+
+    w, h = layout.sheet_mm
+    dx, dy = layout.board_mm - target.extent_mm[:2]
+    ext = target.extent_mm
+    bw, bh = target.size_mm
+    x0, y0, x1, y1 = layout.bar_mm
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w:g}mm" height="{h:g}mm" '
+             f'viewBox="0 0 {w:g} {h:g}">',
+             f'<rect x="0" y="0" width="{w:g}" height="{h:g}" fill="white"/>',
+             f'<g transform="translate({dx:g} {dy:g})">',
+             f'<rect x="{ext[0]:g}" y="{ext[1]:g}" width="{bw:g}" height="{bh:g}" '
+             'fill="white"/>']
+    parts += [f'<polygon points="{" ".join(f"{x:g},{y:g}" for x, y in p)}" fill="black"/>'
+              for p in target.polygons]
+    parts += [f'<circle cx="{x:g}" cy="{y:g}" r="{r:g}" fill="black"/>'
+              for x, y, r in target.discs]
+    parts.append("</g>")
+    parts.append(f'<rect x="{x0:g}" y="{y0:g}" width="{x1 - x0:g}" height="{y1 - y0:g}" '
+                 'fill="black"/>')
+    parts += [f'<text x="{x:g}" y="{y:g}" font-family="sans-serif" '
+              f'font-size="{_TEXT_MM * 1.4:g}">{escape(t)}</text>' for x, y, t in layout.lines]
+    parts.append("</svg>")
+    return "\n".join(parts) + "\n"
+
+
+def _write_png(path: str, img: np.ndarray, dpi: float) -> None:
+    """Write ``img`` as PNG with its resolution in the pHYs chunk, so it prints at size."""
+    from PIL import Image
+
+    Image.fromarray(img).save(path, format="PNG", dpi=(dpi, dpi))
+
+
+def write_printable(target: Target, stem: str, dpi: float = 300.0,
+                    paper: str | None = None) -> tuple[list[str], PrintLayout]:
+    """Write a printable target: ``STEM.png`` at ``dpi`` (stored in the file, so it prints at
+    size), ``STEM.svg`` in mm, and ``STEM.json`` with the geometry (object points in mm, board
+    frame) and the layout. Under the board: its spec and a :data:`SCALE_BAR_MM` bar to check
+    the print with a ruler. See :func:`plan_print` for ``paper``.
 
     Returns
     -------
     files : list of str
+    layout : PrintLayout
+        Its ``problem`` says when the board does not fit the paper (the files are written all
+        the same, at the content's size).
     """
     import json
 
-    import cv2
-
-    ext = target.extent_mm
-    px_per_mm = dpi / 25.4
-    w, h = (int(np.ceil((ext[2] - ext[0]) * px_per_mm)), int(np.ceil((ext[3] - ext[1])
-                                                                      * px_per_mm)))
-    img = np.full((h, w), 255, np.uint8)
-    shift = 4  # cv2 fixed-point bits for sub-pixel vertices
-    scale = px_per_mm * (1 << shift)
-    # pixel centres at integers: the board point at pixel centre (i, j) is ext[:2] + (i+0.5)/ppmm
-    polys = [np.round((p - ext[:2]) * scale - 0.5 * (1 << shift)).astype(np.int32)
-             for p in target.polygons]
-    if polys:
-        cv2.fillPoly(img, polys, 0, lineType=cv2.LINE_AA, shift=shift)
-    for x, y, r in target.discs:
-        c = np.round((np.array([x, y]) - ext[:2]) * scale - 0.5 * (1 << shift)).astype(int)
-        cv2.circle(img, tuple(int(v) for v in c), int(round(r * scale)), 0, -1, cv2.LINE_AA,
-                   shift)
+    layout = plan_print(target, dpi, paper)
     files = [f"{stem}.png", f"{stem}.svg", f"{stem}.json"]
-    cv2.imwrite(files[0], img)
-    wmm, hmm = ext[2] - ext[0], ext[3] - ext[1]
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{wmm:g}mm" height="{hmm:g}mm" '
-             f'viewBox="{ext[0]:g} {ext[1]:g} {wmm:g} {hmm:g}">',
-             f'<rect x="{ext[0]:g}" y="{ext[1]:g}" width="{wmm:g}" height="{hmm:g}" '
-             'fill="white"/>']
-    for p in target.polygons:
-        pts = " ".join(f"{x:g},{y:g}" for x, y in p)
-        parts.append(f'<polygon points="{pts}" fill="black"/>')
-    for x, y, r in target.discs:
-        parts.append(f'<circle cx="{x:g}" cy="{y:g}" r="{r:g}" fill="black"/>')
-    parts.append("</svg>")
+    _write_png(files[0], _raster(target, layout, dpi), dpi)
     with open(files[1], "w") as fh:
-        fh.write("\n".join(parts) + "\n")
+        fh.write(_svg(target, layout))
+    origin_px = (layout.board_mm - target.extent_mm[:2]) * dpi / MM_PER_INCH - 0.5
     with open(files[2], "w") as fh:
         json.dump({"pattern": target.spec, "units": "mm", "frame": "board: x along columns, "
                    "y along rows, z = 0", "extent_mm": target.extent_mm.tolist(),
                    "pattern_size": list(target.pattern_size),
-                   "object_points": target.object_points.tolist(), "dpi": dpi}, fh, indent=1)
-    return files
+                   "object_points": target.object_points.tolist(), "dpi": dpi,
+                   "sheet_mm": layout.sheet_mm.tolist(), "paper": layout.paper,
+                   "orientation": layout.orientation,
+                   "board_origin_px": origin_px.tolist(),
+                   "scale_bar_mm": layout.bar_mm.tolist()}, fh, indent=1)
+    return files, layout

@@ -186,8 +186,7 @@ def _single_threaded_blas(fn):
     """Run ``fn`` with a single-threaded BLAS when threadpoolctl is installed.
 
     The dense systems here have a few hundred unknowns; a multi-threaded BLAS on a busy
-    2-core machine spends its time synchronising (measured: the 18-view synthetic calibration
-    took 65 s instead of 3.6 s for 100 runs with the machine oversubscribed).
+    2-core machine spends most of its time synchronising threads instead of computing.
     """
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):

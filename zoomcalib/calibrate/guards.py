@@ -51,8 +51,10 @@ MANIFEST = "manifest.json"
 _OWN_FILES: tuple[str, ...] = (
     "calibration.json", "calibration.yml", "zoom_calibration.csv", "zoom_model.json",
     "principal_point_path.png", "focal_length.png", "residuals_*.png", "cross_validation.png",
+    "report.html",
     MANIFEST,
-    "detections/*.json")
+    "detections/*.json", "opencv/*.yml", "ros/*.yaml", "mrcal/*.cameramodel",
+    "zoom_model_grid.csv")
 OWN_FILE_PATTERNS: tuple[str, ...] = _OWN_FILES + tuple(f"{p}.tmp" for p in _OWN_FILES)
 
 _UNSAFE = re.compile(r"[^\w.-]")  # \w: Unicode letters, digits and "_"

@@ -15,7 +15,11 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
   default for a zoom set), else the bundle when it calibrated every step, else OpenCV;
 - ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
   (four or more steps with known zoom);
+- ``opencv/``, ``ros/``, ``mrcal/`` and ``zoom_model_grid.csv`` — the results in the formats
+  of other tools (:mod:`zoomcalib.calibrate.export`);
 - figures: ``principal_point_path.png``, ``focal_length.png`` and ``residuals_<stem>.png``;
+- ``report.html`` — every step's and the zoom range's figures in one page
+  (:mod:`zoomcalib.calibrate.report`), unless ``report=False``;
 - ``manifest.json`` — the files this run wrote, the command and the inputs. A run first
   removes the files an earlier run left (listed in its manifest, or named as this job names
   its files), so the folder never mixes two runs.
@@ -27,6 +31,7 @@ the others are kept. An image of another size than most of its step is left out 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +41,7 @@ import numpy as np
 
 from ..detect import image_files
 from ..targets import Target, parse_pattern
+from .export import write_exports
 from .guards import (
     clear_previous_outputs,
     detect_with_cache,
@@ -62,7 +68,9 @@ class CalibrateRun:
     :attr:`partial`. ``reused`` counts, per step, the images whose cached detections were
     reused; ``left_out`` names, per step, the images of another size than the step's;
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
-    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems.
+    step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
+    ``skipped_images`` the one-line errors of the images whose detection failed, per step;
+    ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -82,6 +90,8 @@ class CalibrateRun:
     zoom_wide: object | None = None
     cross_validation: object | None = None
     flags: dict[str, list[str]] = field(default_factory=dict)
+    skipped_images: dict[str, list[str]] = field(default_factory=dict)
+    zoom_source: dict[str, str | None] = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -188,7 +198,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      method: str | None = None, workers: int = 1,
                      progress: Callable[[int], None] | None = None,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
-                     cross_validate: bool = False) -> CalibrateRun:
+                     cross_validate: bool = False, grid_points: int = 50,
+                     camera_name: str | None = None, report: bool = True,
+                     report_distance: float | None = None) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -214,6 +226,16 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
         and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
+    grid_points : int
+        Zoom values of ``zoom_model_grid.csv`` (:mod:`zoomcalib.calibrate.export`).
+    camera_name : str, optional
+        ``camera_name`` of the ROS files; default the image folder's name, with characters
+        other than ``[A-Za-z0-9_]`` replaced by ``_``.
+    report : bool
+        Write ``report.html`` (:func:`zoomcalib.calibrate.report.write_report`).
+    report_distance : float, optional
+        Distance (mm) of the report's projection-uncertainty maps; default each step's median
+        board distance.
 
     Returns
     -------
@@ -239,6 +261,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         for d in dets:
             if d.error:
                 log(f"step {step}: skipped {d.error}")
+                run.skipped_images.setdefault(step, []).append(d.error)
         good = [d for d in dets if d.error is None]
         if not good:
             _drop(run, step, "no image with a detected target", log)
@@ -250,6 +273,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             continue
         run.observations[step] = obs
         run.zoom[step] = zoom
+        run.zoom_source[step] = extras.get("zoom_source")
         step_results = {}
         for backend in backends:
             try:
@@ -320,7 +344,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                 run.failures.append(f"zoom model: {exc}")
                 log(run.failures[-1])
     if run.results:
+        run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
+                                   log)
         run.files += _figures(run, out, zoom_set)
+    if report and run.results:
+        _report(run, out, report_distance, log)
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "detection_settings": settings}
     run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
@@ -329,6 +357,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
 # ----------------------------------------------------------------------------------------------
 # helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+
+
+def _camera_name(folder: str | Path) -> str:
+    """The image folder's name made a ROS camera name (``[A-Za-z0-9_]``)."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", Path(folder).resolve().name) or "camera"
 
 
 def _zoom_model_row(row: dict) -> dict:
@@ -498,6 +531,17 @@ def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, 
     return chosen
 
 
+def _report(run: CalibrateRun, out: Path, distance: float | None,
+            log: Callable[[str], None]) -> None:
+    """Write ``report.html``; a failure is logged in one line (the other outputs stand)."""
+    from .report import write_report
+
+    try:
+        run.files.append(write_report(run, out, distance))
+    except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as exc:
+        log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
+
+
 def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance: dict,
                         call: dict) -> Path:
     caches = [out / p["file"] for p in provenance.values() if (out / p["file"]).is_file()]
@@ -519,18 +563,19 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
     steps = list(run.results)
     best = {s: run.results[s][run.table_backend[s]] for s in steps}
     if zoom_set and len(steps) > 1:
-        zoom = np.array([run.zoom[s] if run.zoom[s] is not None else i
-                         for i, s in enumerate(steps)], dtype=float)
-        zmin, zmax = zoom.min(), zoom.max()
-        zn = (zoom - zmin) / (zmax - zmin) if zmax > zmin else np.zeros_like(zoom)
+        known = all(run.zoom[s] is not None for s in steps)
+        zoom = np.array([run.zoom[s] if known else i for i, s in enumerate(steps)], dtype=float)
+        label = ("zoom (the table's zoom column)" if known
+                 else "step index (zoom unknown: no steps.csv or zoom in the step names)")
         mean = np.array([[best[s].cx, best[s].cy] for s in steps])
         sd = np.array([[best[s].sd.get("cx", 0.0), best[s].sd.get("cy", 0.0)] for s in steps])
         files.append(plot_principal_point_spiral(
-            zn, mean, sd, out / "principal_point_path.png",
-            title="Calibrated principal point across zoom (1-sigma ellipses)"))
+            zoom, mean, sd, out / "principal_point_path.png",
+            title="Calibrated principal point across zoom (1-sigma ellipses)",
+            zoom_label=label))
         f = np.array([[best[s].fx, best[s].sd.get("fx", 0.0)] for s in steps])
         files.append(plot_focal_length(zoom, f[:, 0], f[:, 1], out / "focal_length.png",
-                                       run.zoom_model))
+                                       run.zoom_model if known else None, zoom_label=label))
     cv = run.cross_validation
     if cv is not None and cv.z:
         from ..plots import plot_cross_validation

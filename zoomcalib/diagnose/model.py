@@ -38,7 +38,8 @@ from .table import ZoomTable
 
 __all__ = ["LensResponse", "Context", "Term", "moving_groups", "play_sd_px", "FocalRangeError",
            "offset_term", "group_term", "axis_tilt_term", "direction_offset_term",
-           "covariate_term", "design_matrix", "DEFAULT_PITCH_MM"]
+           "covariate_term", "design_matrix", "DEFAULT_PITCH_MM", "smooth_path_term",
+           "setting_term", "log_focal_coordinate"]
 
 DEFAULT_PITCH_MM = 0.00645
 
@@ -157,12 +158,14 @@ class Context:
 
     table: ZoomTable
     z: np.ndarray  # shape (N,)
-    response: LensResponse
+    response: LensResponse | None
     sens: dict[str, tuple[np.ndarray, np.ndarray]]
 
     @classmethod
-    def build(cls, table: ZoomTable, z: np.ndarray, response: LensResponse) -> Context:
-        return cls(table, np.asarray(z, dtype=float), response, response.sensitivities(z))
+    def build(cls, table: ZoomTable, z: np.ndarray, response: LensResponse | None) -> Context:
+        """``response`` None: no lens model (only terms that need no optics can be used)."""
+        sens = response.sensitivities(z) if response is not None else {}
+        return cls(table, np.asarray(z, dtype=float), response, sens)
 
     @property
     def phi(self) -> np.ndarray:
@@ -236,6 +239,53 @@ def covariate_term(column: str, unit: str, label: str) -> Term:
         return (v - v.mean())[:, None, None] * np.eye(2)[None]
 
     return Term(label, (f"rate_x_px_per_{unit}", f"rate_y_px_per_{unit}"), columns)
+
+
+def log_focal_coordinate(fx: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(N,) ``u = 2 (ln fx - ln lo) / (ln hi - ln lo) - 1``: the focal range on [-1, 1]."""
+    return 2.0 * (np.log(fx) - np.log(lo)) / (np.log(hi) - np.log(lo)) - 1.0
+
+
+def smooth_path_term(degree: int, lo: float, hi: float, signed: bool = False) -> Term:
+    """A principal-point path smooth in log focal length, for a lens without a model:
+    ``Delta c = sum_{d=1..degree} P_d(u) b_d`` (px per axis; Legendre ``P_d``, ``u`` from
+    :func:`log_focal_coordinate` on the table's range ``[lo, hi]`` px; the constant is the
+    offset term's). ``signed``: half the difference between moves in and out, ``Delta c =
+    s sum_{d=0..degree} P_d(u) b_d`` with ``s`` the direction (+1 in, -1 out), constant
+    included."""
+    first = 0 if signed else 1
+    label = "direction-signed path" if signed else "smooth path"
+    names = tuple(f"{'half_' if signed else ''}path_{axis}_p{d}_px"
+                  for d in range(first, degree + 1) for axis in "xy")
+
+    def columns(ctx: Context) -> np.ndarray:
+        u = log_focal_coordinate(ctx.table.fx, lo, hi)
+        vander = np.polynomial.legendre.legvander(u, degree)[:, first:]  # shape (N, D)
+        if signed:
+            vander = vander * ctx.table.direction[:, None]
+        cols = np.einsum("nd,ak->nadk", vander, np.eye(2))
+        return cols.reshape(len(u), 2, 2 * vander.shape[1])
+
+    return Term(f"{label} in log f, degree {degree}", names, columns)
+
+
+def setting_term(labels: np.ndarray, signed: bool = False) -> Term:
+    """A free principal point for every distinct zoom setting (``labels``, (N,) int): any
+    function of the zoom at all, for testing what a model leaves at the settings. ``signed``:
+    multiplied by the direction of the last move (any difference between in and out)."""
+    n_settings = int(labels.max()) + 1
+    names = tuple(f"{'half_' if signed else ''}setting{k}_{axis}_px"
+                  for k in range(n_settings) for axis in "xy")
+
+    def columns(ctx: Context) -> np.ndarray:
+        onehot = np.eye(n_settings)[labels]  # shape (N, S)
+        if signed:
+            onehot = onehot * ctx.table.direction[:, None]
+        return np.einsum("ns,ak->nask", onehot, np.eye(2)).reshape(len(labels), 2,
+                                                                   2 * n_settings)
+
+    return Term(f"{'direction-signed ' if signed else ''}free principal point per zoom "
+                f"setting", names, columns)
 
 
 def design_matrix(terms: tuple[Term, ...], ctx: Context) -> np.ndarray:

@@ -45,9 +45,11 @@ class DiagnoseRun:
     failures: list[str] = field(default_factory=list)
 
 
-def largest_model(groups: tuple[str, ...], locked_tilt: bool = False) -> int:
-    """Parameters of the largest model the diagnosis fits: the baseline plus the largest
-    variant of any cause, as if the table had every optional column."""
+def largest_model(groups: tuple[str, ...] | None, locked_tilt: bool = False) -> int:
+    """Parameters of the largest single-cause model the diagnosis fits: the baseline plus the
+    largest variant of any cause, as if the table had every optional column (``groups`` None:
+    no lens model, the smallest smooth path; larger paths and several causes at once are
+    fitted only where the rows allow)."""
     two = np.arange(2.0)
     probe = ZoomTable(zoom=two, fx=two + 1, fy=two + 1, cx=two, cy=two, sd_cx=two, sd_cy=two,
                       direction=np.array([1.0, -1.0]), sequence=two, focus=two,
@@ -58,11 +60,13 @@ def largest_model(groups: tuple[str, ...], locked_tilt: bool = False) -> int:
         return sum(len(t.params) for t in terms)
 
     extra = max((size(v) for options in variants.values() for v in options), default=0)
+    if groups is None:
+        return 4 + extra  # offset and a path linear in log f
     return size(baseline_terms(groups, locked_tilt)) + extra
 
 
 def check_table_size(zoom: np.ndarray, fx: np.ndarray | None, source: str,
-                     groups: tuple[str, ...]) -> None:
+                     groups: tuple[str, ...] | None) -> None:
     """Refuse, before any fit, a table too small for the diagnosis or of one lens state.
 
     Every model is fitted with the rows of each zoom setting held out in turn, so the rows
@@ -106,7 +110,7 @@ def load_zoom_table(path: str | Path) -> ZoomTable:
     return ZoomTable.from_rows(read_zoom_table(path), str(path))
 
 
-def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
+def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | None,
                    pixel_pitch: float | str = 0.00645, tolerances: Tolerances | None = None,
                    pattern: str | None = None, backends: tuple[str, ...] = ("opencv",),
                    workers: int = 1, progress: Callable[[int], None] | None = None,
@@ -119,9 +123,9 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
         A per-zoom table, or a folder of step subfolders (calibrated first into
         ``OUT/calibration``; needs ``pattern``).
     out : path
-    lens : Prescription
+    lens : Prescription or None
         The lens model whose EFL curve places each row and whose sensitivities make the
-        baseline.
+        baseline; None for a lens without a model (a smooth path in log f is the baseline).
     pixel_pitch : float or 'auto'
         mm; ``'auto'`` fits it.
     tolerances : Tolerances, optional
@@ -130,7 +134,7 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
         Passed to :func:`zoomcalib.calibrate.run.calibrate_folder` for an image folder.
     """
     source, out = Path(source), Path(out)
-    groups = moving_groups(lens)
+    groups = moving_groups(lens) if lens is not None else None
     failures: list[str] = []
     if source.is_dir():
         if not pattern:
@@ -165,7 +169,10 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription,
     fit_pitch = isinstance(pixel_pitch, str)
     if fit_pitch and pixel_pitch != "auto":
         raise ValueError(f"pixel pitch must be a number (mm) or 'auto', got {pixel_pitch!r}")
-    response = LensResponse.of(lens, 0.00645 if fit_pitch else float(pixel_pitch))
+    if lens is None:
+        response, fit_pitch = None, False
+    else:
+        response = LensResponse.of(lens, 0.00645 if fit_pitch else float(pixel_pitch))
     diag = diagnose_table(table, response, tolerances, fit_pitch=fit_pitch)
     files = write_diagnosis(diag, out)
     return DiagnoseRun(diag, table_path, files, failures)

@@ -25,92 +25,170 @@ def _table(rows: list[dict], cols: list[str], digits: int = 3) -> str:
                           for r in rows)
 
 
+DETECTOR_MARKERS = {"classic": "o", "model": "s"}
+DETECTOR_COLOURS = {"classic": "C0", "model": "C3"}  # where colour does not encode the zoom
+BACKEND_LINES = {"opencv": "-", "bundle": "--"}
+
+
+def _style_legend(ax, scatter: list[dict], extra: list | None = None,
+                  coloured: bool = False) -> None:
+    """Legend of the marker (detector, and its colour if ``coloured``) and line style (backend)
+    of the runs present."""
+    from matplotlib.lines import Line2D
+
+    dets = [d for d in DETECTOR_MARKERS if any(s["detector"] == d for s in scatter)]
+    backs = [b for b in BACKEND_LINES if any(s["backend"] == b for s in scatter)]
+    handles = [Line2D([], [], color=DETECTOR_COLOURS[d] if coloured else "0.3",
+                      marker=DETECTOR_MARKERS[d], ls="none",
+                      label=f"{d} detector") for d in dets]
+    handles += [Line2D([], [], color="0.3", ls=BACKEND_LINES[b], label=f"{b} backend")
+                for b in backs]
+    ax.legend(handles=(extra or []) + handles, fontsize=7, loc="best")
+
+
+def _runs(scatter: list[dict], det: str, backend: str, **match) -> list[dict]:
+    return [s for s in scatter if s["detector"] == det and s["backend"] == backend
+            and all(abs(s[k] - v) < 1e-9 for k, v in match.items())]
+
+
+def plot_fig7(scatter: list[dict], zoom: np.ndarray, path: Path) -> Path:
+    """Fig. 7: detection-induced principal-point scatter against image noise, one line per zoom
+    step (colour, with its bar), detector (marker) and backend (line style). With a single noise
+    level, against the zoom step instead (colour: detector)."""
+    from matplotlib.colors import Normalize
+
+    from ..plots import LENS_ZOOM_LABEL, _pyplot
+
+    plt = _pyplot()
+    noises = sorted({s["noise_dn"] for s in scatter})
+    fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=120, layout="constrained")
+    if len(noises) > 1:
+        norm = Normalize(zoom.min(), max(zoom.max(), zoom.min() + 1e-9))
+        for det, marker in DETECTOR_MARKERS.items():
+            for backend, ls in BACKEND_LINES.items():
+                for z in zoom:
+                    pts = sorted((s["noise_dn"], s["s_det_px"])
+                                 for s in _runs(scatter, det, backend, zoom=z))
+                    if pts:
+                        x, y = np.array(pts).T
+                        ax.plot(x, y, ls, marker=marker, color=plt.cm.viridis(norm(z)), ms=4)
+        bar = plt.cm.ScalarMappable(norm=norm, cmap="viridis")
+        fig.colorbar(bar, ax=ax, label=LENS_ZOOM_LABEL, shrink=0.85)
+        ax.set_xlabel("image noise [DN of 255]")
+        title = "Fig. 7: principal-point scatter from detection noise"
+    else:
+        for det, marker in DETECTOR_MARKERS.items():
+            for backend, ls in BACKEND_LINES.items():
+                pts = sorted((s["zoom"], s["s_det_px"]) for s in _runs(scatter, det, backend))
+                if pts:
+                    x, y = np.array(pts).T
+                    ax.plot(x, y, ls, marker=marker, color=DETECTOR_COLOURS[det], ms=5)
+        ax.set_xlabel(LENS_ZOOM_LABEL)
+        noise = f"{noises[0]:g} DN" if noises else "no runs"
+        title = (f"Fig. 7: principal-point scatter from detection noise, one noise level "
+                 f"({noise}): against zoom")
+    ax.set_ylabel("scatter of calibrated (cx, cy) [px]")
+    ax.set_yscale("log")
+    ax.set_title(_wrap(title, 6.4), fontsize=9)
+    _style_legend(ax, scatter, coloured=len(noises) <= 1)
+    ax.grid(alpha=0.3, which="both")
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _wrap(text: str, width_in: float) -> str:
+    from ..plots import wrap_title
+
+    return wrap_title(text, width_in)
+
+
+def plot_scatter_vs_focal_length(mech: list[dict], scatter: list[dict], path: Path) -> Path:
+    """Mechanical scatter and shift against the detection-induced scatter (middle noise level),
+    against focal length."""
+    from matplotlib.lines import Line2D
+
+    from ..plots import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=120, layout="constrained")
+    efl = np.array([m["efl_mm"] for m in mech])
+    efl_of = {round(m["zoom"], 9): m["efl_mm"] for m in mech}
+    ax.plot(efl, [m["s_mech_px"] for m in mech], "k-o")
+    ax.plot(efl, [m["shift_px"] for m in mech], "k:^")
+    noise_ref = sorted({s["noise_dn"] for s in scatter})
+    ref = noise_ref[len(noise_ref) // 2] if noise_ref else None
+    for det, marker in DETECTOR_MARKERS.items():
+        for backend, ls in BACKEND_LINES.items():
+            pts = sorted((efl_of[round(s["zoom"], 9)], s["s_det_px"])
+                         for s in _runs(scatter, det, backend) if s["noise_dn"] == ref
+                         and round(s["zoom"], 9) in efl_of)
+            if pts:
+                x, y = np.array(pts).T
+                ax.plot(x, y, ls, color=DETECTOR_COLOURS[det], marker=marker, ms=4)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("effective focal length [mm]")
+    ax.set_ylabel("principal-point error [px]")
+    mech_handles = [Line2D([], [], color="k", marker="o", label="mechanics: scatter"),
+                    Line2D([], [], color="k", ls=":", marker="^",
+                           label="mechanics: systematic shift")]
+    _style_legend(ax, scatter, mech_handles, coloured=True)
+    ax.grid(alpha=0.3, which="both")
+    noise = f"noise {ref:g} DN" if ref is not None else "no detection runs"
+    ax.set_title(_wrap("Mechanical against detection-induced principal-point error (detection "
+                       f"at {noise})", 6.4), fontsize=9)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_fig6(fig6: dict, width_px: int, height_px: int, path: Path) -> Path:
+    """Fig. 6: the detection errors of one calibration view, per detector, as arrows."""
+    from ..plots import _pyplot
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(fig6), figsize=(5.5 * len(fig6), 4.6), dpi=110,
+                             layout="constrained")
+    for ax, (det, d) in zip(np.atleast_1d(axes), fig6.items(), strict=True):
+        p, e = np.array(d["points"]), np.array(d["errors"])
+        norm = np.linalg.norm(e, axis=1)
+        scale = 40.0 / max(norm.max(), 1e-9)
+        ax.quiver(p[:, 0], p[:, 1], e[:, 0] * scale, e[:, 1] * scale, angles="xy",
+                  scale_units="xy", scale=1, width=0.003)
+        ax.set_xlim(0, width_px)
+        ax.set_ylim(height_px, 0)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [px]")
+        ax.set_ylabel("y [px]")
+        ax.set_title(_wrap(f"{det}: RMS {np.sqrt(np.mean(norm**2)):.4f} px (arrows "
+                           f"x{scale:.0f})", 5.5), fontsize=9)
+    fig.suptitle("Fig. 6: detection errors (detected - true) of one calibration view",
+                 fontsize=10)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def study_figures(out: Path, mech_dense: list[dict], mech: list[dict], scatter: list[dict],
                   fig6: dict | None, dense_zoom: np.ndarray) -> dict[str, Path]:
     """Fig. 5 (spiral, from the dense mechanics table), Fig. 6 (detection errors of one set),
     Fig. 7 (scatter vs noise) and the scatter versus focal length (at the study's steps)."""
-    from ..plots import _pyplot, plot_principal_point_spiral
+    from ..camera import DEFAULT_SENSOR
+    from ..plots import plot_principal_point_spiral
 
-    plt = _pyplot()
-    files = {}
     mean = np.array([[m["cx_mean"], m["cy_mean"]] for m in mech_dense])
     std = np.array([[m["cx_std"], m["cy_std"]] for m in mech_dense])
     zoom = np.array([m["zoom"] for m in mech])
-    from ..camera import DEFAULT_SENSOR
-
-    files["spiral"] = plot_principal_point_spiral(
+    files = {"spiral": plot_principal_point_spiral(
         dense_zoom, mean, std, out / "fig5_spiral.png", centre_px=DEFAULT_SENSOR.centre_px,
-        title="Fig. 5: principal point from the mechanics (mean, 1-sigma)")
-    # Fig. 7: detection-induced scatter versus noise, per zoom step and detector (opencv backend
-    # solid, bundle dashed)
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    colours = plt.cm.viridis(np.linspace(0, 0.9, len(zoom)))
-    for (det, marker) in (("classic", "o"), ("model", "s")):
-        for backend, ls in (("opencv", "-"), ("bundle", "--")):
-            for zi, z in enumerate(zoom):
-                pts = sorted((s["noise_dn"], s["s_det_px"]) for s in scatter
-                             if s["detector"] == det and s["backend"] == backend
-                             and abs(s["zoom"] - z) < 1e-9)
-                if pts:
-                    x, y = np.array(pts).T
-                    ax.plot(x, y, ls, marker=marker, color=colours[zi], ms=4,
-                            label=f"{det}/{backend} zoom {z:.2f}" if backend == "opencv"
-                            else None)
-    ax.set_xlabel("image noise [DN of 255]")
-    ax.set_ylabel("scatter of calibrated (cx, cy) [px]")
-    ax.set_yscale("log")
-    ax.set_title("Fig. 7: principal-point scatter from detection noise", fontsize=9)
-    ax.legend(fontsize=6, ncol=2)
-    ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    files["fig7"] = out / "fig7_scatter_vs_noise.png"
-    fig.savefig(files["fig7"])
-    plt.close(fig)
-    # scatter versus focal length
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    efl = np.array([m["efl_mm"] for m in mech])
-    ax.plot(efl, [m["s_mech_px"] for m in mech], "k-o", label="mechanics: scatter")
-    ax.plot(efl, [m["shift_px"] for m in mech], "k:^", label="mechanics: systematic shift")
-    noise_ref = sorted({s["noise_dn"] for s in scatter})
-    ref = noise_ref[len(noise_ref) // 2] if noise_ref else None
-    for det, c in (("classic", "C0"), ("model", "C3")):
-        for backend, ls in (("opencv", "-"), ("bundle", "--")):
-            pts = sorted((s["zoom"], s["s_det_px"]) for s in scatter
-                         if s["detector"] == det and s["backend"] == backend
-                         and s["noise_dn"] == ref)
-            if pts:
-                ax.plot(efl[: len(pts)], [p[1] for p in pts], ls, color=c, marker="s",
-                        label=f"detection ({det}, {backend}), noise {ref:g} DN")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("EFL [mm]")
-    ax.set_ylabel("principal point [px]")
-    ax.legend(fontsize=6)
-    ax.grid(alpha=0.3, which="both")
-    ax.set_title("Mechanical against detection-induced principal-point error", fontsize=9)
-    fig.tight_layout()
-    files["vs_zoom"] = out / "scatter_vs_focal_length.png"
-    fig.savefig(files["vs_zoom"])
-    plt.close(fig)
+        title="Fig. 5: principal point from the mechanics (mean, 1-sigma)"),
+        "fig7": plot_fig7(scatter, zoom, out / "fig7_scatter_vs_noise.png"),
+        "vs_zoom": plot_scatter_vs_focal_length(mech, scatter,
+                                                out / "scatter_vs_focal_length.png")}
     if fig6:
-        fig, axes = plt.subplots(1, len(fig6), figsize=(5.5 * len(fig6), 4.4), dpi=110)
-        axes = np.atleast_1d(axes)
-        for ax, (det, d) in zip(axes, fig6.items(), strict=True):
-            p, e = np.array(d["points"]), np.array(d["errors"])
-            norm = np.linalg.norm(e, axis=1)
-            scale = 40.0 / max(norm.max(), 1e-9)
-            ax.quiver(p[:, 0], p[:, 1], e[:, 0] * scale, e[:, 1] * scale, angles="xy",
-                      scale_units="xy", scale=1, width=0.003)
-            ax.set_xlim(0, DEFAULT_SENSOR.width_px)
-            ax.set_ylim(DEFAULT_SENSOR.height_px, 0)
-            ax.set_aspect("equal")
-            ax.set_title(f"{det}: RMS {np.sqrt(np.mean(norm**2)):.4f} px "
-                         f"(arrows x{scale:.0f})", fontsize=9)
-        fig.suptitle("Fig. 6: detection errors of one calibration view", fontsize=10)
-        fig.tight_layout()
-        files["fig6"] = out / "fig6_detection_errors.png"
-        fig.savefig(files["fig6"])
-        plt.close(fig)
+        files["fig6"] = plot_fig6(fig6, DEFAULT_SENSOR.width_px, DEFAULT_SENSOR.height_px,
+                                  out / "fig6_detection_errors.png")
     return files
 
 

@@ -1,0 +1,277 @@
+"""The calibration report ``OUT/report.html``: one self-contained page per calibrate run.
+
+The figures are PNG images embedded in the page as ``data:`` URIs, so the file opens in any
+browser without a server and can be moved or mailed alone. For every step (with the zoom
+table's backend, :attr:`CalibrateRun.table_backend`): per-image reprojection error with the
+images the fit rejected points of or left out named; residual vectors and directions; coverage
+of the image and the views' tilt and distance, with a verdict
+(:func:`zoomcalib.calibrate.quality.coverage_verdict`); the projection uncertainty over the
+image at one distance and, after ``--cross-validate``, the halves' projection difference
+(:mod:`zoomcalib.calibrate.quality`). Then, for a zoom set, fx, cx, cy and k1 against zoom with
+their 1-sigma bands, the zoom model with its held-out error, and the flagged steps. The page's
+script sets ``data-images-loaded`` on ``<body>`` to ``"all"`` once every image has decoded
+(``"missing"`` otherwise), which the tests read. docs/report.md describes each figure.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import report_plots as figs
+from .quality import (
+    GRID,
+    MIN_REACH,
+    ViewGeometry,
+    coverage_verdict,
+    observed_region,
+    projection_difference,
+    projection_uncertainty,
+    view_geometry,
+)
+from .result import CalibrationResult, Observations
+
+if TYPE_CHECKING:
+    from .run import CalibrateRun
+
+__all__ = ["write_report", "report_html", "ZOOM_LABELS"]
+
+#: Axis label of the zoom, by where the zoom values came from (``zoom_steps``' zoom_source).
+ZOOM_LABELS = {"steps.csv": "zoom [steps.csv units]", "name": "zoom [number in the folder name]",
+               "exif": "focal length from EXIF [mm]"}
+
+_STYLE = """
+body { font-family: sans-serif; max-width: 1200px; margin: 1em auto; color: #222; }
+h1 { font-size: 1.5em; } h2 { border-top: 2px solid #888; padding-top: .4em; }
+h3 { font-size: 1.05em; margin-bottom: .2em; }
+table { border-collapse: collapse; font-size: .85em; }
+td, th { border: 1px solid #bbb; padding: 2px 6px; text-align: right; }
+th { background: #eee; } td.text { text-align: left; }
+.bad { color: #b00; } .ok { color: #070; } img { max-width: 100%; }
+"""
+
+_SCRIPT = """
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.slice.call(document.images);
+  var ok = imgs.every(function (im) { return im.complete && im.naturalWidth > 0; });
+  document.body.setAttribute('data-images-loaded', ok ? 'all' : 'missing');
+  document.body.setAttribute('data-image-count', String(imgs.length));
+});
+"""
+
+
+def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None = None
+                 ) -> Path:
+    """Write ``out/report.html`` for a :class:`zoomcalib.calibrate.run.CalibrateRun`.
+
+    Parameters
+    ----------
+    run : CalibrateRun
+    out : path
+        The run's output folder.
+    distance_mm : float, optional
+        Range (object-point units, mm) of the points whose projection uncertainty is mapped;
+        default: each step's median distance to the board centre.
+
+    Returns
+    -------
+    Path
+        The report.
+    """
+    path = Path(out) / "report.html"
+    path.write_text(report_html(run, distance_mm), encoding="utf-8")
+    return path
+
+
+def report_html(run: CalibrateRun, distance_mm: float | None = None) -> str:
+    """The report's HTML text (see :func:`write_report`)."""
+    steps = list(run.results)
+    body = [f"<h1>Calibration report</h1>{_summary(run, steps)}"]
+    if run.failures:
+        body.append("<h3>Problems of this run</h3><ul>" + "".join(
+            f"<li class='bad'>{_e(f)}</li>" for f in run.failures) + "</ul>")
+    for step in steps:
+        body.append(_step_section(run, step, distance_mm))
+    if len(steps) >= 2:
+        body.append(_zoom_section(run, steps))
+    return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+            f"<title>Calibration report</title><style>{_STYLE}</style>"
+            f"<script>{_SCRIPT}</script></head><body>\n" + "\n".join(body)
+            + "\n</body></html>\n")
+
+
+def _e(text) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def _img(png: bytes, alt: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
+    return f"<p><img alt='{_e(alt)}' src='data:image/png;base64,{data}'></p>"
+
+
+def _summary(run: CalibrateRun, steps: list[str]) -> str:
+    rows = []
+    for s in steps:
+        r = run.results[s][run.table_backend[s]]
+        flags = run.flags.get(s, [])
+        zoom = run.zoom.get(s)
+        rows.append(
+            f"<tr><td class='text'><a href='#step-{_e(run.stems[s])}'>{_e(s)}</a></td>"
+            f"<td>{'' if zoom is None else f'{zoom:g}'}</td><td class='text'>{_e(r.backend)}</td>"
+            f"<td>{r.fx:.2f}</td><td>{r.cx:.2f} &plusmn; {r.sd.get('cx', np.nan):.2f}</td>"
+            f"<td>{r.cy:.2f} &plusmn; {r.sd.get('cy', np.nan):.2f}</td><td>{r.rms_px:.3f}</td>"
+            f"<td>{len(r.per_view_rms_px)}</td>"
+            f"<td class='text {'bad' if flags else 'ok'}'>{_e('; '.join(flags) or 'none')}</td>"
+            "</tr>")
+    return ("<table><tr><th>step</th><th>zoom</th><th>backend</th><th>fx [px]</th>"
+            "<th>cx [px]</th><th>cy [px]</th><th>RMS [px]</th><th>views</th><th>flags</th></tr>"
+            + "".join(rows) + "</table>")
+
+
+def _rejected_mask(result: CalibrationResult, obs: Observations) -> list[np.ndarray]:
+    """Per view, which observations the fit rejected (bool (k,))."""
+    rejected = {(int(v), int(p)) for v, p in result.rejected}
+    return [np.array([(v, int(i)) in rejected for i in ids], bool)
+            for v, (ids, _) in enumerate(obs.views)]
+
+
+def _view_names(obs: Observations) -> list[str]:
+    return list(obs.names) if len(obs.names) == obs.n_views else [
+        f"view {i}" for i in range(obs.n_views)]
+
+
+def _absent_images(run: CalibrateRun, step: str) -> list[tuple[str, str]]:
+    """(image, why) of the step's images that are not in the fit."""
+    out = [(name, "not the step's image size") for name in run.left_out.get(step, [])]
+    for error in run.skipped_images.get(step, []):
+        name, _, why = error.partition(": ")
+        out.append((name, why or error))
+    return out
+
+
+def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> str:
+    from .run import residual_vectors
+
+    res = run.results[step][run.table_backend[step]]
+    obs = run.observations[step]
+    names = _view_names(obs)
+    masks = _rejected_mask(res, obs)
+    counts = {n: int(m.sum()) for n, m in zip(names, masks, strict=True) if m.any()}
+    marked = {n: f"{c} point{'s' if c > 1 else ''} rejected" for n, c in counts.items()}
+    absent = _absent_images(run, step)
+    parts = [f"<section class='step' id='step-{_e(run.stems[step])}'>"
+             f"<h2>Step {_e(step)}</h2><p>backend {_e(res.backend)}, {obs.n_views} images, "
+             f"{obs.n_observations} points, RMS {res.rms_px:.3f} px.</p>"]
+    parts.append("<h3>Reprojection error per image</h3>" + _img(figs.per_view_figure(
+        names, np.asarray(res.per_view_rms_px, float), marked, [a for a, _ in absent]),
+        f"per-image reprojection error of step {step}"))
+    parts.append(_marked_list(marked, absent))
+    points = np.concatenate([p for _, p in obs.views])
+    resid = np.concatenate(residual_vectors(res, obs))
+    rejected = np.concatenate(masks)
+    png, scale = figs.residual_figure(points, resid, rejected, obs.image_size)
+    parts.append(f"<h3>Residuals</h3>{_img(png, f'residuals of step {step}')}"
+                 f"<p>Arrows drawn {scale:.0f} times their length; residual = projected minus "
+                 f"observed.</p>")
+    geometry = view_geometry(res, obs)
+    problems, summary = coverage_verdict(points, obs.image_size, geometry)
+    parts.append("<h3>Coverage</h3>" + _img(figs.coverage_figure(
+        [p for _, p in obs.views], obs.image_size, geometry.tilt_deg, geometry.distance, GRID,
+        MIN_REACH), f"coverage of step {step}") + _verdict(problems, summary))
+    parts.append(_uncertainty(run, step, res, obs, geometry, distance_mm, points))
+    parts.append("</section>")
+    return "\n".join(parts)
+
+
+def _marked_list(marked: dict[str, str], absent: list[tuple[str, str]]) -> str:
+    items = [f"<li>{_e(n)}: {_e(why)}</li>" for n, why in marked.items()]
+    items += [f"<li>{_e(n)}: not in the fit ({_e(why)})</li>" for n, why in absent]
+    if not items:
+        return "<p class='ok'>No image rejected or left out; no point rejected.</p>"
+    return "<p>Images the fit rejected points of, or left out:</p><ul class='bad'>" + "".join(
+        items) + "</ul>"
+
+
+def _verdict(problems: list[str], summary: str) -> str:
+    if not problems:
+        return (f"<p class='ok'>Verdict: the views constrain the principal point and the "
+                f"distortion by these checks ({_e(summary)}).</p>")
+    return (f"<p class='bad'>Verdict: the views may not constrain the principal point or the "
+            f"distortion ({_e(summary)}):</p><ul class='bad'>"
+            + "".join(f"<li>{_e(p)}</li>" for p in problems) + "</ul>")
+
+
+def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Observations,
+                 geometry: ViewGeometry, distance_mm: float | None, points: np.ndarray) -> str:
+    d = float(np.median(geometry.distance)) if distance_mm is None else float(distance_mm)
+    xs, ys, sigma = projection_uncertainty(res, obs, d)
+    hull, inside = observed_region(points, xs, ys)
+    diff, note = None, ""
+    cv = run.cross_validation
+    if cv is not None and step in cv.halves:
+        diff = projection_difference(*cv.halves[step], obs.image_size)[2]
+        note = (" Right: each pixel unprojected with the even half's intrinsics and projected "
+                f"with the odd half's: up to {_largest(diff, inside)} px where points were "
+                "detected.")
+    elif cv is not None and step in cv.failures:
+        note = f" Cross-validation: halves not calibrated ({_e(cv.failures[step])})."
+    centre = sigma[len(ys) // 2, len(xs) // 2]
+    return ("<h3>Projection uncertainty</h3>"
+            + _img(figs.uncertainty_figure(xs, ys, sigma, obs.image_size, d, hull, inside,
+                                           diff), f"projection uncertainty of step {step}")
+            + f"<p>1-sigma of the projection of points {d:.0f} mm away "
+              f"({'the median board distance' if distance_mm is None else 'chosen'}), from "
+              f"the intrinsics' covariance and the poses: {centre:.3g} px at the image centre, "
+              f"up to {_largest(sigma, inside)} px where points were detected (inside the "
+              f"dashed outline), {np.max(sigma):.3g} px at most over the image.{note}</p>")
+
+
+def _largest(values: np.ndarray, inside: np.ndarray) -> str:
+    return f"{np.max(values[inside]):.3g}" if inside.any() else "(no grid cell)"
+
+
+def _zoom_section(run: CalibrateRun, steps: list[str]) -> str:
+    best = [run.results[s][run.table_backend[s]] for s in steps]
+    zooms = [run.zoom.get(s) for s in steps]
+    sources = {run.zoom_source.get(s) for s in steps}
+    if any(z is None for z in zooms):
+        zoom, label = np.arange(len(steps), dtype=float), "step index (zoom unknown)"
+    else:
+        zoom = np.array(zooms, float)
+        label = ZOOM_LABELS.get(sources.pop(), "zoom") if len(sources) == 1 else "zoom"
+    values = {"fx": [r.fx for r in best], "cx": [r.cx for r in best],
+              "cy": [r.cy for r in best], "k1": [float(r.dist[0]) for r in best]}
+    values = {k: np.array(v) for k, v in values.items()}
+    sds = {k: np.array([r.sd.get(k, np.nan) for r in best], float) for k in values}
+    flagged = np.array([s in run.flags for s in steps])
+    png = figs.zoom_range_figure(zoom, label, values, sds, flagged, _model_curves(run, zoom))
+    flags = "".join(f"<li>{_e(s)}: {_e('; '.join(run.flags[s]))}</li>" for s in steps
+                    if s in run.flags)
+    text = ("<p class='ok'>No step flagged.</p>" if not flags else
+            f"<p>Flagged steps (ringed in red):</p><ul class='bad'>{flags}</ul>")
+    return ("<section id='zoom-range'><h2>The zoom range</h2>"
+            + _img(png, "intrinsics against zoom") + text + _holdout_text(run) + "</section>")
+
+
+def _model_curves(run: CalibrateRun, zoom: np.ndarray) -> dict:
+    model = run.zoom_model
+    if model is None:
+        return {}
+    grid = np.linspace(float(np.min(zoom)), float(np.max(zoom)), 200)
+    pred = model.predict(grid)
+    held = run.holdout or {}
+    return {k: (grid, np.asarray(pred[k]), held.get(k)) for k in ("fx", "cx", "cy", "k1")
+            if k in pred}
+
+
+def _holdout_text(run: CalibrateRun) -> str:
+    if not run.holdout:
+        return ("<p>No zoom model (it needs four or more steps of known zoom).</p>"
+                if run.zoom_model is None else "")
+    return ("<p>Zoom model, held-out interpolation error (RMS, leave one step out): "
+            + ", ".join(f"{_e(k)} {v:.3g}{' px' if k in ('fx', 'fy', 'cx', 'cy') else ''}"
+                        for k, v in run.holdout.items()) + ".</p>")
