@@ -7,6 +7,7 @@ columns of :mod:`zoomcalib.diagnose.model` and the play of the tolerance file as
 """
 
 import importlib.util
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -168,6 +169,7 @@ def test_unlisted_effect_is_visible_and_no_cause_captures_it(response):
         assert max(captured.values()) <= 0.5 + 1e-3, captured  # 1e-3: measured vs true fx
         for cause, frac in captured.items():
             assert frac == pytest.approx(truth["unlisted"]["captured"][cause], abs=1e-3)
+        assert truth["unlisted"]["captured"]["pair"] >= max(captured.values()) - 1e-9
         # the same yardstick finds a listed cause: the hidden axis tilt is all axis_tilt's
         tilt, _ = _captured(truth["causes"][0]["effect_px"], ctx, sigma)
         assert tilt["axis_tilt"] > 0.99
@@ -210,3 +212,26 @@ def test_benchmark_reads_old_and_new_diagnosis_documents():
     assert bench.read_diagnosis(doc) == (["backlash", "axis_tilt"], False)
     assert bench.read_diagnosis({"cause": "none", "causes": [],
                                  "explained": {"explained": True}}) == ([], True)
+
+
+def test_unlisted_effect_can_be_kept_from_every_pair_of_causes(response):
+    """Two causes together capture more of a curve than either; the option bounds that too."""
+    rows, truth = independent_zoom_table(LENS, np.random.default_rng(8), unlisted=3.0,
+                                         max_captured_pair=0.5, with_temperature=True)
+    ctx = Context.build(ZoomTable.from_rows(rows), truth["z"], response)
+    sigma = np.hypot(truth["sd"]["true_px"], truth["play"]["sd_px"])
+    blocks = _cause_columns(ctx)
+    w = np.repeat(1.0 / sigma, 2)
+    base = design_matrix((offset_term(),) + tuple(
+        group_term(g, "decenter", 1, "l") for g in ctx.response.groups), ctx)
+    e = truth["unlisted"]["effect_px"].reshape(-1)
+    e2 = np.sum((w * e) ** 2)  # the effect has no baseline part (checked above)
+    best = 0.0
+    for c1, c2 in itertools.combinations(blocks, 2):
+        for a1 in blocks[c1]:
+            for a2 in blocks[c2]:
+                A = w[:, None] * np.hstack([base, a1, a2])
+                r = w * e - A @ np.linalg.lstsq(A, w * e, rcond=None)[0]
+                best = max(best, 1 - np.sum(r ** 2) / e2)
+    assert best <= 0.5 + 1e-3  # 1e-3: measured vs true fx, as above
+    assert best == pytest.approx(truth["unlisted"]["captured"]["pair"], abs=1e-3)
