@@ -396,7 +396,7 @@ def unlisted_capture(effect_px: np.ndarray, ctx: Context, sigma_px: np.ndarray
 
 def _unlisted_effect(b: _Bench, ctx: Context, sigma_px: np.ndarray, m: float, noise_rms: float,
                      degree: int, max_captured: float, max_captured_pair: float | None,
-                     rng: np.random.Generator, attempts: int = 50) -> dict:
+                     rng: np.random.Generator, attempts: int = 1000) -> dict:
     """A random smooth curve in log focal length, its baseline part removed, that no cause
     captures more than ``max_captured`` of (nor any two causes together more than
     ``max_captured_pair``, when given); scaled to ``m`` times ``noise_rms`` (visible RMS)."""
