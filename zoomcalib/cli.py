@@ -265,7 +265,7 @@ def _testbed_options(func):
                           "drawn from --seed); 0: a flat board."),
         click.option("--psf", default="gaussian", show_default=True,
                      type=click.Choice(["gaussian", "airy", "halo", "elliptical"]),
-                     help="PSF shape; all but gaussian are rendered supersampled."),
+                     help="PSF shape; airy and halo are rendered supersampled."),
         click.option("--airy-radius", default=0.0, show_default=True,
                      type=click.FloatRange(min=0),
                      help="airy: radius of the first dark ring, px (0: 1.22 lambda N)."),
@@ -693,7 +693,7 @@ def _print_calibration(run) -> None:
 @click.option("--psf", default="gaussian", show_default=True,
               type=click.Choice(["gaussian", "airy", "halo", "elliptical"]),
               help="PSF shape of the rendered images (the renderer's default shape "
-                   "parameters); the model detector assumes a Gaussian. All but gaussian are "
+                   "parameters); the model detector assumes a Gaussian. airy and halo are "
                    "rendered supersampled, several times slower.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", default="zoomcalib-study", show_default=True,

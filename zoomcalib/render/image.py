@@ -81,7 +81,8 @@ class Optics:
         sigma = diameter / 4.
     wavelength_um : float
     psf : {'gaussian', 'airy', 'halo', 'elliptical'}
-        PSF shape (module docstring, section PSF). Only 'gaussian' can be rendered analytically.
+        PSF shape (module docstring, section PSF). 'gaussian' and 'elliptical' are rendered
+        analytically when they can be, the others always supersampled.
     airy_radius_px : float
         'airy': radius of the first dark ring, px; 0 takes the diffraction limit
         ``1.22 lambda N`` of ``wavelength_um`` and ``f_number``.
