@@ -31,10 +31,12 @@ coverage before the ``S x S`` box integration.
 
 PSF
 ---
-``Optics.psf`` selects the PSF. ``'gaussian'`` (default) is rendered in closed form when it can be
-(see :func:`_render_analytic`). The others exist only as a kernel sampled on the ``S x S`` fine
-grid (:func:`psf_kernel`), convolved with the sub-sampled coverage before the box integration,
-so they always take the supersampled path: ``'airy'`` (diffraction pattern with its first dark
+``Optics.psf`` selects the PSF. ``'gaussian'`` (default) and ``'elliptical'`` (an anisotropic
+Gaussian) are rendered in closed form when they can be (see :func:`_render_analytic`; for
+'elliptical' not on targets with dots). The others exist only as a kernel sampled on the
+``S x S`` fine grid (:func:`psf_kernel`), convolved with the sub-sampled coverage before the box
+integration, so they always take the supersampled path (as 'elliptical' does when the closed
+form does not apply): ``'airy'`` (diffraction pattern with its first dark
 ring at ``Optics.airy_radius_px``, convolved with the Gaussian of blur and defocus), ``'halo'``
 (the Gaussian core plus a fraction ``halo_fraction`` of the energy in a wide Gaussian of sigma
 ``halo_sigma_px``, as veiling glare) and ``'elliptical'`` (a Gaussian of sigma ``psf_sigma_px``
@@ -54,7 +56,8 @@ from scipy.spatial import cKDTree
 from ..camera import Sensor
 from ..targets import Target
 
-__all__ = ["Radiometry", "Optics", "PSF_KINDS", "psf_sigma_px", "psf_kernel", "BoardSurface",
+__all__ = ["Radiometry", "Optics", "PSF_KINDS", "psf_sigma_px", "psf_kernel",
+           "elliptical_psf_covariance", "BoardSurface",
            "board_coordinates", "render_coverage", "render_image", "apply_radiometry",
            "project_points", "RenderedView", "camera_mapping"]
 
@@ -78,7 +81,8 @@ class Optics:
         sigma = diameter / 4.
     wavelength_um : float
     psf : {'gaussian', 'airy', 'halo', 'elliptical'}
-        PSF shape (module docstring, section PSF). Only 'gaussian' can be rendered analytically.
+        PSF shape (module docstring, section PSF). 'gaussian' and 'elliptical' are rendered
+        analytically when they can be, the others always supersampled.
     airy_radius_px : float
         'airy': radius of the first dark ring, px; 0 takes the diffraction limit
         ``1.22 lambda N`` of ``wavelength_um`` and ``f_number``.
@@ -132,6 +136,21 @@ def airy_radius_px(optics: Optics, pixel_pitch_mm: float) -> float:
     if optics.airy_radius_px > 0:
         return float(optics.airy_radius_px)
     return 1.22 * optics.wavelength_um * 1e-3 * optics.f_number / pixel_pitch_mm
+
+
+def elliptical_psf_covariance(optics: Optics, pixel_pitch_mm: float) -> np.ndarray:
+    """Covariance of the 'elliptical' PSF, px^2, rows and columns in (u, v) order.
+
+    Sd :func:`psf_sigma_px` along the major axis (at ``ellipse_angle_deg`` from the u axis
+    towards +v) and ``ellipse_ratio`` times that across it: the second moments of
+    :func:`psf_kernel`'s elliptical kernel.
+    """
+    sigma = psf_sigma_px(optics, pixel_pitch_mm)
+    a = np.deg2rad(optics.ellipse_angle_deg)
+    major = np.array([np.cos(a), np.sin(a)])
+    minor = np.array([-np.sin(a), np.cos(a)])
+    return sigma**2 * (np.outer(major, major)
+                       + optics.ellipse_ratio**2 * np.outer(minor, minor))
 
 
 AIRY_REACH = 6.0  # Airy kernels are cut at this many first-ring radii (2.8 % of the energy beyond)
@@ -449,8 +468,11 @@ def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, senso
     surface : BoardSurface, optional
         Non-flat board (None: the plane).
     optics : Optics, optional
-        When its ``psf`` is not 'gaussian', its :func:`psf_kernel` replaces the Gaussian of
-        ``sigma_px`` and the supersampled path is taken ('analytic' raises ``ValueError``).
+        When its ``psf`` is not 'gaussian', it replaces the Gaussian of ``sigma_px``: an
+        'elliptical' PSF is rendered in closed form when it can be, like the Gaussian (its
+        covariance, :func:`elliptical_psf_covariance`), else supersampled with its
+        :func:`psf_kernel`; 'airy' and 'halo' always take the supersampled path ('analytic'
+        raises ``ValueError``).
 
     Returns
     -------
@@ -459,8 +481,12 @@ def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, senso
     """
     if method not in ("auto", "analytic", "supersample"):
         raise ValueError(f"method must be 'auto', 'analytic' or 'supersample', got {method!r}")
-    kernel = None
-    if optics is not None and optics.psf != "gaussian":
+    kernel = psf_cov = None
+    if optics is not None and optics.psf == "elliptical":
+        psf_cov = elliptical_psf_covariance(optics, sensor.pixel_pitch_mm)
+        if method != "analytic":
+            kernel = psf_kernel(optics, sensor.pixel_pitch_mm, supersample)
+    elif optics is not None and optics.psf != "gaussian":
         if method == "analytic":
             raise ValueError(f"the analytic renderer paints a Gaussian PSF only; psf "
                              f"{optics.psf!r} needs method='supersample' (or 'auto')")
@@ -468,12 +494,13 @@ def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, senso
         method = "supersample"
     bxs, bys = board_coordinates(mapping, R, t, sensor, surface=surface)
     if method in ("auto", "analytic"):
-        out = _render_analytic(target, bxs, bys, sensor, sigma_px)
+        out = _render_analytic(target, bxs, bys, sensor, sigma_px, psf_cov=psf_cov)
         if out is not None:
             return out
         if method == "analytic":
-            raise ValueError("the analytic renderer needs a blur >= 0.3 px and grid lines more "
-                             "than the blur's reach apart; use method='supersample'")
+            raise ValueError("the analytic renderer needs a blur >= 0.3 px (along every axis), "
+                             "grid lines more than the blur's reach apart and, for an "
+                             "elliptical PSF, no dots; use method='supersample'")
     return _render_supersampled(target, bxs, bys, sensor, sigma_px, supersample, band_rows,
                                 kernel)
 
@@ -482,7 +509,8 @@ ANALYTIC_MIN_SIGMA = 0.3  # px; below this the 6-node pixel rule is not accurate
 
 
 def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
-                     band_rows: int = 160) -> np.ndarray | None:
+                     band_rows: int = 160, psf_cov: np.ndarray | None = None
+                     ) -> np.ndarray | None:
     """Closed-form blur of locally straight edges, integrated over each pixel by quadrature.
 
     Around each pixel the nearest vertical and horizontal board lines are straight in the image
@@ -499,19 +527,30 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
     imaged rim and ``kappa`` the rim's curvature (px^-1). Returns None when it does not apply
     (blur below ``ANALYTIC_MIN_SIGMA``, or a second line of a family within ``4 sigma + 0.75``
     px of a pixel centre).
+
+    With ``psf_cov`` (the (2, 2) covariance of an anisotropic Gaussian PSF, px^2, (u, v)
+    order, from :func:`elliptical_psf_covariance`; ``sigma`` is then unused) the same is exact
+    with each line's own sd ``s_i = sqrt(m_i^T C m_i)`` and the correlation
+    ``m_1^T C m_2 / (s_1 s_2)``; reaches and the pixel rule follow the major and minor sd.
+    Targets with dots then return None (their rims are written for an isotropic PSF).
     """
     from scipy.special import ndtr
 
     from ..imaging import auto_n_sub, bivariate_normal_cdf, pixel_nodes
 
-    if sigma < ANALYTIC_MIN_SIGMA:
+    s_major = s_minor = sigma
+    if psf_cov is not None:
+        s_minor, s_major = np.sqrt(np.linalg.eigvalsh(psf_cov))
+        if len(target.discs):
+            return None
+    if s_minor < ANALYTIC_MIN_SIGMA:
         return None
     xs, ys, value = _cell_grid(target)
-    reach = 6.0 * sigma + 0.75  # beyond this an edge changes a pixel by < 1e-9
+    reach = 6.0 * s_major + 0.75  # beyond this an edge changes a pixel by < 1e-9
     # A second line of the same family is ignored; beyond 4 sigma it would change a pixel by
     # < 3e-5 of the contrast.
-    second_reach = 4.0 * sigma + 0.75
-    nodes, weights = pixel_nodes(auto_n_sub(sigma))
+    second_reach = 4.0 * s_major + 0.75
+    nodes, weights = pixel_nodes(auto_n_sub(s_minor))
     W, H = sensor.width_px, sensor.height_px
     u = np.arange(W, dtype=float)
     out = np.empty((H, W))
@@ -546,26 +585,34 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
                  + spl(v, u, dx=2) * nv * nv) / g
             t_c += np.where(t_c > -reach, 0.5 * step * h * t_c**2, 0.0)
             m = np.stack([step * gu / g, step * gv / g], -1)  # unit normal into the neighbour
-            terms.append((i, step, t_c, m))
-        (ix, sx, t1c, m1), (iy, sy, t2c, m2) = terms
+            # the PSF's sd across the line, px
+            s_n = (sigma if psf_cov is None else np.sqrt(
+                psf_cov[0, 0] * m[..., 0] ** 2 + 2 * psf_cov[0, 1] * m[..., 0] * m[..., 1]
+                + psf_cov[1, 1] * m[..., 1] ** 2))
+            terms.append((i, step, t_c, m, s_n))
+        (ix, sx, t1c, m1, s1), (iy, sy, t2c, m2, s2) = terms
         ix2, iy2 = np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)
         v00, v10 = value[ix, iy], value[ix2, iy]
         v01, v11 = value[ix, iy2], value[ix2, iy2]
         pix = v00.copy()
         # Only pixels within the blur's reach of a line differ from their cell's value.
-        for t_c, m, dv in ((t1c, m1, v10 - v00), (t2c, m2, v01 - v00)):
+        for t_c, m, s_n, dv in ((t1c, m1, s1, v10 - v00), (t2c, m2, s2, v01 - v00)):
             sel = (t_c > -reach) & (dv != 0)
             tn = (t_c[sel][:, None] + m[sel][:, 0:1] * nodes[:, 0]
-                  + m[sel][:, 1:2] * nodes[:, 1]) / sigma
+                  + m[sel][:, 1:2] * nodes[:, 1]) / _pick(s_n, sel)
             pix[sel] += dv[sel] * (ndtr(tn) @ weights)
         cross = v11 - v10 - v01 + v00
         near = (cross != 0) & (t1c > -reach) & (t2c > -reach)
         if np.any(near):
-            rho = np.clip(np.sum(m1[near] * m2[near], -1), -0.98, 0.98)
+            if psf_cov is None:
+                rho = np.sum(m1[near] * m2[near], -1)
+            else:
+                rho = np.sum((m1[near] @ psf_cov) * m2[near], -1) / (s1[near] * s2[near])
+            rho = np.clip(rho, -0.98, 0.98)
             h = (t1c[near][:, None] + m1[near][:, 0:1] * nodes[:, 0]
-                 + m1[near][:, 1:2] * nodes[:, 1]) / sigma
+                 + m1[near][:, 1:2] * nodes[:, 1]) / _pick(s1, near)
             k = (t2c[near][:, None] + m2[near][:, 0:1] * nodes[:, 0]
-                 + m2[near][:, 1:2] * nodes[:, 1]) / sigma
+                 + m2[near][:, 1:2] * nodes[:, 1]) / _pick(s2, near)
             pix[near] += cross[near] * (bivariate_normal_cdf(h, k, rho[:, None]) @ weights)
         if tree is not None:
             dist, kk = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
@@ -599,6 +646,11 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
             pix[sel] *= 1.0 - ndtr(dn - 0.5 * sigma * kappa[:, None]) @ weights
         out[r0:r0 + len(v)] = pix
     return out
+
+
+def _pick(s_n: float | np.ndarray, sel: np.ndarray) -> float | np.ndarray:
+    """The sd (px) of the selected pixels as a column, or the scalar of an isotropic PSF."""
+    return s_n if np.isscalar(s_n) else s_n[sel][:, None]
 
 
 def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: float,

@@ -148,8 +148,9 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         The board's waves (board mm), or an amplitude (mm) for :meth:`BoardSurface.random`
         drawn from ``seed`` over the board; the same board serves every step. None: flat.
     psf : str, optional
-        Overrides ``optics.psf`` ('gaussian', 'airy', 'halo', 'elliptical'). A Gaussian PSF
-        is rendered analytically; the others supersampled ``supersample`` times per pixel side.
+        Overrides ``optics.psf`` ('gaussian', 'airy', 'halo', 'elliptical'). A Gaussian or
+        elliptical PSF is rendered analytically (when it applies); the others supersampled
+        ``supersample`` times per pixel side.
     jpeg_quality : int, optional
         JPEG files of this quality (1-100) instead of PNG; the truth is unchanged.
     optics, radiometry

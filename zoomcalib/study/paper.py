@@ -49,11 +49,18 @@ class StudyConfig:
     backends: tuple[str, ...] = ("opencv", "bundle")
     mc_samples: int = 2000
     blur_px: float = 0.7
+    psf: str = "gaussian"  # the renderer's PSF shape (zoomcalib.render.image.PSF_KINDS)
     seed: int = 0
     fig6_noise_dn: float = 2.0
     lensfun: str | None = None
     zooms: tuple[float, ...] | None = None  # explicit zoom states instead of ``steps``
     notes: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        from ..render.image import PSF_KINDS
+
+        if self.psf not in PSF_KINDS:
+            raise ValueError(f"psf must be one of {', '.join(PSF_KINDS)}, got {self.psf!r}")
 
     @classmethod
     def quick(cls, **overrides) -> StudyConfig:
@@ -80,8 +87,12 @@ class StudyConfig:
 
 def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern: str,
                    blur_px: float, detectors: list[str], backends: list[str],
-                   seed, keep_errors: bool = False) -> dict:
+                   seed, keep_errors: bool = False, psf: str = "gaussian") -> dict:
     """Render one calibration set through the aligned lens, detect, calibrate.
+
+    ``blur_px`` (px, 1-sigma) is the renderer's extra Gaussian blur and ``psf`` its PSF shape
+    (:class:`~zoomcalib.render.image.Optics`; shape parameters at their defaults): the
+    ``model`` detector assumes a Gaussian, so any other shape is a PSF it does not model.
 
     Returns
     -------
@@ -109,7 +120,7 @@ def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern:
     distance = 2000.0
     target = scaled_target_for_view(parse_pattern(pattern), mapping.camera.fy, sensor, distance)
     poses = generate_poses(target, mapping, sensor, views, distance, rng)
-    optics = Optics(blur_px=blur_px, f_number=lens_.f_number)
+    optics = Optics(blur_px=blur_px, f_number=lens_.f_number, psf=psf)
     radiometry = Radiometry(noise_sd=noise_dn / 255.0)
     rendered = [render_image(target, mapping, R, t, sensor, optics, radiometry, rng)
                 for R, t in poses]

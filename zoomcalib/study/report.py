@@ -205,7 +205,8 @@ def write_report(out: Path, config: dict, command: str, versions: dict, mech: li
               f"{config['steps']} zoom steps; noise "
               f"{', '.join(f'{n:g}' for n in config['noise_dn'])} DN; {config['seeds']} "
               f"calibration sets of {config['views']} views per step and noise; "
-              f"{config['mc_samples']} mechanical draws per step.", "",
+              f"{config['mc_samples']} mechanical draws per step; rendered with a "
+              f"{config.get('psf', 'gaussian')} PSF and {config['blur_px']:g} px of blur.", "",
               "Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items()), ""]
     lines += ["## Verdict", ""]
     for det in sorted({c["detector"] for c in comparison}):
