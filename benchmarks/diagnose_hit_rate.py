@@ -16,12 +16,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
-import time
+import sys
 from collections import Counter, defaultdict
-from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +28,9 @@ from zoomcalib.diagnose.model import LensResponse
 from zoomcalib.diagnose.synthetic import HIDDEN_CAUSES, synthetic_zoom_table
 from zoomcalib.diagnose.table import ZoomTable
 from zoomcalib.optics.prescription import load_prescription
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from draws import run_draws  # noqa: E402  (the benchmarks folder's shared helper)
 
 _RESPONSE: LensResponse | None = None
 
@@ -72,16 +73,8 @@ def main() -> None:
             continue
         jobs += [(cause, a.seed * 100000 + 10000 * (c + 1) + k, tuple(a.magnitude))
                  for k in range(a.draws)]
-    t0 = time.perf_counter()
-    with ProcessPoolExecutor(a.workers) as pool:
-        recs = list(pool.map(one_draw, jobs, chunksize=8))
-    wall = time.perf_counter() - t0
-    if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(recs, fh)
-
-    print(f"# {len(recs)} draws in {wall:.0f} s on {a.workers} workers, "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores")
+    recs, header = run_draws(one_draw, jobs, a.workers, a.json, chunksize=8)
+    print(header)
     null = [r for r in recs if r["cause"] == "none"]
     fa = Counter(r["named"] for r in null)
     null = null or [{"named": "none"}]

@@ -36,13 +36,10 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
-import os
-import platform
-import time
+import sys
 from collections import Counter
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -55,6 +52,9 @@ from zoomcalib.diagnose.synthetic import (
 )
 from zoomcalib.diagnose.table import ZoomTable
 from zoomcalib.optics.prescription import load_prescription
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from draws import run_draws  # noqa: E402  (the benchmarks folder's shared helper)
 
 _RESPONSE: LensResponse | None = None
 GOALS = {"a": ("right cause named", 0.90), "b": ("nothing named", 0.97),
@@ -224,15 +224,8 @@ def main() -> None:
     jobs = [{**common, "scenario": s, "causes": causes, "unlisted": unlisted,
              "seed": a.seed * 1_000_000 + 10_000 * i + k}
             for i, (s, causes, n, unlisted) in enumerate(plan) for k in range(n)]
-    t0 = time.perf_counter()
-    with ProcessPoolExecutor(a.workers) as pool:
-        recs = list(pool.map(one_draw, jobs, chunksize=4))
-    wall = time.perf_counter() - t0
-    if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(recs, fh)
-    print(f"# {len(recs)} draws in {wall:.0f} s on {a.workers} workers, "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+    recs, header = run_draws(one_draw, jobs, a.workers, a.json, chunksize=4)
+    print(f"{header}; "
           f"magnitude {a.magnitude[0]:g}-{a.magnitude[1]:g}x, unlisted {a.unlisted:g}x, "
           f"play {a.play_scale[0]:g}-{a.play_scale[1]:g}x the file's, sd reported "
           f"{a.sd_factor[0]:g}-{a.sd_factor[1]:g}x true, growth {a.sd_growth[0]:g}-"
