@@ -35,10 +35,15 @@ divided differences
     \sim N(0, \tau_q^2)
 
 (a path that is linear in log focal length costs nothing). ``tau_q`` is estimated from the data
-by restricted maximum likelihood from the per-step estimates ``q_hat_s`` and their sigmas
-(:func:`prior_strength`). ``fx`` and ``fy`` are free per step. Steps reached from different
-zoom directions (backlash) form separate chains, and neighbours closer than 0.1 % in focal length
-are not differenced: a lens state met twice is two measurements, not a curvature.
+by restricted maximum likelihood (:func:`prior_strength`) from per-step estimates ``q_hat_s`` and
+their covariance: those of a first zoom-wide solve without the smoothness prior (one board,
+per-step intrinsics), which are free of the flat-board bias of per-step OpenCV values (a waving
+board moves OpenCV's principal point by many of its sigmas, and a ``tau`` estimated from such
+values lets the long end borrow little). When that first solve has no usable covariance, the
+per-step OpenCV values and sigmas are used, and ``tau_source`` says so. ``fx`` and ``fy`` are
+free per step. Steps reached from different zoom directions (backlash) form separate chains,
+and neighbours closer than 0.1 % in focal length are not differenced: a lens state met twice
+is two measurements, not a curvature.
 
 The cost is ``sum_s sum_obs |uv_obs - uv(theta_s, pose_v, X_j)|^2 / sigma_s^2 + |D q / tau|^2 +
 |a / board_prior|^2``, ``sigma_s`` each step's image noise per coordinate, re-estimated from
@@ -119,7 +124,8 @@ def second_difference(u: np.ndarray) -> np.ndarray:
 def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
     """Restricted maximum-likelihood ``tau`` of the second-difference prior.
 
-    Model: ``q_hat = q + e``, ``e ~ N(0, diag sd^2)``, ``D q ~ N(0, tau^2 I)`` with a flat prior
+    Model: ``q_hat = q + e``, ``e ~ N(0, S)`` with ``S = diag sd^2`` (or ``sd`` itself when it
+    is an ``(n, n)`` covariance), ``D q ~ N(0, tau^2 I)`` with a flat prior
     on the straight lines in ``u`` (the null space of ``D``). With ``N`` an orthonormal basis
     orthogonal to ``[1, u]``, ``y = N^T q_hat ~ N(0, tau^2 (D N)^{-1} (D N)^{-T} + N^T S N)``;
     ``tau`` maximises that likelihood over a log grid.
@@ -141,24 +147,32 @@ def pooled_prior_strength(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]
     terms = [_restricted_terms(*c) for c in chains if len(c[0]) >= 3]
     if not terms:
         return float("inf"), False
-    scale = max(max(t[3] for t in terms), 1e-12)
-    grid = scale * np.logspace(-6, 4, 201)
-    loglik = [sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, _ in terms)
+    top = max(max(t[3] for t in terms), 1e-12)
+    # below 1 % of the noise's own second differences the likelihood is flat: the grid stops
+    # there (a smaller tau only makes the problem ill-conditioned)
+    bottom = max(min(t[4] for t in terms) * 1e-2, top * 1e-6)
+    grid = np.geomspace(bottom, max(top * 1e4, bottom * 1e2), 201)
+    loglik = [sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, *_ in terms)
               for g in grid]
     best = int(np.argmax(loglik))
     return float(grid[best]), best == 0
 
 
 def _restricted_terms(values, sd, u):
-    """``y = N^T q_hat``, the prior's shape ``(D N)^-1 (D N)^-T``, the noise ``N^T S N`` and a
-    scale for the grid, of one chain (see :func:`prior_strength`)."""
+    """``y = N^T q_hat``, the prior's shape ``(D N)^-1 (D N)^-T``, the noise ``N^T S N``, the
+    scale of the values' roughness and the RMS second difference of the noise alone, of one
+    chain (see :func:`prior_strength`)."""
     values, sd, u = (np.asarray(a, float) for a in (values, sd, u))
     n = len(values)
-    sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
+    if sd.ndim == 1:
+        sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
+        sd = np.diag(sd ** 2)
     N = scipy.linalg.null_space(np.column_stack([np.ones(n), u - u.mean()]).T)  # (n, n - 2)
-    B = np.linalg.inv(second_difference(u) @ N)
+    D = second_difference(u)
+    B = np.linalg.inv(D @ N)
     scale = float(np.std(values)) / max(np.ptp(u), 1e-9) ** 2
-    return N.T @ values, B @ B.T, N.T @ (sd[:, None] ** 2 * N), scale
+    noise_roughness = float(np.sqrt(np.mean(np.diag(D @ sd @ D.T))))
+    return N.T @ values, B @ B.T, N.T @ sd @ N, scale, noise_roughness
 
 
 def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
@@ -463,6 +477,8 @@ class ZoomWideResult:
         Height amplitudes of the board (mm) and their sigmas.
     tau : dict of str to float
         Estimated prior strength per smoothed parameter (units per (log px)^2); ``inf`` = none.
+    tau_source : str
+        Which per-step values ``tau`` was estimated from (module docstring).
     terms : dict of str to tuple
         Distortion terms chosen per step.
     held_out : dict of str to dict
@@ -486,6 +502,7 @@ class ZoomWideResult:
     stop_reason: str = ""
     iterations: int = 0
     skipped: dict[str, str] = field(default_factory=dict)
+    tau_source: str = ""
 
 
 def _initial(observations: Mapping[str, Observations], select: bool):
@@ -532,20 +549,39 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
     return _State(cams, np.zeros(0), rvecs, tvecs), free, sds
 
 
-def _estimate_tau(cams: np.ndarray, sds, free: np.ndarray, chains: list[np.ndarray],
+def _estimate_tau(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
                   u: np.ndarray) -> tuple[dict[str, float], dict[str, bool]]:
+    """REML ``tau`` per smoothed parameter, pooled over the chains, from per-step values
+    ``cams`` (S, 9) and either their sigmas (S, 9) or a function ``cov(steps, j)`` giving the
+    covariance of parameter ``j`` over those steps."""
     tau, at_bound = {}, {}
-    sds = np.asarray(sds, float)
     for name in SMOOTHED:
         j = PARAMS.index(name)
         series = []
         for chain in chains:
             steps = [s for s in chain if free[s, j]]
             if len(steps) >= 3:
-                series.append((cams[steps, j], sds[steps, j], u[steps]))
+                noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
+                series.append((cams[steps, j], noise, u[steps]))
         if series:
             tau[name], at_bound[name] = pooled_prior_strength(series)
     return tau, at_bound
+
+
+def _joint_covariance(prob: _ZoomProblem, state: _State):
+    """``cov(steps, j)`` of the per-step intrinsics of a solved problem, or None when its
+    posterior covariance is not positive definite."""
+    try:
+        cov = _posterior_covariance(prob, state)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
+        return None
+
+    def block(steps: list[int], j: int) -> np.ndarray:
+        col = prob.cam_col[steps, j]
+        return cov[np.ix_(col, col)]
+    return block
 
 
 def _chains(u: np.ndarray, labels: list[str], min_gap: float = 1e-3) -> list[np.ndarray]:
@@ -634,25 +670,43 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     u = np.log(state.cams[:, 0])
     labels = [str((chains or {}).get(n, "")) for n in names]
     chain_idx = _chains(u, labels)
-    tau, tau_at_bound = _estimate_tau(state.cams, sds, free, chain_idx, u)
     phi = (board_height_modes(board, board_degree) if board_degree >= 2
            else np.zeros((len(board), 0)))
     state.modes = np.zeros(phi.shape[1])
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
              for n in names]
+    # first without the smoothness prior: per-step values free of the flat-board bias
+    unsmoothed = _ZoomProblem(steps, board, phi, free, chain_idx, u, {}, board_prior_mm)
+    solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
+    joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
+    if joint_cov is not None:
+        state, tau_source = solve.state, "zoom-wide solve without the prior"
+        tau, tau_at_bound = _estimate_tau(state.cams, joint_cov, free, chain_idx, u)
+    else:
+        tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
+        tau, tau_at_bound = _estimate_tau(state.cams, sds, free, chain_idx, u)
     prob = _ZoomProblem(steps, board, phi, free, chain_idx, u, tau, board_prior_mm)
-    total_iterations = 0
+    solve, more = _solve_with_noise(prob, state, free, max_rounds)
+    state, total_iterations = solve.state, iterations + more
+    result = _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
+    result.skipped, result.tau_source = skipped, tau_source
+    for r in result.results.values():
+        r.info["tau_source"] = tau_source
+    return result
+
+
+def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_rounds: int
+                      ) -> tuple[_Solve, int]:
+    """Levenberg-Marquardt, then each step's noise and inliers re-estimated, until they settle
+    (at most ``max_rounds`` rounds, then one last solve)."""
+    iterations = 0
     for _ in range(max_rounds):
         solve = _levenberg_marquardt(prob, state)
-        state, total_iterations = solve.state, total_iterations + solve.iterations
+        state, iterations = solve.state, iterations + solve.iterations
         if not _update_noise(prob, state, free):
-            break
-    else:
-        solve = _levenberg_marquardt(prob, state)
-        state, total_iterations = solve.state, total_iterations + solve.iterations
-    result = _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
-    result.skipped = skipped
-    return result
+            return solve, iterations
+    solve = _levenberg_marquardt(prob, state)
+    return solve, iterations + solve.iterations
 
 
 def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
