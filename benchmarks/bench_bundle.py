@@ -1,5 +1,6 @@
 """Bundle adjustment with a refined target against ``cv2.calibrateCamera`` on the same detections:
-``python benchmarks/bench_bundle.py [--repeat N] [--seeds S ...] [--blas-threads T]``.
+``python benchmarks/bench_bundle.py [--repeat N] [--seeds S ...] [--blas-threads T]
+[--accuracy]``.
 
 Two data sets:
 
@@ -8,9 +9,10 @@ Two data sets:
   per ``--seeds`` value (default 0 1 2); standard model;
 - figueroa: mrcal's 186 real views of a 10 x 10 chessboard (``tests/data/mrcal-figueroa``),
   OpenCV's rational model. OpenCV from scratch with the rational model lands in a poor minimum
-  (rms 28 px), so the peer is the usual two-step call: standard model, then rational with
-  ``CALIB_USE_INTRINSIC_GUESS`` (both with OpenCV's default termination criteria). Our bundle
-  gets mrcal's per-corner weights (OpenCV cannot take them); both drop mrcal's 3 outliers.
+  (``--accuracy`` prints it), so the peer is the usual two-step call: standard model, then
+  rational with ``CALIB_USE_INTRINSIC_GUESS`` (both with OpenCV's default termination
+  criteria). Our bundle gets mrcal's per-corner weights (OpenCV cannot take them); both drop
+  mrcal's 3 outliers.
 
 Our bundle runs with its defaults (``calibrate_bundle``): every one of the 3 n target
 coordinates free under the shape prior, outlier rejection, covariance of every parameter; the
@@ -25,6 +27,12 @@ The bundle's dense algebra is small (a few hundred unknowns after eliminating th
 multi-threaded BLAS on a busy 2-core machine spends more time synchronising than computing, so
 ``OPENBLAS_NUM_THREADS`` etc. are set to ``--blas-threads`` (default 1; 0 leaves the
 environment alone) before numpy loads. OpenCV's own threading is untouched.
+
+``--accuracy`` prints fits instead of times: figueroa with the target flat, with the guard,
+with every coordinate free and with the defaults (with the guard's ratio of irregular
+deformation to noise), OpenCV's rational model from scratch, the guard ratio on synthetic
+boards bowed by 1 mm (one per ``--seeds`` value), and the largest camera change, in 1-sigmas,
+between ``tol=1e-7`` and ``1e-8``.
 """
 
 from __future__ import annotations
@@ -47,6 +55,9 @@ def parse_args():
                     help="seeds of the synthetic 20 x 88 sets (one row group each)")
     ap.add_argument("--profile", action="store_true",
                     help="only profile 20 default bundle calls on the seed-0 set (cProfile)")
+    ap.add_argument("--accuracy", action="store_true",
+                    help="print the fits (no timing): figueroa with and without the guard, the "
+                         "guard ratio on bowed synthetic boards, the effect of the tolerance")
     ap.add_argument("--blas-threads", type=int, default=1,
                     help="BLAS threads for numpy/scipy (0: leave the environment alone)")
     return ap.parse_args()
@@ -61,8 +72,11 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
+sys.path.insert(0, str(ROOT / "tests"))
 
-from zoomcalib.calibrate.bundle import calibrate_bundle  # noqa: E402
+from test_bundle import bowed, grid_board, observe, random_poses  # noqa: E402
+
+from zoomcalib.calibrate.bundle import CAMERA_NAMES, calibrate_bundle  # noqa: E402
 from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.camera import CameraModel  # noqa: E402
@@ -112,11 +126,18 @@ def interleaved(fns: dict, repeat: int) -> dict:
     return {k: (best[k], out[k]) for k in fns}
 
 
-def cv2_calibrate(obs: Observations, rational: bool, std_iterations: int | None = None):
+def cv2_calibrate(obs: Observations, rational: bool, std_iterations: int | None = None,
+                  scratch: bool = False):
+    """OpenCV's fit: the standard model, then (``rational``) the rational model from it, or
+    (``scratch``) the rational model from no initial guess."""
     objp = [obs.object_points[ids].astype(np.float32) for ids, _ in obs.views]
     imgp = [p.astype(np.float32).reshape(-1, 1, 2) for _, p in obs.views]
     kw = {} if std_iterations is None else {
         "criteria": (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, std_iterations, 2.2e-16)}
+    if scratch:
+        rms, K, *_ = cv2.calibrateCamera(objp, imgp, obs.image_size, None, None,
+                                         flags=cv2.CALIB_RATIONAL_MODEL)
+        return K, rms
     rms, K, d, _, _ = cv2.calibrateCamera(objp, imgp, obs.image_size, None, None, **kw)
     if rational:
         d8 = np.zeros(8)
@@ -131,6 +152,79 @@ def row(case, name, t, t_ref, K, extra=""):
     ratio = f"{t / t_ref:6.2f}" if t_ref else "      "
     print(f"{case:10s} {name:44s} {t:8.3f} {ratio} {K[0, 0]:9.2f} {K[1, 1]:9.2f} "
           f"{K[0, 2]:9.2f} {K[1, 2]:9.2f}  {extra}")
+
+
+def guard_ratio(res) -> float:
+    """Irregular deformation of the refined target over what the noise explains (RMS ratio)."""
+    g = res.info["guard"]
+    return g["irregular_rms_mm"] / g["irregular_noise_rms_mm"]
+
+
+def fit_row(case, name, K, extra=""):
+    print(f"{case:10s} {name:44s} {K[0, 0]:9.2f} {K[1, 1]:9.2f} {K[0, 2]:9.2f} {K[1, 2]:9.2f}  "
+          f"{extra}")
+
+
+def tolerance_shift(obs, **kw) -> float:
+    """Largest camera-parameter change, in 1-sigmas, from ``tol=1e-7`` to ``tol=1e-8``."""
+    coarse = calibrate_bundle(obs, tol=1e-7, **kw)
+    fine = calibrate_bundle(obs, tol=1e-8, **kw)
+    names = [k for k in fine.sd if k in CAMERA_NAMES]
+    return max(abs(getattr_param(coarse, k) - getattr_param(fine, k)) / fine.sd[k]
+               for k in names)
+
+
+def getattr_param(res, name: str) -> float:
+    """A camera parameter of a result by its name (fx, fy, cx, cy or a distortion term)."""
+    if name in ("fx", "fy", "cx", "cy"):
+        return float(getattr(res, name))
+    return float(res.dist[CAMERA_NAMES.index(name) - 4])
+
+
+def figueroa_accuracy():
+    """The fits of the figueroa set with and without the guard, against mrcal's."""
+    obs, w = figueroa()
+    K, rms = cv2_calibrate(obs, True, scratch=True)
+    fit_row("figueroa", "cv2.calibrateCamera, rational from scratch", K, f"rms {rms:.2f} px")
+    runs = {
+        "bundle, target held flat": {"refine_target": False, "robust": False},
+        "bundle, guard (no rejection)": {"robust": False},
+        "bundle, every coordinate free (no rejection)": {"robust": False,
+                                                         "target_sigma_mm": None},
+        "bundle, default (robust)": {},
+    }
+    for name, kw in runs.items():
+        r = calibrate_bundle(obs, model="rational", weights=w, **kw)
+        extra = f"rms {r.rms_px:.2f} px"
+        if "guard" in r.info:
+            extra += f", guard ratio {guard_ratio(r):.1f}, {len(r.rejected)} rejected"
+        fit_row("figueroa", name, r.K, extra)
+    for name, (fx, fy, cx, cy) in MRCAL.items():
+        fit_row("figueroa", name, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]))
+    shift = tolerance_shift(obs, model="rational", weights=w)
+    print(f"figueroa   default bundle, tol 1e-7 against 1e-8: largest camera change "
+          f"{shift:.1e} sigma")
+
+
+def bow_accuracy(seeds, bow_mm=1.0):
+    """Guard ratio on synthetic sets whose true board bows by ``bow_mm`` (a smooth warp)."""
+    X0 = grid_board()
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        obs = observe(rng, random_poses(rng, 18, bowed(X0, bow_mm)), bowed(X0, bow_mm), X0)
+        r = calibrate_bundle(obs)
+        fit_row(f"bow s{seed}", f"bundle, default, board bowed {bow_mm:g} mm", r.K,
+                f"guard ratio {guard_ratio(r):.1f}")
+    for seed in seeds:
+        shift = tolerance_shift(synthetic(seed))
+        print(f"synth s{seed:<4d} default bundle, tol 1e-7 against 1e-8: largest camera change "
+              f"{shift:.1e} sigma")
+
+
+def accuracy(seeds):
+    print(f"{'case':10s} {'fit':44s} {'fx':>9s} {'fy':>9s} {'cx':>9s} {'cy':>9s}  notes")
+    figueroa_accuracy()
+    bow_accuracy(seeds)
 
 
 def main():
@@ -154,6 +248,9 @@ def main():
         prof.disable()
         print("20 calls of calibrate_bundle on the seed-0 synthetic set:")
         pstats.Stats(prof).sort_stats("tottime").print_stats(12)
+        return
+    if args.accuracy:
+        accuracy(args.seeds)
         return
     print(f"{'case':10s} {'backend':44s} {'time s':>8s} {'ratio':>6s} {'fx':>9s} {'fy':>9s} "
           f"{'cx':>9s} {'cy':>9s}  notes")

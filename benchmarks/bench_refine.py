@@ -14,6 +14,14 @@ Printed: RMS radial error and mean error (bias) over all corners for ``refine_co
 and the fast ``pixel_model='gaussian'``) and ``cv2.cornerSubPix``, the Cramér-Rao bound for the
 same corners (``corner_crlb``, with 8-bit quantisation as q^2/12 noise), and the time per image
 (best of 3) with its ratio to cornerSubPix: these machines are shared and noisy, read the ratio.
+
+``--model-accuracy`` prints instead the accuracy of the image model itself (no noise, no timing):
+the Gauss-Legendre order of Sheppard's integral against Owen's T function (scipy), the pixel
+quadrature and the variance-matched Gaussian pixel model against a 16-node rule, the product of
+two erf edges against the exact blur, and the noise-free corner and dot errors of
+``refine_corners`` and ``refine_dots`` on images of the independent brute-force renderer
+(``--corners`` corners or dots per row). ``--crlb`` prints the Cramér-Rao bound of
+``corner_crlb`` at the reference setting and around it.
 """
 
 from __future__ import annotations
@@ -32,10 +40,20 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_refine import render_corner  # noqa: E402  (the independent renderer)
+from scipy.special import erf, ndtr, owens_t  # noqa: E402
+from test_refine import (  # noqa: E402  (the independent renderer)
+    _dot_mosaic,
+    corner_mosaic,
+    render_corner,
+)
 
 from zoomcalib.detect.crlb import corner_crlb  # noqa: E402
-from zoomcalib.detect.refine import refine_corners  # noqa: E402
+from zoomcalib.detect.refine import (  # noqa: E402
+    bivariate_normal_cdf,
+    refine_corners,
+    refine_dots,
+    xjunction_image,
+)
 
 W, H = 1280, 960
 COLS, ROWS, SQUARE = 10, 8, 60.0
@@ -91,11 +109,154 @@ def best_of(fn, args, repeat=3):
     return min(times), out
 
 
+# ---------------------------------------------------------------------------------------------
+# --model-accuracy: the image model against exact references, no noise
+# ---------------------------------------------------------------------------------------------
+WINDOW_XY = np.stack(np.meshgrid(np.arange(-5, 6), np.arange(-5, 6)), -1).reshape(-1, 2) * 1.0
+
+
+def bvn_cdf_owen(h, k, rho):
+    """Phi_2(h, k; rho) from Owen's T function (h, k nonzero): an independent reference."""
+    s = np.sqrt(1.0 - rho * rho)
+    beta = np.where(h * k < 0, 0.5, 0.0)
+    return (0.5 * ndtr(h) + 0.5 * ndtr(k) - owens_t(h, (k - rho * h) / (h * s))
+            - owens_t(k, (h - rho * k) / (k * s)) - beta)
+
+
+def print_sheppard_orders(rng):
+    """Largest error of Sheppard's integral per Gauss-Legendre order and |rho| range."""
+    h, k = rng.uniform(-4.0, 4.0, (2, 20000))
+    print("Sheppard's integral against Owen's T (scipy), 20000 random (h, k) in [-4, 4]^2:")
+    print(f"{'nodes':>6s} {'|rho| <=':>9s} {'max error':>10s}")
+    for nodes, rho_max in ((6, 0.75), (10, 0.9), (16, 0.98)):
+        rho = rng.uniform(-rho_max, rho_max, h.size)
+        err = np.abs(bivariate_normal_cdf(h, k, rho, nodes) - bvn_cdf_owen(h, k, rho))
+        print(f"{nodes:6d} {rho_max:9.2f} {err.max():10.1e}")
+
+
+def window_corners(rng, n):
+    """n X-junctions within the central pixel of an 11 x 11 window, edges 35-145 deg apart."""
+    corners = rng.uniform(-0.5, 0.5, (n, 2))
+    a1 = rng.uniform(0.0, np.pi, n)
+    a2 = a1 + np.deg2rad(rng.uniform(35.0, 145.0, n))
+    return corners, np.column_stack([a1, a2])
+
+
+def print_pixel_models(rng, n=200):
+    """Intensity error (contrast 1) of the pixel integration against a 16-node rule."""
+    corners, angles = window_corners(rng, n)
+    orders = (3, 4, 5, 6)
+    print(f"\nPixel integration, max intensity error over {n} X-junctions in 11 x 11 windows "
+          "(contrast 1), against a 16-node rule:")
+    print(f"{'sigma':>6s} " + " ".join(f"{'n_sub=' + str(o):>9s}" for o in orders)
+          + f" {'gaussian max':>13s} {'gaussian RMS':>13s}")
+    for sigma in (0.25, 0.3, 0.4, 0.55, 0.7, 1.0):
+        ref = xjunction_image(WINDOW_XY, corners, angles, sigma, n_sub=16)
+        errs = [np.abs(xjunction_image(WINDOW_XY, corners, angles, sigma, n_sub=o) - ref).max()
+                for o in orders]
+        gauss = xjunction_image(WINDOW_XY, corners, angles, sigma, pixel_model="gaussian") - ref
+        print(f"{sigma:6.2f} " + " ".join(f"{e:9.1e}" for e in errs)
+              + f" {np.abs(gauss).max():13.1e} {np.sqrt(np.mean(gauss**2)):13.1e}")
+
+
+def print_erf_product(sigma=SIGMA):
+    """Largest departure of the product of two erf edges from the exact blurred X-junction."""
+    print(f"\nProduct of two erf edges against the exact blur, corner at the centre of an 11 x 11 "
+          f"window, sigma {sigma} px, contrast 1:")
+    print(f"{'angle between edges':>20s} {'max error':>10s}")
+    s_eff = np.sqrt(sigma**2 + 1.0 / 12.0)
+    for deg in (90.0, 70.0, 55.0):
+        angles = np.array([0.3, 0.3 + np.deg2rad(deg)])
+        exact = xjunction_image(WINDOW_XY, [0.0, 0.0], angles, sigma, n_sub=8)
+        normals = np.column_stack([-np.sin(angles), np.cos(angles)])
+        u = WINDOW_XY @ normals.T / (np.sqrt(2.0) * s_eff)
+        naive = 0.5 * (1.0 - erf(u[:, 0]) * erf(u[:, 1]))
+        print(f"{deg:16.0f} deg {np.abs(naive - exact).max():10.3f}")
+
+
+def max_corner_error(img, truth, init, **kw):
+    res = refine_corners(img, init, **kw)
+    return float(np.hypot(*(res.points - truth).T).max())
+
+
+def print_corner_errors(rng, n):
+    """Noise-free corner position errors of refine_corners on brute-force rendered images."""
+    fits = {"quadrature (auto n_sub)": {}, "quadrature n_sub=3": {"n_sub": 3},
+            "gaussian pixel model": {"pixel_model": "gaussian"}}
+    print(f"\nNoise-free corners ({n} per row, brute-force renderer, edges 35-145 deg apart, "
+          "blur fitted per corner), max position error, px:")
+    print(f"{'sigma':>6s} " + " ".join(f"{name:>24s}" for name in fits))
+    for sigma in (0.3, 0.5, 0.7, 1.0, 1.6):
+        img, truth, init, _, _ = corner_mosaic(rng, n, noise=0.0, sigma=sigma, min_angle=35.0)
+        errs = [max_corner_error(img, truth, init, **kw) for kw in fits.values()]
+        print(f"{sigma:6.2f} " + " ".join(f"{e:24.1e}" for e in errs))
+
+
+def print_dot_errors(rng, n, sigma=0.8):
+    """Noise-free centre and semi-axis errors of refine_dots on brute-force rendered ellipses."""
+    print(f"\nNoise-free dots ({n} per row, brute-force renderer, sigma {sigma} px, aspect "
+          "0.6-1, blur fitted), px:")
+    print(f"{'semi-major':>10s} {'min semi-minor':>15s} {'max centre error':>17s} "
+          f"{'max axis error':>15s}")
+    for radius in (5.5, 4.0, 3.0):
+        img, truth, axes, _, _ = _dot_mosaic(rng, n, noise=0.0, sigma=sigma, radius=radius)
+        init = truth + rng.uniform(-0.5, 0.5, truth.shape)
+        res = refine_dots(img, init, radius)
+        centre = np.hypot(*(res.centres - truth).T).max()
+        axis = np.abs(res.axes - axes).max()
+        print(f"{radius - 1:4.1f}-{radius + 1:<5.1f} {axes[:, 1].min():15.2f} {centre:17.1e} "
+              f"{axis:15.3f}")
+
+
+def model_accuracy(n, seed):
+    rng = np.random.default_rng(seed)
+    print(f"# image model accuracy, seed {seed}")
+    print_sheppard_orders(rng)
+    print_pixel_models(rng)
+    print_erf_product()
+    print_corner_errors(rng, n)
+    print_dot_errors(rng, n)
+
+
+def print_crlb():
+    """corner_crlb's radial bound at the reference setting and one change at a time."""
+    ref = {"sigma_psf": 0.7, "noise_sd": 2.0 / 255.0, "contrast": 1.0,
+           "angles": [0.0, np.pi / 2], "window": 5, "quant_step": 1.0 / 255.0}
+    rows = {
+        "reference (8-bit)": {},
+        "no quantisation term": {"quant_step": 0.0},
+        "edges at 45 deg to the grid": {"angles": [np.pi / 4, 3 * np.pi / 4]},
+        "corner half a pixel off-centre": {"offset": [0.5, 0.5]},
+        "contrast 0.8": {"contrast": 0.8},
+        "blur 1.0 px": {"sigma_psf": 1.0},
+        "blur 1.1 px": {"sigma_psf": 1.1},
+        "7 x 7 window": {"window": 3},
+        "blur fitted": {"fit_sigma": True},
+    }
+    print("# corner_crlb: noise 2/255, contrast 1, blur 0.7 px, 11 x 11 window, square corner, "
+          "8-bit quantisation; one change per row")
+    print(f"{'setting':32s} {'radial px':>10s}")
+    for name, change in rows.items():
+        print(f"{name:32s} {float(corner_crlb(**{**ref, **change}).radial_rms):10.4f}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--model-accuracy", action="store_true",
+                    help="print the image model's noise-free accuracy instead of the comparison")
+    ap.add_argument("--corners", type=int, default=24,
+                    help="corners (and dots) per row of --model-accuracy")
+    ap.add_argument("--crlb", action="store_true",
+                    help="print the corner Cramer-Rao bound around the reference setting")
     args = ap.parse_args(argv)
+    if args.crlb:
+        print_crlb()
+        return
+    if args.model_accuracy:
+        model_accuracy(args.corners, args.seed)
+        return
     rng = np.random.default_rng(args.seed)
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
     methods = {

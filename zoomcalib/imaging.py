@@ -40,8 +40,8 @@ def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _n_rho_nodes(rho_abs_max: float) -> int:
-    # Gauss-Legendre order for Sheppard's integral; max error (measured against scipy):
-    # 6 nodes: 3e-10 at |rho| <= 0.75; 10 nodes: 3e-12 at 0.9; 16 nodes: 2e-10 at 0.98.
+    # Gauss-Legendre order for Sheppard's integral by |rho|; its error against Owen's T is
+    # measured by ``python benchmarks/bench_refine.py --model-accuracy`` (docs/model.md).
     if rho_abs_max <= 0.75:
         return 6
     if rho_abs_max <= 0.9:
@@ -60,7 +60,9 @@ def bivariate_normal_cdf(
             + 1/(2 pi) * int_0^{asin rho} exp(-(h^2 - 2 h k sin t + k^2) / (2 cos^2 t)) dt
 
     integrated by an ``n_nodes``-point Gauss-Legendre rule. The integrand is smooth for
-    ``|rho| < 1``; the default order keeps the error below 1e-9 for ``|rho| <= 0.95``.
+    ``|rho| < 1``; the default order grows with ``max |rho|``. Its error against Owen's T
+    function is measured by ``python benchmarks/bench_refine.py --model-accuracy``; results in
+    ``docs/model.md`` ("Accuracy of the image model").
 
     Parameters
     ----------
@@ -138,17 +140,10 @@ def auto_n_sub(sigma: float) -> int:
     """Gauss-Legendre nodes per pixel axis that integrate the blurred pattern over a pixel to
     about 1e-4 of the contrast or better, for PSF sd ``sigma`` px.
 
-    Measured maximum errors of the X-junction over a window (contrast 1), against a 16-node rule:
-
-    ========  =======  =======  =======  =======
-    sigma     n_sub=3  n_sub=4  n_sub=5  n_sub=6
-    ========  =======  =======  =======  =======
-    0.25      2.4e-3   2.5e-4   2.1e-5   1.5e-6
-    0.4       2.8e-4   9.6e-6   3.1e-7   9.3e-9
-    0.55      ~5e-5    ~1e-6
-    0.7       1.3e-5   1.7e-7   1.8e-9
-    1.0       1.7e-6   1.1e-8
-    ========  =======  =======  =======  =======
+    The thresholds come from the largest error of the X-junction over a window (contrast 1)
+    against a 16-node rule, per ``sigma`` and ``n_sub``, measured by ``python
+    benchmarks/bench_refine.py --model-accuracy``; results in ``docs/model.md`` ("Accuracy of the
+    image model").
 
     Examples
     --------

@@ -43,11 +43,10 @@ and the shape prior below are invariant to a similarity.
 Shape prior (the guard)
 -----------------------
 Free target points can soak up lens-model misfit: on mrcal's figueroa set (186 views of a
-0.77 m board through a wide lens that OpenCV's 8-term model does not fit exactly),
-``cv2.calibrateCameraRO`` moved f by 0.8 %, and this bundle with every coordinate free moves
-``cy`` by 9 px and ``fx`` by 0.2 % from mrcal's warped-board solution. Real boards bow and twist
-by millimetres, but their points are placed far more accurately than that; so the adjustment
-minimises
+0.77 m board through a wide lens that OpenCV's 8-term model does not fit exactly), this
+bundle with every coordinate free moves the camera away from mrcal's warped-board solution by
+far more than its 1-sigma. Real boards bow and twist by millimetres, but their points are
+placed far more accurately than that; so the adjustment minimises
 
 .. math::
 
@@ -68,15 +67,17 @@ the residuals, updated after the target is released). The prior is exactly invar
 similarity of ``X``, so it does not depend on the gauge; ``Lambda`` is rotated with ``R`` in the
 normal equations. ``target_sigma_mm=None`` removes it (the plain Lavest bundle).
 
-On figueroa (all 186 views, mrcal's weights, no rejection) the guard gives fx, fy, cx, cy =
-2074.02, 2077.34, 3004.24, 1997.69 against mrcal's warped-board 2073.87, 2077.45, 3004.69,
-1997.38; without it 2077.63, 2076.29, 3000.75, 2005.95 (``tests/test_bundle.py``).
+On figueroa (all 186 views, mrcal's weights, no rejection) the guard brings the camera back
+to mrcal's warped-board solution (checked in ``tests/test_bundle.py``). The fits with and
+without it are printed by ``python benchmarks/bench_bundle.py --accuracy``; results in
+``docs/calibration.md`` ("mrcal's figueroa observations").
 
 A diagnostic guard: ``info['guard']`` splits the refined target's deviation into warp
 amplitudes and an irregular rest, and holds the flat-target fit for comparison; a
 ``RuntimeWarning`` is raised when the irregular rest is more than ``guard_warn_ratio`` times what
-the noise explains (the free points are then fitting something systematic — on figueroa, 4.7 x
-with the prior and 20 x without it; on synthetic data with a 1 mm bow, 0.7 x).
+the noise explains (the free points are then fitting something systematic). The ratio on
+figueroa with and without the prior and on synthetic boards with a smooth bow is printed by the
+same benchmark.
 
 Solver
 ------
@@ -185,8 +186,9 @@ _BLAS = []   # a threadpoolctl controller, made on first use if threadpoolctl is
 def _single_threaded_blas(fn):
     """Run ``fn`` with a single-threaded BLAS when threadpoolctl is installed.
 
-    The dense systems here have a few hundred unknowns; a multi-threaded BLAS on a busy
-    2-core machine spends most of its time synchronising threads instead of computing.
+    The dense systems here have a few hundred unknowns, too small for a multi-threaded BLAS
+    to gain more than it spends synchronising threads on a busy machine (compare
+    ``python benchmarks/bench_bundle.py --blas-threads 0`` with the default of one thread).
     """
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -1329,7 +1331,7 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
     # ---- stage 2: target held at its nominal shape --------------------------------------
     if model == "rational" and not np.any(state.cam[9:]):
         # free k4..k6 only after some iterations of the 5-term model: from a poor start the
-        # rational model has bad local minima (f 10 % off on the figueroa set)
+        # rational model has bad local minima (figueroa: benchmarks/bench_bundle.py --accuracy)
         std_map, _ = _cam_map("standard", fix_aspect, state.cam[0] / state.cam[1])
         std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
         state, stages["flat_standard"], _ = _levenberg_marquardt(
@@ -1398,7 +1400,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Initial camera matrix. If None, the initial camera and poses come from
         ``cv2.calibrateCamera`` (:data:`INIT_ITERATIONS` iterations) on the nominal flat target with
         OpenCV's standard model: the rational model started from scratch falls into poor local
-        minima on wide lenses (rms 28 px on mrcal's figueroa set). Our adjustment then takes
+        minima on wide lenses (as on mrcal's figueroa set: ``python benchmarks/bench_bundle.py
+        --accuracy``). Our adjustment then takes
         up to 10 more iterations of the standard model and only then frees ``k4..k6``.
     dist0 : (5,) or (8,) ndarray, optional
         Initial distortion (zeros if None and ``K0`` is given).
@@ -1441,8 +1444,9 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         result is marked as not converged (module docstring, Convergence).
     tol : float
         Stop when the linear model predicts a cost decrease below ``tol`` times the cost. That
-        last step is still taken, so the solution is off by about its square: on the benchmark
-        sets 1e-7 and 1e-8 agree to 2e-4 sigma (``benchmarks/bench_bundle.py``).
+        last step is still taken, so the solution is off by about its square; the change from
+        1e-7 to 1e-8 on the benchmark sets is printed by ``python benchmarks/bench_bundle.py
+        --accuracy`` (results in ``docs/calibration.md``).
     return_covariance : bool
         Also put the full covariances of all free parameters, both kinds, in
         ``info['covariance_repeatability']`` and ``info['covariance_posterior']`` (module

@@ -136,13 +136,11 @@ def corner_crlb(
 
     Notes
     -----
-    At the reference setting (noise 2/255 on a 0..1 scale, contrast 1, blur 0.7 px,
-    11 x 11 window, 8-bit) this gives 0.0060 px radial for a square-on corner (0.0059 without
-    the quantisation term, 0.0051 with the edges at 45 deg to the pixel grid, whose diagonals
-    are longer; 0.0061 with the corner half a pixel off-centre in both axes). The requirement quotes
-    about 0.0075 px, 25 % more, which is what this model gives for contrast 0.8 (e.g. black 0.1,
-    white 0.9: 0.0075), blur 1.0-1.1 px (0.0073-0.0077) or a 7 x 7 window (0.0080); a fixed or
-    fitted blur makes no difference (point symmetry).
+    The bound at the reference setting (noise 2/255 on a 0..1 scale, contrast 1, blur 0.7 px,
+    11 x 11 window, 8-bit) and its change with the quantisation term, the edge directions, the
+    corner's sub-pixel position, the contrast, the blur and the window are printed by
+    ``python benchmarks/bench_refine.py --crlb``; results in ``docs/model.md`` ("Detection").
+    A fixed or fitted blur gives the same bound on the position (point symmetry).
 
     Examples
     --------

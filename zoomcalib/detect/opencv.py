@@ -13,7 +13,8 @@ Methods (``METHODS``) and the target kinds they fit:
 ``"sb"``
     ``cv2.findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``, retried with
     ``CALIB_CB_EXHAUSTIVE``. Chessboards. ``CALIB_CB_NORMALIZE_IMAGE`` is not used: on rendered
-    boards it makes the corners 4x worse (``benchmarks/bench_detect_flags.py``).
+    boards it makes the corners several times worse (measured by ``python
+    benchmarks/bench_detect_flags.py``; results in ``docs/performance.md``).
 ``"classic"``
     ``cv2.findChessboardCorners`` (adaptive threshold, normalised image) and
     ``cv2.cornerSubPix`` (half-window ``win``, default 5, i.e. an 11 x 11 window). Chessboards.
@@ -549,7 +550,8 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     from .refine import refine_corners, refine_dots
 
     if target.kind == "chessboard":
-        # findChessboardCorners is ~8x faster than the SB detector; SB is the fallback
+        # findChessboardCorners is much faster than the SB detector (docs/performance.md,
+        # benchmarks/bench_detect_flags.py); SB is the fallback
         found = _detect_classic(grey8, best, target)
         if isinstance(found, str):
             found = _detect_sb(grey8, best, target)

@@ -26,31 +26,31 @@ correlation ``rho``: the blurred product of two signs is ``E[sign(u_1 + n_1.z) s
 n_2.z)]`` for ``z ~ N(0, sigma^2 I)``; ``(n_1.z, n_2.z)`` is bivariate normal with correlation
 ``n_1 . n_2``, so the expectation is ``4 Phi_2(h, k; rho) - 2 Phi(h) - 2 Phi(k) + 1``. The
 familiar product of two ``erf`` edges is the special case ``rho = 0`` (orthogonal edges) and is
-wrong for the non-orthogonal edges that perspective produces: near the corner it is off by 0.11
-of the contrast at 70 deg between the edges and by 0.18 at 55 deg. ``Phi_2`` is evaluated from
-Sheppard's integral (see :func:`bivariate_normal_cdf`) by Gauss-Legendre quadrature, to < 1e-9
-for ``|rho| <= 0.98`` (edges at least 11.5 deg apart; ``rho`` is clipped there). The blur is
-thus exact up to round-off, not an approximation.
+wrong near the corner for the non-orthogonal edges that perspective produces, the more so the
+further the edges are from orthogonal. ``Phi_2`` is evaluated from Sheppard's
+integral (see :func:`bivariate_normal_cdf`) by Gauss-Legendre quadrature, with more nodes as
+``|rho|`` grows, up to ``|rho| <= 0.98`` (edges at least 11.5 deg apart; ``rho`` is clipped
+there). The blur is thus exact up to the quadrature's round-off level, not an approximation.
 
 *Pixel integration.* By default the blurred pattern is integrated over each pixel by an
 ``n_sub x n_sub`` Gauss-Legendre product rule (``pixel_model='quadrature'``, ``n_sub`` from
-:func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px). Against a 16-node rule the intensity
-error (contrast 1) is 1.3e-5 at sigma = 0.7 px with 3 nodes and 1e-5 at sigma = 0.4 px with 4
-nodes. Fitted to noise-free images from an independent brute-force renderer (32 x 32
+:func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px), which keeps the intensity error far
+below the noise. Fitted to noise-free images from an independent brute-force renderer (32 x 32
 sub-samples per pixel, blur on the fine grid, then pixel averaging; ``tests/test_refine.py``) the
-corner position error is <= 1.2e-5 px for sigma = 0.3 .. 1.0 px.
+corner position error is negligible against the noise-limited error for sigma = 0.3 .. 1.6 px.
 
 The cheaper ``pixel_model='gaussian'`` replaces the box by a Gaussian of the same variance, i.e.
 one Gaussian of variance ``sigma^2 + 1/12`` per axis sampled at the pixel centre. The box is not
 a Gaussian (its projection on an edge normal is uniform for an axis-aligned edge and triangular at
-45 deg), so the intensity error is 1.1e-3 max (2.5e-4 RMS) at sigma = 0.7 px, 7e-3 at 0.4 and
-1.5e-2 at 0.3. Both PSFs are point-symmetric, which keeps the corner position error smaller than
-that suggests: measured max 1.6e-4 px at sigma = 0.7, 1.3e-3 px at 0.5, 1.1e-2 px at 0.3 (the
-fitted sigma absorbs part of the mismatch). The refiner uses this model to get close, then
-finishes with a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma) the
-difference has fallen below the quadrature's own (noise-free corners against the brute-force
-renderer: 3.5e-5 px at sigma = 1.0, 1.5e-5 px at 1.6, where the 3-node quadrature gives 5.3e-5
-and 3.3e-5), so the fit ends on this model.
+45 deg), so its intensity error grows quickly as the blur falls below a pixel. Both PSFs are
+point-symmetric, which keeps the corner position error smaller than that suggests (the fitted
+sigma absorbs part of the mismatch). The refiner uses this model to get close, then finishes with
+a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma) the difference has
+fallen to the level of the quadrature's own, so the fit ends on this model.
+
+The errors of each of these approximations (quadrature orders, pixel models, the ``erf``
+product, noise-free corners and dots) are measured by ``python benchmarks/bench_refine.py
+--model-accuracy``; results in ``docs/model.md`` ("Accuracy of the image model").
 
 *Dot.* A dark ellipse ``(x - c)^T Q (x - c) <= 1`` (``Q`` symmetric positive definite, semi-axes
 ``1 / sqrt(eig Q)``) on a bright background, modelled as a locally straight blurred edge,
@@ -59,10 +59,10 @@ and 3.3e-5), so the fit ends on this model.
 circles and on the axes of an ellipse) and ``kappa = det(Q) r^3 / |Q (x - c)|^3`` is the
 boundary's curvature at ``c + (x - c) / r``. The curvature term is the first-order effect of
 blurring a curved edge: the half-intensity contour of a blurred disc of radius ``R`` lies
-``sigma^2 / (2 R)`` inside it. Without it the fitted axes of a 5 px dot at sigma = 0.8 px come
-out 0.06-0.15 px short; with it, 0.005 px. The model error is point-symmetric about the centre,
-so the fitted centre is unbiased either way (noise-free error < 4e-4 px down to a 1.8 px minor
-semi-axis; < 4e-5 px for 5 px dots). Valid for dots a few sigma across.
+``sigma^2 / (2 R)`` inside it, so without the term the fitted axes would come out short by
+about that much. The model error is point-symmetric about the centre, so the fitted centre is
+unbiased either way. Valid for dots a few sigma across; the noise-free centre and axis errors
+against dot size are measured by the same benchmark.
 
 References
 ----------
@@ -819,19 +819,19 @@ def refine_corners(
         for c in chunks:
             c.drop_sigma(sigma)
     if not gaussian_only:
-        # The cheap model brings every corner close (one iteration costs ~1/5 of a quadrature
-        # one), so the quadrature stage only polishes: 2-3 iterations instead of 6-13.
+        # The cheap model brings every corner close (its iterations cost a fraction of a
+        # quadrature one), so the quadrature stage only polishes (docs/performance.md).
         for c in chunks:
             c.fit(sigma, "gaussian", 1, max_iter, 1e-3)
     # From a blur of _GAUSSIAN_PIXEL_SIGMA on, the variance-matched Gaussian pixel model is as
-    # good as the quadrature (both within ~2e-5 px on noise-free corners; module docstring).
+    # good as the quadrature on noise-free corners (module docstring).
     cheap = gaussian_only or (sigma is not None and sigma >= _GAUSSIAN_PIXEL_SIGMA)
     for c in chunks:
         if cheap:
             c.fit(sigma, "gaussian", 1, max_iter, tol)
         else:
-            # A corner the cheap model brought close converges in 2-5 of these iterations; one
-            # it did not rarely does at all, and must not cost max_iter quadrature iterations.
+            # A corner the cheap model brought close converges in a few of these iterations;
+            # one it did not rarely does at all, and must not cost max_iter quadrature ones.
             budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
             c.fit(sigma, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(sigma)),
                   budget, tol)
