@@ -26,8 +26,8 @@ Flag quirks of OpenCV 5.0 handled here
 --------------------------------------
 * ``CALIB_DISABLE_SCHUR_COMPLEMENT`` has the same value as ``CALIB_TILTED_MODEL`` (``1 << 18``),
   so asking for the Bouguet engine also frees the two tilted-sensor terms (tau_x, tau_y), which
-  trade against the principal point (on ``opencv-samples`` cx moves by 17 px with a 1-sigma of
-  10 px). Whenever that bit is set, ``CALIB_FIX_TAUX_TAUY`` is added with zero tilt, which gives
+  trade against the principal point (``tests/test_calibrate_opencv.py`` shows how far cx moves).
+  Whenever that bit is set, ``CALIB_FIX_TAUX_TAUY`` is added with zero tilt, which gives
   the same result as the default (Schur) engine.
 * ``calibrateCameraRO`` with ``CALIB_USE_INTRINSIC_GUESS`` fails an assertion in the Schur
   engine (``nparams == NINTRINSIC + nimages * 6``); :func:`calibrate_opencv_ro` then switches to

@@ -137,7 +137,7 @@ class CalibrationResult:
 @contextlib.contextmanager
 def one_opencv_thread():
     """Run OpenCV on one thread inside the block: its parallel sums make calibrateCamera's
-    result differ in the last digits from run to run (1e-9 px in fx), and a rerun must give the
+    result differ in the last digits from run to run, and a rerun must give the
     same files."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)

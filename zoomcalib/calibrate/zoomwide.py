@@ -4,8 +4,8 @@ Why
 ---
 At the long end of a zoom the views of a board are nearly fronto-parallel and the field of view
 is narrow: one step's images hardly separate the principal point and the distortion from the
-poses, so a per-step calibration trades them freely (principal points 100 px apart between two
-halves of one step, each with a few px of sigma). The steps are not independent, though: they see
+poses, so a per-step calibration trades them freely (principal points far apart between two
+halves of one step, each with a sigma of a few px). The steps are not independent, though: they see
 the same board, and the principal point and the distortion of a zoom lens move smoothly with
 the focal length. This module estimates all steps together.
 

@@ -395,7 +395,7 @@ def _detect_sb(grey8: np.ndarray, best: np.ndarray, target: Target,
     if not ok:
         return f"no chessboard {size[0]}x{size[1]} found"
     pts = _normalise_order(np.asarray(corners, np.float64).reshape(-1, 2), target, grey8)
-    # SB too occasionally returns a corner several pixels off (seen: 9.5 px, inside the board)
+    # SB too occasionally returns a corner several pixels off, inside the board
     return _repair_grid(pts, size, best), np.arange(len(pts))
 
 
@@ -440,7 +440,7 @@ def _detect_classic(grey8: np.ndarray, best: np.ndarray, target: Target, win: in
                                _SUBPIX_CRITERIA)
     refined = np.asarray(refined, np.float64).reshape(-1, 2)
     # findChessboardCorners sometimes places a border corner several pixels off, beyond the
-    # reach of cornerSubPix (seen: 9.8 px on an exact-lens render).
+    # reach of cornerSubPix.
     return _repair_grid(refined, size, best, win), np.arange(len(pts))
 
 

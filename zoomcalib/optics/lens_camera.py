@@ -161,7 +161,7 @@ class ExactMapping:
 
     ``project(xy) = camera.project_normalized(xy) + (du, dv)(xy)``, where ``(du, dv)`` is the exact
     minus the model on a regular grid of normalised coordinates, interpolated by bicubic splines.
-    The residual is small (the model misfit), so its interpolation error is far below 1e-4 px.
+    The residual is small (the model misfit), so its interpolation error is a small part of it.
 
     Attributes
     ----------

@@ -579,7 +579,7 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
             # for an image distance t, h = n^T (d^2 b / d uv^2) n / |grad b| (px^-1,
             # n = grad b / |grad b|). The error has one sign on both sides of the line: it
             # moved every edge by (h / 2) (sigma^2 + 1/12) px along n (1/12 from the pixel
-            # box), 5e-4 to 1e-3 px along rows at 0.4 rad tilt, sigma 0.7 px.
+            # box); benchmarks/render_accuracy.py measures what is left.
             nu, nv = gu / g, gv / g
             h = (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
                  + spl(v, u, dx=2) * nv * nv) / g
