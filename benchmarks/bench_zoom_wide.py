@@ -32,7 +32,11 @@ sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
-from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+from zoomcalib.calibrate.zoomwide import (  # noqa: E402
+    calibrate_zoom_wide,
+    prior_strength,
+    second_difference,
+)
 from zoomcalib.render.sweep import render_zoom_sweep  # noqa: E402
 
 PATTERN = "chessboard:22x15:20"
@@ -62,6 +66,23 @@ def _errors_table(run, truth: dict) -> None:
                   f"{100 * r.sd['fx'] / K[0, 0]:8.3f} {dcx:+7.2f} {r.sd['cx']:6.2f} "
                   f"{dcx / r.sd['cx']:+5.1f} {dcy:+7.2f} {r.sd['cy']:6.2f} "
                   f"{dcy / r.sd['cy']:+5.1f}")
+
+
+def _prior_table(run, truth: dict) -> None:
+    """The smoothness prior's ``tau`` as the adjustment estimated it, as per-step OpenCV values
+    would give it, and the rendered path's own RMS second difference in ``u = log fx``."""
+    steps = [st for st in truth["steps"] if "opencv" in run.results.get(st["step"], {})]
+    u = np.log([np.asarray(st["K"])[0, 0] for st in steps])
+    D = second_difference(u)
+    print(f"# smoothness prior (px per u^2), from: {run.zoom_wide.tau_source}")
+    print(f"{'param':>6s} {'zoom-wide':>10s} {'opencv':>10s} {'truth':>10s}")
+    for q, row in (("cx", 0), ("cy", 1)):
+        cv = [run.results[st["step"]]["opencv"] for st in steps]
+        tau_cv, _ = prior_strength(np.array([getattr(r, q) for r in cv]),
+                                   np.array([r.sd[q] for r in cv]), u)
+        path = np.array([np.asarray(st["K"])[row, 2] for st in steps])
+        print(f"{q:>6s} {run.zoom_wide.tau[q]:10.2f} {tau_cv:10.2f} "
+              f"{np.sqrt(np.mean((D @ path) ** 2)):10.2f}")
 
 
 def _detection_error(run, points: dict) -> float:
@@ -120,6 +141,7 @@ def main() -> None:
     t2 = time.perf_counter()
     print(f"# render {t1 - t0:.1f} s (0 when reused); calibrate (2 workers) {t2 - t1:.1f} s")
     _errors_table(run, truth)
+    _prior_table(run, truth)
     points = _truth_points(truth)
     noise = _detection_error(run, points)
     print(f"# detection error against the truth: {noise:.4f} px RMS per coordinate")

@@ -17,8 +17,10 @@ Scenarios:
   effect less its mean, over the true RMS noise);
 - ``b``: nulls, no cause;
 - ``c``: misspecified nulls: no listed cause, a smooth effect in log focal length that none of the
-  six causes captures more than half of (``--unlisted`` times the noise); with
-  ``--pair-capture``, nor any two causes together more than that share;
+  six causes captures more than half of (``--unlisted`` times the noise), nor any two causes
+  together more than ``--pair-capture`` of it (default 0.5). The diagnosis selects several
+  causes at once, so a curve that two listed causes reproduce to within the noise is a listed
+  two-cause table, not a misspecified one; ``--pair-capture 1`` bounds single causes only;
 - ``d``: two causes at once, every pair of causes, each at a magnitude in ``--magnitude``.
 
 The diagnosis's output is read through :func:`read_diagnosis` alone, since its fields change.
@@ -198,9 +200,9 @@ def main() -> None:
                     help="hidden causes' magnitude range, RMS effect / RMS noise")
     ap.add_argument("--unlisted", type=float, default=3.0,
                     help="(c) magnitude of the unlisted effect, RMS effect / RMS noise")
-    ap.add_argument("--pair-capture", type=float, default=None,
-                    help="(c) also redraw the unlisted effect until no two causes together "
-                         "capture more than this share of it (default: no such bound)")
+    ap.add_argument("--pair-capture", type=float, default=0.5,
+                    help="(c) redraw the unlisted effect until no two causes together capture "
+                         "more than this share of it (1: no such bound)")
     ap.add_argument("--play-scale", type=float, nargs=2, default=(0.3, 3.0))
     ap.add_argument("--sd-factor", type=float, nargs=2, default=(0.5, 2.0))
     ap.add_argument("--sd-growth", type=float, nargs=2, default=(0.0, 2.0))
