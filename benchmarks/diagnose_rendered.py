@@ -41,6 +41,9 @@ def main() -> None:
     ap.add_argument("--axis-tilt", default="", help="TX,TY mrad: the axis-tilt sweep instead")
     ap.add_argument("--psf", default="gaussian", choices=PSF_KINDS,
                     help="PSF shape of the rendered images")
+    ap.add_argument("--settings", type=int, default=8, help="axis-tilt set: zoom settings")
+    ap.add_argument("--sensor", default="640x480@0.0129", help="WxH@PITCH_MM")
+    ap.add_argument("--board", default="chessboard:9x6:25")
     a = ap.parse_args()
     optics = Optics(psf=a.psf)
     tilt = tuple(float(v) for v in a.axis_tilt.split(",")) if a.axis_tilt else None
@@ -53,21 +56,23 @@ def main() -> None:
         "compensator": GroupTolerance(locked_decenter_um=10.0, locked_decenter_phase_deg=phase,
                                       play_um=1.0,
                                       backlash_um=0.0 if tilt else a.backlash_um)}, "benchmark")
-    sensor = Sensor(640, 480, 0.0129)
+    size, pitch = a.sensor.split("@")
+    sensor = Sensor(*(int(v) for v in size.split("x")), float(pitch))
     t0 = time.perf_counter()
     if tilt:
-        settings = list(np.random.default_rng(a.seed).permutation(np.linspace(0.0, 1.0, 8)))
-        render_dataset(lens, tol, out / "set", settings, a.views, "chessboard:9x6:25",
+        settings = list(np.random.default_rng(a.seed).permutation(np.linspace(0.0, 1.0,
+                                                                                 a.settings)))
+        render_dataset(lens, tol, out / "set", settings, a.views, a.board,
                        seed=a.seed, sensor=sensor, direction="in", axis_tilt_mrad=tilt,
                        optics=optics)
     else:
         settings = list(np.linspace(0.0, 0.4, 5))
-        render_dataset(lens, tol, out / "set", settings + settings[::-1], a.views,
-                       "chessboard:9x6:25", seed=a.seed, sensor=sensor,
-                       direction=["in"] * 5 + ["out"] * 5, optics=optics)
+        render_dataset(lens, tol, out / "set", settings + settings[::-1], a.views, a.board,
+                       seed=a.seed, sensor=sensor, direction=["in"] * 5 + ["out"] * 5,
+                       optics=optics)
     t1 = time.perf_counter()
     run = diagnose_input(out / "set", out / "diag", lens, sensor.pixel_pitch_mm, tol,
-                         "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
+                         a.board, ("opencv",), workers=1, log=lambda m: None)
     t2 = time.perf_counter()
     d = run.diagnosis
     doc = d.to_dict()

@@ -1,0 +1,211 @@
+"""How well a zoom set design tells a hidden axis tilt from a static decentre.
+
+The diagnosis fits, over its baseline (sensor offset and the rotation-locked decentre of each
+moving group), the columns of each cause (``zoomcalib.diagnose.model``): ``fx * theta`` for an
+axis tilt, ``-S_g(z) d / pitch`` for a static decentre of group ``g``. Both are weighted by each
+row's 1-sigma. For a design (lens states, views per setting, pixel pitch, board) this script
+builds those columns and reports, per design:
+
+- ``tilt chi2``: the chi2 the hidden tilt adds over the baseline, ``|P t|^2`` with ``t`` the
+  weighted tilt signature at the hidden tilt and ``P`` the projection off the weighted baseline:
+  about the tilt's ``-dBIC + 2 ln n``;
+- ``absorbed``: the fraction of ``|P t|^2`` that the static decentre of the best group takes
+  (its columns, also off the baseline), so a static decentre wins the BIC by
+  ``absorbed * |P t|^2`` and loses it by ``gap = (1 - absorbed) |P t|^2``;
+- ``gap / sd``: ``gap`` over its sampling sd, ``2 sqrt(gap)`` (the noise's projection on the
+  part of the signature static decentre cannot take); ``P(static)``, the normal tail
+  ``Phi(-gap / sd)``: how often the static decentre is named instead.
+
+Row sigmas come from a reference table: a per-step calibrated rendered set (its
+``zoom_calibration.csv``, with the ``dataset.json`` of the render two folders up when there,
+e.g. the ``--out`` of ``diagnose_rendered.py``). Its ``sqrt((sd_cx^2 + sd_cy^2) / 2)`` is
+interpolated in log-log over the EFL and scaled by ``sqrt(views_ref / views)`` and
+``sqrt(corners_ref / corners)``; it does not change with the pixel pitch (in pixels the
+principal point's sd of a board spanning the same part of the image is about the same at any
+resolution, while the signatures grow as ``1 / pitch``). With the dataset, the sigmas are
+multiplied by the RMS of (calibrated - true principal point) / sd of the reference, the factor
+by which the table's sigmas understate its errors. The play of the tolerance file (1 um per
+group) is added in quadrature.
+
+Usage::
+
+    python benchmarks/tilt_design.py --reference OUT/diag/calibration/zoom_calibration.csv
+        [--tilt 0.9,-0.4] [--ref-views 10] [--ref-corners 54]
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from zoomcalib.calibrate.io import read_zoom_table
+from zoomcalib.diagnose.discrepancy import baseline_terms
+from zoomcalib.diagnose.model import (
+    Context,
+    LensResponse,
+    axis_tilt_term,
+    design_matrix,
+    group_term,
+)
+from zoomcalib.diagnose.table import ZoomTable
+from zoomcalib.io import read_json
+from zoomcalib.optics.mechanics import GroupTolerance, Tolerances
+from zoomcalib.optics.prescription import load_prescription
+
+
+@dataclass(frozen=True)
+class Design:
+    """A zoom set: lens states in [0, 1], views per setting, pixel pitch (mm), board corners."""
+
+    name: str
+    states: tuple[float, ...]
+    views: int = 10
+    pitch_mm: float = 0.0129
+    corners: int = 54
+
+
+@dataclass(frozen=True)
+class NoiseReference:
+    """Per-axis principal-point sd (px) against EFL (mm) of a reference set, and its design."""
+
+    efl_mm: np.ndarray
+    sd_px: np.ndarray
+    views: int
+    corners: int
+    error_factor: float
+
+    @classmethod
+    def read(cls, table: Path, views: int, corners: int) -> NoiseReference:
+        rows = read_zoom_table(table)
+        dataset = table.parents[2] / "set" / "dataset.json"
+        doc = read_json(dataset) if dataset.is_file() else None
+        pitch = doc["sensor"]["pixel_pitch_mm"] if doc else float(input_pitch(table))
+        fx = np.array([r["fx"] for r in rows])
+        sd = np.sqrt(0.5 * np.array([r["sd_cx"] ** 2 + r["sd_cy"] ** 2 for r in rows]))
+        factor = 1.0
+        if doc:
+            truth = {st["step"]: st["camera"] for st in doc["steps"]}
+            z = [(r[q] - truth[r["step"]][q]) / r[f"sd_{q}"] for r in rows for q in ("cx", "cy")]
+            factor = float(np.sqrt(np.mean(np.square(z))))
+        order = np.argsort(fx)
+        return cls(fx[order] * pitch, sd[order], views, corners, factor)
+
+    def sd(self, efl_mm: np.ndarray, views: int, corners: int) -> np.ndarray:
+        """(N,) per-axis sd, px, at ``efl_mm`` for a set of ``views`` views of ``corners``."""
+        log_sd = np.interp(np.log(efl_mm), np.log(self.efl_mm), np.log(self.sd_px))
+        scale = np.sqrt(self.views / views * self.corners / corners) * self.error_factor
+        return np.exp(log_sd) * scale
+
+
+def input_pitch(table: Path) -> float:
+    raise SystemExit(f"{table}: no dataset.json two folders up to give the pixel pitch")
+
+
+def tolerances() -> Tolerances:
+    """The benchmark's tolerances (1 um play per moving group)."""
+    return Tolerances({"variator": GroupTolerance(play_um=1.0),
+                       "compensator": GroupTolerance(play_um=1.0)}, "design")
+
+
+def separation(design: Design, response: LensResponse, noise: NoiseReference,
+               tilt_mrad: np.ndarray) -> dict:
+    """Signature sizes and overlap of axis tilt and static decentre for ``design``."""
+    r = response.with_pitch(design.pitch_mm)
+    z = np.asarray(design.states, dtype=float)
+    efl = np.interp(z, r.zoom_grid, r.efl_grid)
+    fx = efl / design.pitch_mm
+    n = len(z)
+    table = ZoomTable(zoom=z, fx=fx, fy=fx, cx=np.zeros(n), cy=np.zeros(n),
+                      sd_cx=np.zeros(n), sd_cy=np.zeros(n))
+    ctx = Context.build(table, z, r)
+    sigma = np.sqrt(noise.sd(efl, design.views, design.corners) ** 2
+                    + r.play_sd_px(z, tolerances()) ** 2)
+    w = np.repeat(1.0 / sigma, 2)[:, None]
+
+    def off_baseline(a: np.ndarray) -> np.ndarray:
+        q, _ = np.linalg.qr(design_matrix(baseline_terms(r.groups), ctx) * w)
+        return a - q @ (q.T @ a)
+
+    t = off_baseline(design_matrix((axis_tilt_term(),), ctx) * w) @ tilt_mrad
+    tilt_chi2 = float(t @ t)
+    absorbed = {}
+    for g in r.groups:
+        d = off_baseline(design_matrix((group_term(g, "decenter", 0, "static"),), ctx) * w)
+        coef, *_ = np.linalg.lstsq(d, t, rcond=None)
+        absorbed[g] = float(np.sum((d @ coef) ** 2) / tilt_chi2)
+    best = max(absorbed, key=absorbed.get)
+    gap = (1.0 - absorbed[best]) * tilt_chi2
+    sd = 2.0 * np.sqrt(gap)
+    return {"design": design.name, "rows": n, "views": n * design.views,
+            "tilt_chi2": tilt_chi2, "absorbed": absorbed[best], "group": best, "gap": gap,
+            "gap_sd": gap / sd, "p_static": float(stats.norm.sf(gap / sd))}
+
+
+def local_absorption(response: LensResponse, noise: NoiseReference, pitch_mm: float,
+                     tilt_mrad: np.ndarray, n: int = 13) -> list[tuple[float, float, float]]:
+    """Where in the range a static decentre departs from an axis tilt: for every lens state
+    ``z0``, one row at ``z0`` added to a uniform 8-setting set; its gain in ``gap``."""
+    base = tuple(np.linspace(0.0, 1.0, 8))
+    ref = separation(Design("uniform 8", base, pitch_mm=pitch_mm), response, noise, tilt_mrad)
+    out = []
+    for z0 in np.linspace(0.0, 1.0, n):
+        s = separation(Design("+1", base + (float(z0),), pitch_mm=pitch_mm), response, noise,
+                       tilt_mrad)
+        efl = float(np.interp(z0, response.zoom_grid, response.efl_grid))
+        out.append((float(z0), efl, s["gap"] - ref["gap"]))
+    return out
+
+
+def designs() -> list[Design]:
+    """The designs compared: placements, settings, views, sensors, boards."""
+    uni8 = tuple(np.linspace(0.0, 1.0, 8))
+    out = [Design("uniform 8 (today)", uni8)]
+    for k in (12, 16):
+        out.append(Design(f"uniform {k}", tuple(np.linspace(0.0, 1.0, k))))
+    out.append(Design("8, long-end heavy (sqrt)", tuple(np.sqrt(np.linspace(0.0, 1.0, 8)))))
+    out.append(Design("12, long-end heavy (sqrt)", tuple(np.sqrt(np.linspace(0.0, 1.0, 12)))))
+    out.append(Design("8, short-end heavy (z^2)", tuple(np.linspace(0.0, 1.0, 8) ** 2)))
+    out.append(Design("12, short-end heavy (z^2)", tuple(np.linspace(0.0, 1.0, 12) ** 2)))
+    out.append(Design("8, 20 views", uni8, views=20))
+    out.append(Design("8, board 13x9 (117 corners)", uni8, corners=117))
+    for w, pitch in ((1280, 0.00645), (1920, 0.0043)):
+        out.append(Design(f"8 at {w} px wide", uni8, pitch_mm=pitch))
+        out.append(Design(f"12 at {w} px wide", tuple(np.linspace(0.0, 1.0, 12)),
+                          pitch_mm=pitch))
+        out.append(Design(f"12 z^2 at {w} px wide", tuple(np.linspace(0.0, 1.0, 12) ** 2),
+                          pitch_mm=pitch))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reference", required=True, type=Path,
+                    help="zoom_calibration.csv of a per-step calibrated rendered set")
+    ap.add_argument("--ref-views", type=int, default=10)
+    ap.add_argument("--ref-corners", type=int, default=54, help="corners of its board (9x6: 54)")
+    ap.add_argument("--tilt", default="0.9,-0.4", help="TX,TY mrad")
+    a = ap.parse_args()
+    tilt = np.array([float(v) for v in a.tilt.split(",")])
+    response = LensResponse.of(load_prescription("laikin-10x"))
+    noise = NoiseReference.read(a.reference, a.ref_views, a.ref_corners)
+    print(f"# reference {a.reference}: sd {noise.sd_px.min():.2f}-{noise.sd_px.max():.2f} px "
+          f"over {noise.efl_mm.min():.0f}-{noise.efl_mm.max():.0f} mm, error factor "
+          f"{noise.error_factor:.2f}; tilt {tilt.tolist()} mrad")
+    print("| design | rows | views | tilt chi2 | absorbed | by | gap | gap/sd | P(static) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for d in designs():
+        s = separation(d, response, noise, tilt)
+        print(f"| {s['design']} | {s['rows']} | {s['views']} | {s['tilt_chi2']:.1f} | "
+              f"{s['absorbed']:.3f} | {s['group']} | {s['gap']:.1f} | {s['gap_sd']:.2f} | "
+              f"{s['p_static']:.3f} |")
+    print("\n# gain in gap from one more setting at lens state z0 (uniform 8, 12.9 um pitch)")
+    for z0, efl, gain in local_absorption(response, noise, 0.0129, tilt):
+        print(f"z0 {z0:.3f}  efl {efl:6.1f} mm  gap gain {gain:6.2f}")
+
+
+if __name__ == "__main__":
+    main()
