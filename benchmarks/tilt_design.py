@@ -14,7 +14,13 @@ builds those columns and reports, per design:
   ``absorbed * |P t|^2`` and loses it by ``gap = (1 - absorbed) |P t|^2``;
 - ``gap / sd``: ``gap`` over its sampling sd, ``2 sqrt(gap)`` (the noise's projection on the
   part of the signature static decentre cannot take); ``P(static)``, the normal tail
-  ``Phi(-gap / sd)``: how often the static decentre is named instead.
+  ``Phi(-gap / sd)``: how often the static decentre is named instead;
+- what the diagnosis discards: ``mimic um``, the static decentre that best imitates the hidden
+  tilt, and ``p chi2``, the chi2 of the tangential distortion (OpenCV ``p1``, ``p2``) that this
+  decentre puts into every setting's calibration (the exact tracer's fitted camera, decentred
+  against nominal), against the reference table's ``sd_p1``, ``sd_p2`` (scaled like the
+  principal point's, and by ``pitch / pitch_ref``: the same pixel noise is a smaller angle). The
+  rendered axis tilt moves the image only, and leaves ``p1``, ``p2`` as they are.
 
 Row sigmas come from a reference table: a per-step calibrated rendered set (its
 ``zoom_calibration.csv``, with the ``dataset.json`` of the render two folders up when there,
@@ -48,6 +54,7 @@ from zoomcalib.diagnose.model import (
     Context,
     LensResponse,
     axis_tilt_term,
+    decentring_distortion,
     design_matrix,
     group_term,
 )
@@ -77,6 +84,8 @@ class NoiseReference:
     views: int
     corners: int
     error_factor: float
+    sd_p: np.ndarray  # (M, 2) sd of p1, p2 (normalised image units)
+    pitch_mm: float
 
     @classmethod
     def read(cls, table: Path, views: int, corners: int) -> NoiseReference:
@@ -86,19 +95,30 @@ class NoiseReference:
         pitch = doc["sensor"]["pixel_pitch_mm"] if doc else float(input_pitch(table))
         fx = np.array([r["fx"] for r in rows])
         sd = np.sqrt(0.5 * np.array([r["sd_cx"] ** 2 + r["sd_cy"] ** 2 for r in rows]))
-        factor = 1.0
+        factor = p_factor = 1.0
         if doc:
             truth = {st["step"]: st["camera"] for st in doc["steps"]}
             z = [(r[q] - truth[r["step"]][q]) / r[f"sd_{q}"] for r in rows for q in ("cx", "cy")]
             factor = float(np.sqrt(np.mean(np.square(z))))
+            zp = [(r[q] - truth[r["step"]]["dist"][k]) / r[f"sd_{q}"] for r in rows
+                  for k, q in ((2, "p1"), (3, "p2"))]
+            p_factor = float(np.sqrt(np.mean(np.square(zp))))
         order = np.argsort(fx)
-        return cls(fx[order] * pitch, sd[order], views, corners, factor)
+        sd_p = np.array([[r["sd_p1"], r["sd_p2"]] for r in rows]) * p_factor
+        return cls(fx[order] * pitch, sd[order], views, corners, factor, sd_p[order], pitch)
 
     def sd(self, efl_mm: np.ndarray, views: int, corners: int) -> np.ndarray:
         """(N,) per-axis sd, px, at ``efl_mm`` for a set of ``views`` views of ``corners``."""
         log_sd = np.interp(np.log(efl_mm), np.log(self.efl_mm), np.log(self.sd_px))
         scale = np.sqrt(self.views / views * self.corners / corners) * self.error_factor
         return np.exp(log_sd) * scale
+
+    def sd_tangential(self, efl_mm: np.ndarray, views: int, corners: int,
+                      pitch_mm: float) -> np.ndarray:
+        """(N, 2) sd of ``p1``, ``p2`` at ``efl_mm`` (scaled like :meth:`sd`, and by pitch)."""
+        scale = np.sqrt(self.views / views * self.corners / corners) * pitch_mm / self.pitch_mm
+        return np.stack([np.exp(np.interp(np.log(efl_mm), np.log(self.efl_mm),
+                                           np.log(self.sd_p[:, k]))) for k in (0, 1)], -1) * scale
 
 
 def input_pitch(table: Path) -> float:
@@ -132,17 +152,20 @@ def separation(design: Design, response: LensResponse, noise: NoiseReference,
 
     t = off_baseline(design_matrix((axis_tilt_term(),), ctx) * w) @ tilt_mrad
     tilt_chi2 = float(t @ t)
-    absorbed = {}
+    absorbed, mimic = {}, {}
     for g in r.groups:
         d = off_baseline(design_matrix((group_term(g, "decenter", 0, "static"),), ctx) * w)
-        coef, *_ = np.linalg.lstsq(d, t, rcond=None)
-        absorbed[g] = float(np.sum((d @ coef) ** 2) / tilt_chi2)
+        mimic[g], *_ = np.linalg.lstsq(d, t, rcond=None)
+        absorbed[g] = float(np.sum((d @ mimic[g]) ** 2) / tilt_chi2)
     best = max(absorbed, key=absorbed.get)
     gap = (1.0 - absorbed[best]) * tilt_chi2
     sd = 2.0 * np.sqrt(gap)
+    dp = decentring_distortion(response.lens, z, best, mimic[best] * 1e-3)
+    sd_p = noise.sd_tangential(efl, design.views, design.corners, design.pitch_mm)
     return {"design": design.name, "rows": n, "views": n * design.views,
             "tilt_chi2": tilt_chi2, "absorbed": absorbed[best], "group": best, "gap": gap,
-            "gap_sd": gap / sd, "p_static": float(stats.norm.sf(gap / sd))}
+            "gap_sd": gap / sd, "p_static": float(stats.norm.sf(gap / sd)),
+            "mimic_um": mimic[best], "p_chi2": float(np.sum((dp / sd_p) ** 2))}
 
 
 def local_absorption(response: LensResponse, noise: NoiseReference, pitch_mm: float,
@@ -158,6 +181,23 @@ def local_absorption(response: LensResponse, noise: NoiseReference, pitch_mm: fl
         efl = float(np.interp(z0, response.zoom_grid, response.efl_grid))
         out.append((float(z0), efl, s["gap"] - ref["gap"]))
     return out
+
+
+def affine_departure(response: LensResponse, n: int = 11
+                     ) -> list[tuple[float, float, dict[str, float]]]:
+    """Per lens state: each moving group's ``S_g`` less its least-squares line in EFL over a
+    dense uniform grid of states, over the range of ``S_g`` (an axis tilt is such a line)."""
+    z = np.linspace(0.0, 1.0, 201)
+    efl = np.interp(z, response.zoom_grid, response.efl_grid)
+    line = np.stack([np.ones_like(efl), efl], -1)
+    sens = response.sensitivities(z)
+    dev = {}
+    for g in response.groups:
+        s_d = sens[g][0]
+        coef, *_ = np.linalg.lstsq(line, s_d, rcond=None)
+        dev[g] = (s_d - line @ coef) / np.ptp(s_d)
+    pick = np.linspace(0, len(z) - 1, n).astype(int)
+    return [(float(z[i]), float(efl[i]), {g: float(dev[g][i]) for g in dev}) for i in pick]
 
 
 def designs() -> list[Design]:
@@ -194,14 +234,22 @@ def main() -> None:
     noise = NoiseReference.read(a.reference, a.ref_views, a.ref_corners)
     print(f"# reference {a.reference}: sd {noise.sd_px.min():.2f}-{noise.sd_px.max():.2f} px "
           f"over {noise.efl_mm.min():.0f}-{noise.efl_mm.max():.0f} mm, error factor "
-          f"{noise.error_factor:.2f}; tilt {tilt.tolist()} mrad")
-    print("| design | rows | views | tilt chi2 | absorbed | by | gap | gap/sd | P(static) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          f"{noise.error_factor:.2f} (in the sd_p: included); tilt {tilt.tolist()} mrad")
+    print("\n# each group's shift per decentre S_g less its best line in EFL (a + b EFL; "
+          "uniform in lens state), as a fraction of its range")
+    for z0, efl, dev in affine_departure(response):
+        print(f"z {z0:.2f}  efl {efl:6.1f} mm  " + "  ".join(f"{g} {v:+.3f}"
+                                                          for g, v in dev.items()))
+    print()
+    print("| design | rows | views | tilt chi2 | absorbed | by | gap | gap/sd | P(static) "
+          "| mimic um | p chi2 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for d in designs():
         s = separation(d, response, noise, tilt)
         print(f"| {s['design']} | {s['rows']} | {s['views']} | {s['tilt_chi2']:.1f} | "
               f"{s['absorbed']:.3f} | {s['group']} | {s['gap']:.1f} | {s['gap_sd']:.2f} | "
-              f"{s['p_static']:.3f} |")
+              f"{s['p_static']:.3f} | ({s['mimic_um'][0]:.0f}, {s['mimic_um'][1]:.0f}) | "
+              f"{s['p_chi2']:.0f} |")
     print("\n# gain in gap from one more setting at lens state z0 (uniform 8, 12.9 um pitch)")
     for z0, efl, gain in local_absorption(response, noise, 0.0129, tilt):
         print(f"z0 {z0:.3f}  efl {efl:6.1f} mm  gap gain {gain:6.2f}")
