@@ -96,6 +96,11 @@ def main() -> None:
     for (k, v), t in zip(e["params"].items(), truth, strict=False):
         print(f"  {k} = {v:.2f} +- {e['params_sd'][k]:.2f}  (hidden: "
               f"{'axis tilt' if tilt else 'compensator backlash'} {t:.2f})")
+    tilt_fit = next((c for c in doc["candidates"] if c["cause"] == "axis_tilt"), None)
+    if tilt and tilt_fit is not None:
+        print("axis_tilt alone: " + ", ".join(
+            f"{k} = {v:.2f} +- {tilt_fit['params_sd'][k]:.2f} (hidden {t:.2f})"
+            for (k, v), t in zip(tilt_fit["params"].items(), truth, strict=True)))
 
 
 if __name__ == "__main__":
