@@ -48,6 +48,9 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--axis-tilt", default="", help="TX,TY mrad: the axis-tilt sweep instead")
+    ap.add_argument("--static-decenter", default="",
+                    help="X,Y um: the axis-tilt sweep with no tilt and this static decentre of "
+                         "the variator instead (the converse check)")
     ap.add_argument("--psf", default="gaussian", choices=PSF_KINDS,
                     help="PSF shape of the rendered images")
     ap.add_argument("--settings", type=int, default=8, help="axis-tilt set: zoom settings")
@@ -56,19 +59,24 @@ def main() -> None:
     a = ap.parse_args()
     optics = Optics(psf=a.psf)
     tilt = tuple(float(v) for v in a.axis_tilt.split(",")) if a.axis_tilt else None
+    static = (tuple(float(v) for v in a.static_decenter.split(",")) if a.static_decenter
+              else (0.0, 0.0))
+    sweep = bool(tilt or a.static_decenter)
     out = Path(a.out or tempfile.mkdtemp(prefix="diagnose-rendered-"))
     lens = load_prescription("laikin-10x")
     phase = 120.0
     tol = Tolerances({
         "variator": GroupTolerance(locked_decenter_um=15.0, locked_tilt_arcmin=1.0,
-                                   locked_tilt_phase_deg=90.0, play_um=1.0),
+                                   locked_tilt_phase_deg=90.0, play_um=1.0,
+                                   static_decenter_um=static),
         "compensator": GroupTolerance(locked_decenter_um=10.0, locked_decenter_phase_deg=phase,
                                       play_um=1.0,
-                                      backlash_um=0.0 if tilt else a.backlash_um)}, "benchmark")
+                                      backlash_um=0.0 if sweep else a.backlash_um)},
+                     "benchmark")
     size, pitch = a.sensor.split("@")
     sensor = Sensor(*(int(v) for v in size.split("x")), float(pitch))
     t0 = time.perf_counter()
-    if tilt:
+    if sweep:
         settings = list(np.random.default_rng(a.seed).permutation(np.linspace(0.0, 1.0,
                                                                                  a.settings)))
         render_dataset(lens, tol, out / "set", settings, a.views, a.board,
@@ -86,8 +94,8 @@ def main() -> None:
     d = run.diagnosis
     doc = d.to_dict()
     ang = np.deg2rad(phase + 90.0)
-    truth = np.array(tilt) if tilt else 0.5 * a.backlash_um * np.array([np.cos(ang),
-                                                                        np.sin(ang)])
+    backlash = 0.5 * a.backlash_um * np.array([np.cos(ang), np.sin(ang)])
+    truth = np.array(tilt) if tilt else np.array(static) if sweep else backlash
     print(f"render {t1 - t0:.0f} s, calibrate + diagnose {t2 - t1:.0f} s; output in {out}")
     print(f"psf: {a.psf}; cause: {d.cause}  variant: {doc['extended']['variant']}; selected: "
           f"{', '.join(c['cause'] for c in doc['causes']) or '-'}")
@@ -104,12 +112,18 @@ def main() -> None:
           f"{e['cv_rms_px']:.2f} px; gain {doc['gain']['cv_rms_ratio']:.2f}")
     for (k, v), t in zip(e["params"].items(), truth, strict=False):
         print(f"  {k} = {v:.2f} +- {e['params_sd'][k]:.2f}  (hidden: "
-              f"{'axis tilt' if tilt else 'compensator backlash'} {t:.2f})")
+              f"{'axis tilt' if tilt else 'variator' if sweep else 'compensator backlash'} "
+              f"{t:.2f})")
     tilt_fit = next((c for c in doc["candidates"] if c["cause"] == "axis_tilt"), None)
     if tilt and tilt_fit is not None:
         print("axis_tilt alone: " + ", ".join(
             f"{k} = {v:.2f} +- {tilt_fit['params_sd'][k]:.2f} (hidden {t:.2f})"
             for (k, v), t in zip(tilt_fit["params"].items(), truth, strict=True)))
+    ev = doc["distortion_evidence"]
+    if ev:
+        print(f"distortion evidence (p scale {ev['p_scale']:.2f}): " + ", ".join(
+            f"{c} dBIC {v['delta_bic']:.1f}" for c, v in ev["causes"].items())
+              + f"; margin {ev['margin']:.1f}, excluded: {ev['excluded'] or '-'}")
 
 
 if __name__ == "__main__":

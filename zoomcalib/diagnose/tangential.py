@@ -21,15 +21,18 @@ factor). Each cause is scored by ``delta_bic`` against this baseline, as in the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM
 from ..optics.misalignment import Misalignment
-from .discrepancy import Diagnosis, baseline_terms, cause_variants
+from .discrepancy import BIC_MARGIN, Diagnosis, baseline_terms, cause_variants
 from .model import Context, Term, design_matrix
 
-__all__ = ["distortion_jacobian", "distortion_evidence", "EVIDENCE_CAUSES"]
+__all__ = ["distortion_jacobian", "distortion_evidence", "resolve_with_distortion",
+           "table_distortion", "EVIDENCE_CAUSES"]
 
 #: the causes compared (those whose columns the principal points cannot tell apart)
 EVIDENCE_CAUSES = ("axis_tilt", "static_decenter")
@@ -172,3 +175,44 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
         out["causes"][cause] = min(scored, key=lambda s: s["delta_bic"])
     out["best"] = min(out["causes"], key=lambda c: out["causes"][c]["delta_bic"])
     return out
+
+
+def table_distortion(rows: list[dict]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 2) p1, p2 and (N, 2) their sigmas from a table's rows, None unless every row has
+    them finite and the sigmas positive."""
+    try:
+        p = np.array([[float(r["p1"]), float(r["p2"])] for r in rows])
+        sd = np.array([[float(r["sd_p1"]), float(r["sd_p2"])] for r in rows])
+    except (KeyError, TypeError, ValueError):
+        return None
+    ok = np.all(np.isfinite(p)) and np.all(np.isfinite(sd)) and np.all(sd > 0)
+    return (p, sd) if ok else None
+
+
+def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
+                            refit: Callable[[dict[str, str]], Diagnosis]) -> Diagnosis:
+    """Settle an axis tilt against a static decentre with the tangential distortion.
+
+    Only when the diagnosis has both among its selected causes or ``ambiguous_with``, a lens
+    model, and every row its ``p1``, ``p2`` with sigmas. The causes are scored by
+    :func:`distortion_evidence`; when one's ``delta_bic`` is lower by more than
+    :data:`~zoomcalib.diagnose.discrepancy.BIC_MARGIN` and the other was selected, the
+    diagnosis is made again without the other (``refit(exclude)``, its reason under
+    ``skipped``). The scores are attached as ``distortion`` either way.
+    """
+    named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
+    data = table_distortion(rows)
+    if diag.response is None or data is None or not set(EVIDENCE_CAUSES) <= named:
+        return diag
+    ev = distortion_evidence(diag, *data)
+    winner = ev["best"]
+    loser = next(c for c in EVIDENCE_CAUSES if c != winner)
+    margin = ev["causes"][loser]["delta_bic"] - ev["causes"][winner]["delta_bic"]
+    ev |= {"margin": margin, "excluded": None}
+    if margin > BIC_MARGIN and loser in {s.cause for s in diag.causes}:
+        ev["excluded"] = loser
+        diag = refit({loser: f"contradicted by the tangential distortion p1, p2: {winner} "
+                             f"fits them and the principal points better by {margin:.1f} in "
+                             f"BIC (distortion_evidence)"})
+    diag.distortion = ev
+    return diag
