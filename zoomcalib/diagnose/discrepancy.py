@@ -597,10 +597,11 @@ class Diagnosis:
     @property
     def ambiguous_with(self) -> list[str]:
         """Causes not selected that fit, alone, almost as well as the strongest selected one
-        (BIC within AMBIGUITY_BIC of it)."""
+        (BIC within AMBIGUITY_BIC of it), less one the tangential distortion contradicts
+        (``distortion['excluded']``)."""
         if not self.causes:
             return []
-        named = {s.cause for s in self.causes}
+        named = {s.cause for s in self.causes} | {(self.distortion or {}).get("excluded")}
         alone = {c.cause: c.delta_bic for c in self.candidates}
         top = alone[self.causes[0].cause]
         return [c.cause for c in self.candidates if c.cause not in named

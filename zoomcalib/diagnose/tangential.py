@@ -198,7 +198,9 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     :func:`distortion_evidence`; when one's ``delta_bic`` is lower by more than
     :data:`~zoomcalib.diagnose.discrepancy.BIC_MARGIN` and the other was selected, the
     diagnosis is made again without the other (``refit(exclude)``, its reason under
-    ``skipped``). The scores are attached as ``distortion`` either way.
+    ``skipped``). The scores are attached as ``distortion`` either way, with ``margin`` and
+    ``excluded`` (the contradicted cause, None when the margin is not passed), which
+    ``ambiguous_with`` then leaves out.
     """
     named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
     data = table_distortion(rows)
@@ -208,9 +210,8 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     winner = ev["best"]
     loser = next(c for c in EVIDENCE_CAUSES if c != winner)
     margin = ev["causes"][loser]["delta_bic"] - ev["causes"][winner]["delta_bic"]
-    ev |= {"margin": margin, "excluded": None}
+    ev |= {"margin": margin, "excluded": loser if margin > BIC_MARGIN else None}
     if margin > BIC_MARGIN and loser in {s.cause for s in diag.causes}:
-        ev["excluded"] = loser
         diag = refit({loser: f"contradicted by the tangential distortion p1, p2: {winner} "
                              f"fits them and the principal points better by {margin:.1f} in "
                              f"BIC (distortion_evidence)"})
