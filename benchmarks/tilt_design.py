@@ -86,6 +86,7 @@ class NoiseReference:
     error_factor: float
     sd_p: np.ndarray  # (M, 2) sd of p1, p2 (normalised image units)
     pitch_mm: float
+    p_error_factor: float = 1.0
 
     @classmethod
     def read(cls, table: Path, views: int, corners: int) -> NoiseReference:
@@ -105,7 +106,8 @@ class NoiseReference:
             p_factor = float(np.sqrt(np.mean(np.square(zp))))
         order = np.argsort(fx)
         sd_p = np.array([[r["sd_p1"], r["sd_p2"]] for r in rows]) * p_factor
-        return cls(fx[order] * pitch, sd[order], views, corners, factor, sd_p[order], pitch)
+        return cls(fx[order] * pitch, sd[order], views, corners, factor, sd_p[order], pitch,
+                   p_factor)
 
     def sd(self, efl_mm: np.ndarray, views: int, corners: int) -> np.ndarray:
         """(N,) per-axis sd, px, at ``efl_mm`` for a set of ``views`` views of ``corners``."""
@@ -283,7 +285,8 @@ def main() -> None:
     noise = NoiseReference.read(a.reference, a.ref_views, a.ref_corners)
     print(f"# reference {a.reference}: sd {noise.sd_px.min():.2f}-{noise.sd_px.max():.2f} px "
           f"over {noise.efl_mm.min():.0f}-{noise.efl_mm.max():.0f} mm, error factor "
-          f"{noise.error_factor:.2f} (in the sd_p: included); tilt {tilt.tolist()} mrad")
+          f"{noise.error_factor:.2f} (of p1, p2: {noise.p_error_factor:.2f}); tilt "
+          f"{tilt.tolist()} mrad")
     print("\n# each group's shift per decentre S_g less its best line in EFL (a + b EFL; "
           "uniform in lens state), as a fraction of its range")
     for z0, efl, dev in affine_departure(response):
