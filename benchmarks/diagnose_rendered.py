@@ -15,6 +15,10 @@ designs: the static decentre of the variator takes 98.2-98.7 % of the tilt's sig
 baseline for every placement (uniform, long- or short-end heavy), 8-16 settings, 10-20 views,
 a 9x6 or 13x9 board and 640-1920 px wide sensors, so a larger set buys a stronger tilt but not
 a separation (docs/diagnose.md). ``--settings``, ``--sensor`` and ``--board`` render the others.
+What parts them is the tangential distortion of each setting's calibration, which the diagnosis
+fits beside the principal points when the two are not told apart (printed as ``distortion
+evidence``). ``--static-decenter X,Y`` (um, variator) renders the converse: the same set with
+no tilt and a static decentre.
 
 Usage::
 
@@ -22,6 +26,7 @@ Usage::
                                            [--axis-tilt TX,TY] [--psf elliptical]
                                            [--settings 8] [--sensor 640x480@0.0129]
                                            [--board chessboard:9x6:25] [--seed 3]
+                                           [--static-decenter X,Y]
 """
 
 from __future__ import annotations

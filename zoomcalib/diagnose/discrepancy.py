@@ -559,6 +559,10 @@ class Diagnosis:
         Fitted pitch and its 1-sigma when the pitch was fitted.
     skipped : dict
         Causes the table (or a missing lens model) cannot test, with why.
+    distortion : dict or None
+        :func:`zoomcalib.diagnose.tangential.distortion_evidence` when an axis tilt and a
+        static decentre were weighed on the tangential distortion too, with ``margin`` and
+        ``excluded``; None otherwise.
     """
 
     cause: str
