@@ -559,6 +559,10 @@ class Diagnosis:
         Fitted pitch and its 1-sigma when the pitch was fitted.
     skipped : dict
         Causes the table (or a missing lens model) cannot test, with why.
+    distortion : dict or None
+        :func:`zoomcalib.diagnose.tangential.distortion_evidence` when an axis tilt and a
+        static decentre were weighed on the tangential distortion too, with ``margin`` and
+        ``excluded``; None otherwise.
     """
 
     cause: str
@@ -575,6 +579,7 @@ class Diagnosis:
     skipped: dict = field(default_factory=dict)
     causes: list[Selected] = field(default_factory=list)
     explained: dict = field(default_factory=dict)
+    distortion: dict | None = None
 
     @property
     def best(self) -> Candidate | None:
@@ -596,10 +601,11 @@ class Diagnosis:
     @property
     def ambiguous_with(self) -> list[str]:
         """Causes not selected that fit, alone, almost as well as the strongest selected one
-        (BIC within AMBIGUITY_BIC of it)."""
+        (BIC within AMBIGUITY_BIC of it), less one the tangential distortion contradicts
+        (``distortion['excluded']``)."""
         if not self.causes:
             return []
-        named = {s.cause for s in self.causes}
+        named = {s.cause for s in self.causes} | {(self.distortion or {}).get("excluded")}
         alone = {c.cause: c.delta_bic for c in self.candidates}
         top = alone[self.causes[0].cause]
         return [c.cause for c in self.candidates if c.cause not in named
@@ -638,6 +644,7 @@ class Diagnosis:
                      "cv_norm_ratio": cv_norm_ratio(self.baseline, final)},
             "candidates": [c.to_dict() for c in self.candidates],
             "skipped": [{"cause": k, "reason": v} for k, v in self.skipped.items()],
+            "distortion_evidence": self.distortion,
             "selection": {"bic_margin": BIC_MARGIN, "ambiguity_bic": AMBIGUITY_BIC,
                           "max_causes": MAX_CAUSES,
                           "rule": "forward-backward over causes: a cause enters when it lowers "
@@ -758,7 +765,8 @@ def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
 
 def diagnose_table(table: ZoomTable, response: LensResponse | None,
                    tolerances: Tolerances | None = None, fit_pitch: bool = False,
-                   locked_tilt: bool = False) -> Diagnosis:
+                   locked_tilt: bool = False, exclude: dict[str, str] | None = None
+                   ) -> Diagnosis:
     """Fit the baseline, select the causes that the table supports, and check the result.
 
     Parameters
@@ -773,6 +781,9 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
         Fit the pixel pitch too (:func:`fit_pixel_pitch`).
     locked_tilt : bool
         Give the baseline the locked tilt of each moving group as well as its decentre.
+    exclude : dict, optional
+        Causes not to test, each with why (reported under ``skipped``), e.g. one that other
+        evidence contradicts (:func:`zoomcalib.diagnose.tangential.resolve_with_distortion`).
 
     Returns
     -------
@@ -820,6 +831,9 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
         fitter = Fitter(Context.build(table, z, response), shape, groups)
         base = baseline_terms(response.groups, locked_tilt)
         variants, skipped = cause_variants(table, response.groups)
+    for cause, why in (exclude or {}).items():
+        if variants.pop(cause, None) is not None:
+            skipped[cause] = why
     final, chosen = select_causes(fitter, base, variants)
     if response is None and chosen and _lens_free_baseline(fitter, chosen) != base:
         # the path's degree chosen with the causes beside it, and the causes again

@@ -30,8 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..optics.cam import barrel_angle, solve_gaps
+from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM, Tolerances
-from ..optics.misalignment import vertex_z
+from ..optics.misalignment import Misalignment, vertex_z
 from ..optics.paraxial import effective_focal_length, image_shift_sensitivity
 from ..optics.prescription import Prescription
 from .table import ZoomTable
@@ -39,7 +40,7 @@ from .table import ZoomTable
 __all__ = ["LensResponse", "Context", "Term", "moving_groups", "play_sd_px", "FocalRangeError",
            "offset_term", "group_term", "axis_tilt_term", "direction_offset_term",
            "covariate_term", "covariate_curve_term", "design_matrix", "DEFAULT_PITCH_MM",
-           "smooth_path_term",
+           "smooth_path_term", "decentring_distortion",
            "setting_term", "log_focal_coordinate"]
 
 DEFAULT_PITCH_MM = 0.00645
@@ -151,6 +152,30 @@ def play_sd_px(lens: Prescription, z: np.ndarray, tolerances: Tolerances,
         tol = tolerances.for_group(g)
         var += (s_d * tol.play_um * UM) ** 2 + (s_t * tol.play_tilt_arcmin * ARCMIN) ** 2
     return np.sqrt(var) / pitch_mm
+
+
+def decentring_distortion(lens: Prescription, z: np.ndarray, group: str,
+                          decenter_mm: np.ndarray) -> np.ndarray:
+    """(N, 2) change of the tangential distortion (OpenCV ``p1``, ``p2``, dimensionless) of
+    the camera model fitted at lens states ``z`` when ``group`` is decentred by
+    ``decenter_mm`` ((2,) x, y in the lens frame, mm), from the exact tracer.
+
+    A decentred group bends the image (decentring distortion) as well as moving it; a lens
+    axis tilted against the sensor, as rendered (:func:`zoomcalib.render.dataset.render_dataset`),
+    only moves it. So a static decentre large enough to imitate an axis tilt in the principal
+    points shows in ``p1``, ``p2``, which the calibration table holds beside them.
+    """
+    names = list(lens.group_names)
+    if group not in names:
+        raise ValueError(f"lens {lens.name!r} has no group {group!r} (groups: "
+                         f"{', '.join(names)})")
+    moved = np.zeros((len(names), 2))
+    moved[names.index(group)] = decenter_mm
+    still = Misalignment(np.zeros_like(moved), np.zeros_like(moved))
+    shifted = Misalignment(moved, np.zeros_like(moved))
+    return np.array([lens_camera(lens, float(zz), shifted).camera.dist[2:4]
+                     - lens_camera(lens, float(zz), still).camera.dist[2:4]
+                     for zz in np.atleast_1d(z)])
 
 
 @dataclass

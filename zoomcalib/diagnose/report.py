@@ -167,6 +167,14 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
         lines += [f"Not told apart from: {', '.join(doc['ambiguous_with'])} (BIC within "
                   f"{doc['selection']['ambiguity_bic']:g}); their signatures are nearly the same "
                   f"on this lens at this noise.", ""]
+    ev = doc["distortion_evidence"]
+    if ev:
+        lines += ["With the tangential distortion p1, p2 fitted beside the principal points: "
+                  + ", ".join(f"{c} delta BIC {v['delta_bic']:.1f}"
+                              for c, v in ev["causes"].items())
+                  + f" (margin {ev['margin']:.1f}; "
+                  + (f"{ev['excluded']} contradicted)." if ev["excluded"]
+                     else "not decisive)."), ""]
     lines += _setting_lines(diag, doc) + [""]
     b, e = doc["baseline"], doc["extended"]
     base_name = "paper's model" if diag.response is not None else "smooth path in log f"

@@ -24,6 +24,7 @@ from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_tab
 from .model import LensResponse, moving_groups
 from .report import write_diagnosis
 from .table import ZoomTable
+from .tangential import resolve_with_distortion
 
 __all__ = ["DiagnoseRun", "diagnose_input", "load_zoom_table", "largest_model",
            "check_table_size", "MIN_SETTINGS", "ONE_STATE_SPREAD"]
@@ -175,5 +176,10 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     else:
         response = LensResponse.of(lens, 0.00645 if fit_pitch else float(pixel_pitch))
     diag = diagnose_table(table, response, tolerances, fit_pitch=fit_pitch)
+    if response is not None:
+        diag = resolve_with_distortion(
+            diag, read_zoom_table(table_path),
+            lambda exclude: diagnose_table(table, response, tolerances, fit_pitch=fit_pitch,
+                                           exclude=exclude))
     files = write_diagnosis(diag, out)
     return DiagnoseRun(diag, table_path, files, failures)
