@@ -166,6 +166,32 @@ def _as_points(points: np.ndarray, name: str) -> np.ndarray:
 _XJ_NP = 7
 
 
+def _blur_variances(blur: np.ndarray, n1: np.ndarray, n2: np.ndarray):
+    """Variances of ``n_1 . z``, ``n_2 . z`` and their covariance for ``z ~ N(0, S)``.
+
+    ``blur`` is (K,) isotropic sd (``S = sigma^2 I``) or (K, 3) entries ``(S_xx, S_xy, S_yy)``;
+    ``n1, n2`` are (K, 2) unit normals. Returns ``v_i = n_i^T S n_i`` and ``c = n_1^T S n_2``.
+    """
+    if blur.ndim == 1:
+        var = blur * blur
+        return var, var.copy(), var * np.einsum("kd,kd->k", n1, n2)
+    sxx, sxy, syy = blur[:, 0], blur[:, 1], blur[:, 2]
+
+    def quad(a, b):
+        return sxx * a[:, 0] * b[:, 0] + sxy * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0]) \
+            + syy * a[:, 1] * b[:, 1]
+
+    return quad(n1, n1), quad(n2, n2), quad(n1, n2)
+
+
+def _apply_cov(blur: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``S v`` per corner for ``v`` (K, 2); ``blur`` as in :func:`_blur_variances`."""
+    if blur.ndim == 1:
+        return (blur * blur)[:, None] * v
+    return np.column_stack([blur[:, 0] * v[:, 0] + blur[:, 1] * v[:, 1],
+                            blur[:, 1] * v[:, 0] + blur[:, 2] * v[:, 1]])
+
+
 def _xj_eval(
     p: np.ndarray,
     sigma: np.ndarray,
@@ -180,8 +206,9 @@ def _xj_eval(
     ----------
     p : (K, 6) ndarray
         ``(cx, cy, alpha1, alpha2, a, b)`` in the coordinates of ``xy``.
-    sigma : (K,) ndarray
-        Gaussian PSF standard deviation, px.
+    sigma : (K,) or (K, 3) ndarray
+        Isotropic Gaussian PSF standard deviation, px; or the covariance ``S`` of an
+        anisotropic Gaussian PSF as ``(S_xx, S_xy, S_yy)``, px^2.
     xy : (M, 2) ndarray
         Pixel centres.
 
@@ -189,45 +216,54 @@ def _xj_eval(
     -------
     f : (K, M) ndarray
         ``b + a * P``.
-    jac : (K, M, 7) ndarray
-        ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma)``.
+    jac : (K, M, 7) or (K, M, 9) ndarray
+        ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma)``; with a covariance, the last three
+        columns are ``df / d(S_xx, S_xy, S_yy)`` instead (px^-2).
 
     Notes
     -----
-    With ``g = Phi(h) + Phi(k) - 2 Phi_2(h, k; rho)`` at each quadrature node, ``s =
-    sqrt(1 - rho^2)``, and the standard identities ``d Phi_2 / dh = phi(h) Phi((k - rho h) / s)``
-    and ``d Phi_2 / d rho = phi_2(h, k; rho)`` (Plackett):
+    The PSF blurs edge ``i`` by a 1-D Gaussian of variance ``v_i = n_i^T S n_i`` (``S = sigma^2
+    I`` when isotropic; plus ``I / 12`` for the Gaussian pixel model), so ``h = u_1 /
+    sqrt(v_1)``, ``k = u_2 / sqrt(v_2)`` and ``rho = n_1^T S n_2 / sqrt(v_1 v_2)``. With ``g =
+    Phi(h) + Phi(k) - 2 Phi_2(h, k; rho)`` at each quadrature node, ``s = sqrt(1 - rho^2)``, and
+    the standard identities ``d Phi_2 / dh = phi(h) Phi((k - rho h) / s)`` and ``d Phi_2 / d rho
+    = phi_2(h, k; rho)`` (Plackett):
 
         dg/dh = phi(h) (1 - 2 Phi((k - rho h) / s)),   dg/dk likewise,
         dg/drho = -2 exp(-(h^2 - 2 rho h k + k^2) / (2 s^2)) / (2 pi s),
 
-    and ``du_i/dc = -n_i``, ``du_i/dalpha_i = -t_i`` (``t_i`` the coordinate along edge ``i``),
-    ``drho/dalpha_1 = -sin(alpha_1 - alpha_2) = -drho/dalpha_2``, ``dh/dlog sigma = -h``. The
-    pixel value and its derivatives are the node sums weighted by :func:`pixel_nodes`.
+    and ``du_i/dc = -n_i``, ``dn_i/dalpha_i = -t_i`` (``t_i = (cos alpha_i, sin alpha_i)``), so
+    ``du_i/dalpha_i = -t_i . (x - c)``, ``dv_i/dalpha_i = -2 t_i^T S n_i``, ``d(n_1^T S
+    n_2)/dalpha_1 = -t_1^T S n_2``; ``dh/dv_1 = -h / (2 v_1)``, ``drho = d(n_1^T S n_2) /
+    sqrt(v_1 v_2) - rho (dv_1 / v_1 + dv_2 / v_2) / 2``. The pixel value and its derivatives
+    are the node sums weighted by :func:`pixel_nodes`.
     """
     if pixel_model == "quadrature":
         off, wts = pixel_nodes(n_sub)
-        s_eff = sigma
-        dlogs = np.ones_like(sigma)  # d log(s_eff) / d log(sigma)
+        box = 0.0
     elif pixel_model == "gaussian":
         off, wts = np.zeros((1, 2)), np.ones(1)
-        s_eff = np.sqrt(sigma**2 + 1.0 / 12.0)
-        dlogs = sigma**2 / s_eff**2
+        box = 1.0 / 12.0
     else:
         raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+    sigma = np.asarray(sigma, dtype=float)
+    aniso = sigma.ndim == 2
+    eff = sigma + np.array([box, 0.0, box]) if aniso else np.sqrt(sigma**2 + box)
     cx, cy, a1, a2, a, b = (p[:, i] for i in range(6))
     s1, c1, s2, c2 = np.sin(a1), np.cos(a1), np.sin(a2), np.cos(a2)
-    sd = np.sin(a1 - a2)
-    rho = np.clip(np.cos(a1 - a2), -_RHO_MAX, _RHO_MAX)
+    n1, n2 = np.column_stack([-s1, c1]), np.column_stack([-s2, c2])
+    v1, v2, c12 = _blur_variances(eff, n1, n2)
+    sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
+    rho_raw = c12 / (sd1 * sd2)
+    rho = np.clip(rho_raw, -_RHO_MAX, _RHO_MAX)
     srho = np.sqrt(1.0 - rho * rho)
     # node coordinates relative to the corner: (K, M, S)
     dx = (xy[None, :, 0, None] + off[None, None, :, 0]) - cx[:, None, None]
     dy = (xy[None, :, 1, None] + off[None, None, :, 1]) - cy[:, None, None]
     e = (slice(None), None, None)
-    inv_s = 1.0 / s_eff[e]
     u1 = -s1[e] * dx + c1[e] * dy
     u2 = -s2[e] * dx + c2[e] * dy
-    h, k = u1 * inv_s, u2 * inv_s
+    h, k = u1 / sd1[e], u2 / sd2[e]
     r_ = rho[e]
     nh, nk = ndtr(h), ndtr(k)
     g = nh + nk - 2.0 * (nh * nk + _sheppard_by_rho(h, k, r_))
@@ -242,18 +278,48 @@ def _xj_eval(
     grho = -2.0 * np.exp(-(h * h - 2.0 * r_ * h * k + k * k) / (2.0 * sr * sr)) / (
         2.0 * np.pi * sr
     )
+    t1v, t2v = np.column_stack([c1, s1]), np.column_stack([c2, s2])
     t1 = c1[e] * dx + s1[e] * dy  # along-edge coordinates; d u_i / d alpha_i = -t_i
     t2 = c2[e] * dx + s2[e] * dy
-    jac = np.empty(f.shape + (_XJ_NP,))
+    Sn1, Sn2 = _apply_cov(eff, n1), _apply_cov(eff, n2)
+    t1Sn1 = np.einsum("kd,kd->k", t1v, Sn1)  # 0 when isotropic
+    t2Sn2 = np.einsum("kd,kd->k", t2v, Sn2)
+    sd12 = sd1 * sd2
+    drho_a1 = -np.einsum("kd,kd->k", t1v, Sn2) / sd12 + rho_raw * t1Sn1 / v1
+    drho_a2 = -np.einsum("kd,kd->k", t2v, Sn1) / sd12 + rho_raw * t2Sn2 / v2
+    ghh, gkk = (gh * h) @ wts, (gk * k) @ wts  # (K, M)
+    gr = grho @ wts
+    n_blur = 3 if aniso else 1
+    jac = np.empty(f.shape + (6 + n_blur,))
     av = a[:, None]
-    jac[..., 0] = av * ((gh * (s1[e] * inv_s) + gk * (s2[e] * inv_s)) @ wts)
-    jac[..., 1] = av * ((gh * (-c1[e] * inv_s) + gk * (-c2[e] * inv_s)) @ wts)
-    jac[..., 2] = av * ((-gh * t1 * inv_s - grho * sd[e]) @ wts)
-    jac[..., 3] = av * ((-gk * t2 * inv_s + grho * sd[e]) @ wts)
+    inv1, inv2 = (1.0 / sd1)[e], (1.0 / sd2)[e]
+    jac[..., 0] = av * ((gh * (s1[e] * inv1) + gk * (s2[e] * inv2)) @ wts)
+    jac[..., 1] = av * ((gh * (-c1[e] * inv1) + gk * (-c2[e] * inv2)) @ wts)
+    jac[..., 2] = av * ((-gh * t1 * inv1) @ wts + ghh * (t1Sn1 / v1)[:, None]
+                        + gr * drho_a1[:, None])
+    jac[..., 3] = av * ((-gk * t2 * inv2) @ wts + gkk * (t2Sn2 / v2)[:, None]
+                        + gr * drho_a2[:, None])
     jac[..., 4] = pix
     jac[..., 5] = 1.0
-    jac[..., 6] = av * (-(gh * h + gk * k) @ wts) * dlogs[:, None]
+    if not aniso:
+        # S = sigma^2 I (+ I/12): dv_i / dlog sigma = 2 sigma^2, rho does not depend on sigma
+        jac[..., 6] = av * (-(ghh + gkk)) * (sigma**2 / eff**2)[:, None]
+        return f, jac
+    for j, (dv1, dv2, dc) in enumerate(_cov_entry_derivatives(n1, n2)):
+        drho = dc / sd12 - 0.5 * rho_raw * (dv1 / v1 + dv2 / v2)
+        jac[..., 6 + j] = av * (-0.5 * ghh * (dv1 / v1)[:, None] - 0.5 * gkk * (dv2 / v2)[:, None]
+                                + gr * drho[:, None])
     return f, jac
+
+
+def _cov_entry_derivatives(n1: np.ndarray, n2: np.ndarray):
+    """Derivatives of ``(v_1, v_2, n_1^T S n_2)`` by ``S_xx``, ``S_xy`` and ``S_yy``."""
+    return (
+        (n1[:, 0] ** 2, n2[:, 0] ** 2, n1[:, 0] * n2[:, 0]),
+        (2 * n1[:, 0] * n1[:, 1], 2 * n2[:, 0] * n2[:, 1],
+         n1[:, 0] * n2[:, 1] + n1[:, 1] * n2[:, 0]),
+        (n1[:, 1] ** 2, n2[:, 1] ** 2, n1[:, 1] * n2[:, 1]),
+    )
 
 
 def _sheppard_by_rho(h: np.ndarray, k: np.ndarray, rho: np.ndarray) -> np.ndarray:
