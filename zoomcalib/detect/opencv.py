@@ -572,12 +572,15 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
         res = refine_dots(img, pts, ratio * _min_spacing(pts, np.median), sigma=None)
         refined = res.centres
     else:
-        w = int(max(2, min(window, np.floor(0.45 * spacing))))
-        res = refine_corners(img, pts, window=w, sigma=sigma)
+        cap = int(max(2, np.floor(0.45 * spacing)))
+        res = refine_corners(img, pts, window=min(window, cap), sigma=sigma,
+                             max_window=min(_MAX_WINDOW, cap))
         refined = res.points
     out = np.where(res.converged[:, None], refined, pts)
     return out, ids, ~res.converged
 
+
+_MAX_WINDOW = 12  # px; the model fit's half-window grows with the blur up to this
 
 _DETECTORS = {"sb": _detect_sb, "classic": _detect_classic, "circles": _detect_circles,
               "charuco": _detect_charuco, "model": _detect_model}

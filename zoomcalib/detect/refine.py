@@ -253,7 +253,8 @@ def _xj_eval(
     s1, c1, s2, c2 = np.sin(a1), np.cos(a1), np.sin(a2), np.cos(a2)
     n1, n2 = np.column_stack([-s1, c1]), np.column_stack([-s2, c2])
     v1, v2, c12 = _blur_variances(eff, n1, n2)
-    sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
+    with np.errstate(invalid="ignore"):  # trial steps with an indefinite S are rejected later
+        sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
     rho_raw = c12 / (sd1 * sd2)
     rho = np.clip(rho_raw, -_RHO_MAX, _RHO_MAX)
     srho = np.sqrt(1.0 - rho * rho)
@@ -704,6 +705,9 @@ class RefineResult:
         Gaussian PSF sd, px (fitted or the fixed value).
     n_iter : (K,) ndarray
         Levenberg-Marquardt iterations.
+    psf_cov : (K, 2, 2) ndarray
+        Covariance of the Gaussian PSF, px^2, rows and columns in (x, y) order: ``sigma^2 I``
+        for an isotropic blur. ``sigma`` is ``sqrt(tr(psf_cov) / 2)``.
     """
 
     points: np.ndarray
@@ -715,6 +719,7 @@ class RefineResult:
     offset: np.ndarray
     sigma: np.ndarray
     n_iter: np.ndarray
+    psf_cov: np.ndarray
 
 
 def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
@@ -793,6 +798,8 @@ def refine_corners(
     max_iter: int = 30,
     tol: float = 1e-5,
     chunk: int = 256,
+    max_window: int | None = None,
+    anisotropic: bool = True,
 ) -> RefineResult:
     """Model-based subpixel refinement of chessboard X-junctions.
 
@@ -866,47 +873,52 @@ def refine_corners(
         raise ValueError(f"window must be >= 2, got {window}")
     if isinstance(sigma, str) and sigma != "shared":
         raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
+    max_window = window if max_window is None else max(int(max_window), window)
     K = pts.shape[0]
     out = RefineResult(
         points=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
         rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan), contrast=np.full(K, np.nan),
         offset=np.full(K, np.nan), sigma=np.full(K, np.nan), n_iter=np.zeros(K, int),
+        psf_cov=np.full((K, 2, 2), np.nan),
     )
     chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
               for s in range(0, K, chunk)]
     gaussian_only = pixel_model == "gaussian"
+    blur: float | np.ndarray | None = sigma
     if sigma == "shared":
-        # Stage 1 fits the blur per corner with the cheap pixel model; stage 2 fixes the median.
+        blur = _shared_blur(img, chunks, window, max_window, max_iter,
+                            tol if gaussian_only else 1e-3, anisotropic)
+    if blur is not None:
+        grown = _blur_window(blur, window, max_window)
         for c in chunks:
-            c.fit(None, "gaussian", 1, max_iter, tol if gaussian_only else 1e-3)
-        fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
-        good = np.isfinite(fitted)
-        sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
-        for c in chunks:
-            c.drop_sigma(sigma)
+            c.regrow(img, grown)
+            c.fix_blur(blur)
     if not gaussian_only:
         # The cheap model brings every corner close (its iterations cost a fraction of a
         # quadrature one), so the quadrature stage only polishes (docs/performance.md).
         for c in chunks:
-            c.fit(sigma, "gaussian", 1, max_iter, 1e-3)
+            c.fit(blur, "gaussian", 1, max_iter, 1e-3)
     # From a blur of _GAUSSIAN_PIXEL_SIGMA on, the variance-matched Gaussian pixel model is as
     # good as the quadrature on noise-free corners (module docstring).
-    cheap = gaussian_only or (sigma is not None and sigma >= _GAUSSIAN_PIXEL_SIGMA)
     for c in chunks:
-        if cheap:
-            c.fit(sigma, "gaussian", 1, max_iter, tol)
+        if gaussian_only or (blur is not None
+                             and c.smallest_sigma(blur) >= _GAUSSIAN_PIXEL_SIGMA):
+            c.fit(blur, "gaussian", 1, max_iter, tol)
         else:
             # A corner the cheap model brought close converges in a few of these iterations;
             # one it did not rarely does at all, and must not cost max_iter quadrature ones.
             budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
-            c.fit(sigma, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(sigma)),
+            c.fit(blur, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(blur)),
                   budget, tol)
-        c.store(out, sigma)
+        c.store(out, blur)
     return out
 
 
 _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corners
 _GAUSSIAN_PIXEL_SIGMA = 1.0  # px; a fixed or shared blur from which the cheap model is final
+_ANISO_SAMPLE = 48  # corners whose own anisotropic fits estimate the shared PSF covariance
+_ANISO_CHI2 = 13.8  # chi^2 (2 dof) at p = 0.001: the anisotropy is beyond its noise
+_ANISO_MIN_RATIO = 1.25  # major over minor PSF sd from which the anisotropy is used
 
 
 def _rho_node_counts(rho_abs: np.ndarray) -> np.ndarray:
@@ -914,12 +926,81 @@ def _rho_node_counts(rho_abs: np.ndarray) -> np.ndarray:
     return np.where(rho_abs <= 0.75, 6, np.where(rho_abs <= 0.9, 10, 16))
 
 
+def _cov_entries(sd: float) -> np.ndarray:
+    """``(S_xx, S_xy, S_yy)`` of the isotropic covariance ``sd^2 I``."""
+    return np.array([sd * sd, 0.0, sd * sd])
+
+
+def _cov_eig_sd(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Minor and major sd (px) of covariances given as ``(..., 3)`` entries ``(S_xx, S_xy,
+    S_yy)``: the square roots of the eigenvalues ``tr / 2 -+ sqrt(((S_xx - S_yy) / 2)^2 +
+    S_xy^2)``."""
+    cov = np.asarray(cov, dtype=float)
+    half_tr = 0.5 * (cov[..., 0] + cov[..., 2])
+    d = np.hypot(0.5 * (cov[..., 0] - cov[..., 2]), cov[..., 1])
+    return np.sqrt(np.maximum(half_tr - d, 0.0)), np.sqrt(half_tr + d)
+
+
+def _minor_sd(blur: float | np.ndarray) -> float:
+    """Smallest PSF sd, px, of a fixed blur (sd or covariance entries)."""
+    return float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[0])
+
+
+def _blur_window(blur: float | np.ndarray, window: int, max_window: int) -> int:
+    """Half-size that holds ``3 sigma_major + 2`` px of the blurred edges, in
+    ``[window, max_window]``."""
+    major = float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[1])
+    return int(np.clip(np.ceil(3.0 * major) + 2, window, max_window))
+
+
+def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_window: int,
+                 max_iter: int, tol: float, anisotropic: bool) -> float | np.ndarray:
+    """The blur shared by the image's corners: an sd (px) or, when the data ask for it, the
+    entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance.
+
+    Every corner's blur is fitted (Gaussian pixel model); the median over converged corners is
+    the isotropic estimate ``sigma``. With ``anisotropic``, up to ``_ANISO_SAMPLE`` corners
+    spread over the list are refitted, in a window grown for ``sigma``, with their own
+    covariance ``S_k``; the anisotropy ``d_k = ((S_xx - S_yy) / 2, S_xy)`` is 0 for an
+    isotropic PSF. Its median ``d`` over converged corners, with per-component standard errors
+    ``se_j = 1.2533 * 1.4826 MAD_j / sqrt(n)`` (median of a normal sample), is significant when
+    ``sum_j (d_j / se_j)^2 > _ANISO_CHI2``; the covariance (median of each entry) is used only
+    when it is also physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
+    """
+    for c in chunks:
+        c.fit(None, "gaussian", 1, max_iter, tol)
+    fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
+    good = np.isfinite(fitted)
+    sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
+    if not anisotropic or good.sum() < 8:
+        return sigma
+    points = np.concatenate([c.p[:, :2] + c.origin for c in chunks])[good]
+    pick = np.unique(np.linspace(0, len(points) - 1, _ANISO_SAMPLE).round().astype(int))
+    sample = _CornerChunk.start(img, points[pick], _blur_window(sigma, window, max_window),
+                                slice(0, len(pick)))
+    sample.fit(sigma, "gaussian", 1, max_iter, tol)
+    sample.fit(_cov_entries(sigma), "gaussian", 1, max_iter, tol, free=True)
+    cov = sample.p[sample.lm.converged, 6:9]
+    if len(cov) < 8:
+        return sigma
+    d = np.column_stack([0.5 * (cov[:, 0] - cov[:, 2]), cov[:, 1]])
+    d_med = np.median(d, axis=0)
+    se = 1.2533 * 1.4826 * np.median(np.abs(d - d_med), axis=0) / np.sqrt(len(d))
+    shared = np.median(cov, axis=0)
+    minor, major = _cov_eig_sd(shared)
+    significant = np.sum((d_med / np.maximum(se, 1e-12)) ** 2) > _ANISO_CHI2
+    if significant and minor > 0 and major >= _ANISO_MIN_RATIO * minor:
+        return shared
+    return sigma
+
+
 @dataclass
 class _CornerChunk:
     """The windows of a batch of corners and the state of their fit, carried across stages.
 
-    ``p`` holds ``(cx, cy, alpha1, alpha2, a, b[, log sigma])`` in window coordinates (origin at
-    the pixel ``origin``); ``lm`` is the last stage's Levenberg-Marquardt output.
+    ``p`` holds ``(cx, cy, alpha1, alpha2, a, b)`` in window coordinates (origin at the pixel
+    ``origin``), followed by the fitted blur when it is fitted: ``log sigma`` or the covariance
+    entries ``(S_xx, S_xy, S_yy)``; ``lm`` is the last stage's Levenberg-Marquardt output.
     """
 
     data: np.ndarray
@@ -945,26 +1026,42 @@ class _CornerChunk:
         p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
         return cls(data, wts, origin, window, where, p0, None, np.zeros(n, int))
 
-    def fit(self, sigma: float | None, model: PixelModel, n_sub: int,
-            max_iter: int | np.ndarray, tol: float) -> None:
-        """One Levenberg-Marquardt stage; ``sigma=None`` fits ``log sigma`` per corner;
-        ``max_iter`` is one cap or one per corner."""
+    def fit(self, blur: float | np.ndarray | None, model: PixelModel, n_sub: int,
+            max_iter: int | np.ndarray, tol: float, free: bool = False) -> None:
+        """One Levenberg-Marquardt stage. ``blur`` is a fixed sd (px) or covariance entries
+        ``(S_xx, S_xy, S_yy)`` (px^2); None fits ``log sigma`` per corner; ``free=True`` fits
+        the covariance per corner starting from ``blur``. ``max_iter`` is one cap or one per
+        corner."""
         xy = _window_grid(self.window)
-        fit_sigma = sigma is None
-        p = self.p
-        if fit_sigma and p.shape[1] == 6:
-            p = np.column_stack([p, np.zeros(len(p))])  # log sigma = 0: sigma starts at 1 px
-        n_par = p.shape[1]
+        n = len(self.p)
+        if blur is None:
+            n_par = 7
+            p = self.p if self.p.shape[1] == 7 else np.column_stack([self.p[:, :6], np.zeros(n)])
+        elif free:
+            n_par = 9
+            p = np.column_stack([self.p[:, :6], np.broadcast_to(blur, (n, 3))])
+        else:
+            n_par = 6
+            p = self.p[:, :6]
+            fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
 
         def fun(q, idx):
-            s = np.exp(q[:, 6]) if fit_sigma else np.full(len(q), float(sigma))
-            f, jac = _xj_eval(q[:, :6], s, xy, model, n_sub)
+            if n_par == 7:
+                b_ = np.exp(q[:, 6])
+            elif n_par == 9:
+                b_ = q[:, 6:9]
+            else:
+                b_ = fixed[idx]
+            f, jac = _xj_eval(q[:, :6], b_, xy, model, n_sub)
             return f, jac[..., :n_par]
 
         def valid(q):
             ok = np.all(np.abs(q[:, :2]) < self.window, axis=1)
-            if fit_sigma:
+            if n_par == 7:
                 ok &= (q[:, 6] > np.log(0.05)) & (q[:, 6] < np.log(self.window))
+            elif n_par == 9:
+                minor, major = _cov_eig_sd(q[:, 6:9])
+                ok &= (minor > 0.05) & (major < self.window)
             return ok
 
         self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
@@ -976,26 +1073,52 @@ class _CornerChunk:
         """Per-corner fitted blur, px; NaN where the stage did not converge."""
         return np.where(self.lm.converged, np.exp(self.p[:, 6]), np.nan)
 
-    def drop_sigma(self, sigma: float) -> None:
-        """Fix the blur for the next stage (``a, b`` refitted for it)."""
+    def regrow(self, img: np.ndarray, window: int) -> None:
+        """Re-extract the windows with half-size ``window`` around the current corners."""
+        if window == self.window:
+            return
+        pts = self.p[:, :2] + self.origin
+        self.data, self.weights, origin = _extract(img, pts, window)
+        self.p = self.p.copy()
+        self.p[:, :2] = pts - origin
+        self.origin, self.window = origin, window
+
+    def fix_blur(self, blur: float | np.ndarray) -> None:
+        """Fix the blur (sd or covariance entries) for the next stage (``a, b`` refitted)."""
         self.p = self.p[:, :6].copy()
-        pix, _ = _xj_eval(self.p, np.full(len(self.p), sigma), _window_grid(self.window),
-                          "gaussian", 1, jacobian=False)
+        n = len(self.p)
+        self.p[:, 4], self.p[:, 5] = 1.0, 0.0  # so that the model below is the pattern P
+        fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
+        pix, _ = _xj_eval(self.p, fixed, _window_grid(self.window), "gaussian", 1,
+                          jacobian=False)
         self.p[:, 4], self.p[:, 5] = _linear_ab(pix, self.data, self.weights)
 
-    def smallest_sigma(self, sigma: float | None) -> float:
-        """The smallest blur of the batch, for the pixel quadrature's order."""
-        if sigma is not None:
-            return float(sigma)
+    def smallest_sigma(self, blur: float | np.ndarray | None) -> float:
+        """The smallest blur of the batch, for the pixel quadrature's order: the sd across an
+        edge, ``sqrt(n_i^T S n_i)``, for a fixed covariance ``S``."""
+        if blur is not None and np.ndim(blur) == 0:
+            return float(blur)
+        if blur is not None:
+            a = self.p[:, 2:4]
+            normals = np.stack([-np.sin(a), np.cos(a)], axis=-1).reshape(-1, 2)
+            v, _, _ = _blur_variances(np.tile(np.asarray(blur, float), (len(normals), 1)),
+                                      normals, normals)
+            return float(np.sqrt(v.min(initial=_minor_sd(blur) ** 2)))
         fitted = self.sigma_fitted()
         return float(np.nanmin(fitted)) if np.any(np.isfinite(fitted)) else 1.0
 
-    def store(self, out: RefineResult, sigma: float | None) -> None:
+    def store(self, out: RefineResult, blur: float | np.ndarray | None) -> None:
         """Write the fit into ``out`` with the acceptance tests of :func:`refine_corners`."""
         n_par = self.p.shape[1]
         cov, rms = _covariance(self.lm, self.weights, n_par)
         p = _normalise_xj(self.p)
-        sig = np.exp(p[:, 6]) if sigma is None else np.full(len(p), float(sigma))
+        n = len(p)
+        if blur is None:
+            entries = np.exp(2.0 * p[:, 6])[:, None] * np.array([1.0, 0.0, 1.0])
+        elif np.ndim(blur) == 0:
+            entries = np.tile(_cov_entries(float(blur)), (n, 1))
+        else:
+            entries = np.tile(np.asarray(blur, float), (n, 1))
         d_ang = np.abs(np.sin(p[:, 2] - p[:, 3]))
         ok = (
             self.lm.converged
@@ -1012,7 +1135,8 @@ class _CornerChunk:
         out.angles[sl] = p[:, 2:4]
         out.contrast[sl] = p[:, 4]
         out.offset[sl] = p[:, 5]
-        out.sigma[sl] = sig
+        out.sigma[sl] = np.sqrt(0.5 * (entries[:, 0] + entries[:, 2]))
+        out.psf_cov[sl] = entries[:, [0, 1, 1, 2]].reshape(n, 2, 2)
         out.n_iter[sl] = self.n_iter
 
 
