@@ -873,6 +873,8 @@ def refine_corners(
         raise ValueError(f"window must be >= 2, got {window}")
     if isinstance(sigma, str) and sigma != "shared":
         raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
+    if pixel_model not in ("quadrature", "gaussian"):
+        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
     max_window = window if max_window is None else max(int(max_window), window)
     K = pts.shape[0]
     out = RefineResult(
@@ -900,17 +902,23 @@ def refine_corners(
             c.fit(blur, "gaussian", 1, max_iter, 1e-3)
     # From a blur of _GAUSSIAN_PIXEL_SIGMA on, the variance-matched Gaussian pixel model is as
     # good as the quadrature on noise-free corners (module docstring).
-    for c in chunks:
-        if gaussian_only or (blur is not None
-                             and c.smallest_sigma(blur) >= _GAUSSIAN_PIXEL_SIGMA):
-            c.fit(blur, "gaussian", 1, max_iter, tol)
-        else:
-            # A corner the cheap model brought close converges in a few of these iterations;
-            # one it did not rarely does at all, and must not cost max_iter quadrature ones.
-            budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
-            c.fit(blur, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(blur)),
-                  budget, tol)
-        c.store(out, blur)
+    for whole in chunks:
+        cheap = np.full(len(whole.p), gaussian_only)
+        if blur is not None and not gaussian_only:
+            cheap = whole.edge_sd(blur) >= _GAUSSIAN_PIXEL_SIGMA
+        for c, final in ((whole.subset(cheap), "gaussian"), (whole.subset(~cheap), pixel_model)):
+            if len(c.p) == 0:
+                continue
+            if final == "gaussian":
+                c.fit(blur, "gaussian", 1, max_iter, tol)
+            else:
+                # A corner the cheap model brought close converges in a few of these
+                # iterations; one it did not rarely does at all, and must not cost max_iter
+                # quadrature ones.
+                budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
+                c.fit(blur, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(blur)),
+                      budget, tol)
+            c.store(out, blur)
     return out
 
 
@@ -1007,7 +1015,7 @@ class _CornerChunk:
     weights: np.ndarray
     origin: np.ndarray
     window: int
-    where: slice
+    where: slice | np.ndarray
     p: np.ndarray
     lm: _LMOut | None = None
     n_iter: np.ndarray | None = None
@@ -1093,19 +1101,34 @@ class _CornerChunk:
                           jacobian=False)
         self.p[:, 4], self.p[:, 5] = _linear_ab(pix, self.data, self.weights)
 
+    def edge_sd(self, blur: float | np.ndarray) -> np.ndarray:
+        """Per corner, the smaller blur across its two edges, px: ``sqrt(n_i^T S n_i)`` for a
+        fixed covariance ``S``, ``sigma`` for a fixed sd."""
+        if np.ndim(blur) == 0:
+            return np.full(len(self.p), float(blur))
+        a = self.p[:, 2:4]
+        normals = np.stack([-np.sin(a), np.cos(a)], axis=-1).reshape(-1, 2)
+        v, _, _ = _blur_variances(np.tile(np.asarray(blur, float), (len(normals), 1)),
+                                  normals, normals)
+        return np.sqrt(v.reshape(-1, 2).min(axis=1))
+
     def smallest_sigma(self, blur: float | np.ndarray | None) -> float:
-        """The smallest blur of the batch, for the pixel quadrature's order: the sd across an
-        edge, ``sqrt(n_i^T S n_i)``, for a fixed covariance ``S``."""
-        if blur is not None and np.ndim(blur) == 0:
-            return float(blur)
+        """The smallest blur of the batch (across an edge, for a fixed covariance), px, for the
+        pixel quadrature's order."""
         if blur is not None:
-            a = self.p[:, 2:4]
-            normals = np.stack([-np.sin(a), np.cos(a)], axis=-1).reshape(-1, 2)
-            v, _, _ = _blur_variances(np.tile(np.asarray(blur, float), (len(normals), 1)),
-                                      normals, normals)
-            return float(np.sqrt(v.min(initial=_minor_sd(blur) ** 2)))
+            return float(self.edge_sd(blur).min(initial=np.inf)) if len(self.p) else 1.0
         fitted = self.sigma_fitted()
         return float(np.nanmin(fitted)) if np.any(np.isfinite(fitted)) else 1.0
+
+    def subset(self, keep: np.ndarray) -> _CornerChunk:
+        """The corners ``keep`` (bool mask) of this batch, with their fit state."""
+        where = (np.arange(self.where.start, self.where.stop)
+                 if isinstance(self.where, slice) else self.where)
+        lm = None if self.lm is None else _LMOut(
+            self.lm.p[keep], self.lm.jac[keep], self.lm.resid[keep], self.lm.cost[keep],
+            self.lm.converged[keep], self.lm.n_iter[keep])
+        return _CornerChunk(self.data[keep], self.weights[keep], self.origin[keep],
+                            self.window, where[keep], self.p[keep], lm, self.n_iter[keep])
 
     def store(self, out: RefineResult, blur: float | np.ndarray | None) -> None:
         """Write the fit into ``out`` with the acceptance tests of :func:`refine_corners`."""
