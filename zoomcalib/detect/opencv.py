@@ -542,7 +542,10 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     fails), ChArUco from the ChArUco detector, dots from findCirclesGrid.
 
     Chessboard and ChArUco corners: blurred X-junction fit in a ``(2 window + 1)^2`` window
-    (shrunk to 0.45 x the corner spacing). Dots: blurred-ellipse fit; the result is the
+    (shrunk to 0.45 x the corner spacing) with one blur shared by the image, isotropic or, when
+    the corners ask for it (motion blur, astigmatism), anisotropic; the window grows with the
+    shared blur to ``ceil(3 sigma_major) + 2`` px, at most ``_MAX_WINDOW`` and 0.45 x the
+    spacing. Dots: blurred-ellipse fit; the result is the
     centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
     see :func:`zoomcalib.detect.dots.dot_centre_bias`). Points whose fit did not converge keep
     OpenCV's position and are returned flagged (the third element, True where a point fell back).

@@ -32,6 +32,12 @@ integral (see :func:`bivariate_normal_cdf`) by Gauss-Legendre quadrature, with m
 ``|rho|`` grows, up to ``|rho| <= 0.98`` (edges at least 11.5 deg apart; ``rho`` is clipped
 there). The blur is thus exact up to the quadrature's round-off level, not an approximation.
 
+*Anisotropic blur.* Under motion blur or astigmatism the PSF is modelled as a Gaussian of
+covariance ``S`` (2 x 2, px^2). Then ``(n_1.z, n_2.z)`` for ``z ~ N(0, S)`` is bivariate normal
+with variances ``v_i = n_i^T S n_i`` and covariance ``n_1^T S n_2``, so the same expression holds
+with ``h = u_1 / sqrt(v_1)``, ``k = u_2 / sqrt(v_2)`` and ``rho = n_1^T S n_2 / sqrt(v_1 v_2)``:
+each edge is blurred by its own 1-D Gaussian, and the isotropic case is ``S = sigma^2 I``.
+
 *Pixel integration.* By default the blurred pattern is integrated over each pixel by an
 ``n_sub x n_sub`` Gauss-Legendre product rule (``pixel_model='quadrature'``, ``n_sub`` from
 :func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px), which keeps the intensity error far
@@ -40,13 +46,15 @@ sub-samples per pixel, blur on the fine grid, then pixel averaging; ``tests/test
 corner position error is negligible against the noise-limited error for sigma = 0.3 .. 1.6 px.
 
 The cheaper ``pixel_model='gaussian'`` replaces the box by a Gaussian of the same variance, i.e.
-one Gaussian of variance ``sigma^2 + 1/12`` per axis sampled at the pixel centre. The box is not
+one Gaussian of variance ``sigma^2 + 1/12`` per axis (``S + I / 12``) sampled at the pixel
+centre. The box is not
 a Gaussian (its projection on an edge normal is uniform for an axis-aligned edge and triangular at
 45 deg), so its intensity error grows quickly as the blur falls below a pixel. Both PSFs are
 point-symmetric, which keeps the corner position error smaller than that suggests (the fitted
 sigma absorbs part of the mismatch). The refiner uses this model to get close, then finishes with
-a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma) the difference has
-fallen to the level of the quadrature's own, so the fit ends on this model.
+a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma; for a covariance,
+the sd ``sqrt(n_i^T S n_i)`` across each of the corner's edges) the difference has fallen to the
+level of the quadrature's own, so the fit ends on this model.
 
 The errors of each of these approximations (quadrature orders, pixel models, the ``erf``
 product, noise-free corners and dots) are measured by ``python benchmarks/bench_refine.py
@@ -819,6 +827,14 @@ def refine_corners(
     exact (module docstring) and the fit ends on it. The covariance is ``s^2 (J^T J)^-1``
     (position block) with ``s^2 = RSS / (n - P)``.
 
+    With ``sigma='shared'`` the blur may come out anisotropic: a Gaussian PSF of covariance
+    ``S`` (module docstring), fixed for every corner, chosen only when up to 48 corners' own
+    fits of ``S`` find an anisotropy beyond its noise (chi^2 test of the median of
+    ``((S_xx - S_yy) / 2, S_xy)`` at p = 0.001) and a major over minor sd of at least 1.25; an
+    isotropic blur keeps the isotropic model. With ``max_window`` the window then grows to
+    ``ceil(3 sigma_major) + 2`` px (at most ``max_window``), so that it holds the blurred
+    edges.
+
     Parameters
     ----------
     image : (H, W) ndarray
@@ -830,7 +846,8 @@ def refine_corners(
     sigma : float, 'shared' or None
         Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it per
         corner, takes the median over converged corners and refits every corner with that value
-        fixed (a two-stage estimate of one common blur).
+        fixed (a two-stage estimate of one common blur), or with the shared anisotropic
+        covariance when the data ask for it (see above).
     pixel_model : {'quadrature', 'gaussian'}
         Pixel integration model for the final iterations.
     n_sub : int, optional
@@ -843,6 +860,12 @@ def refine_corners(
     chunk : int
         Corners per vectorised batch (bounds memory: about ``chunk * M * n_sub^2 * 16``
         doubles per temporary array, ``M = (2 window + 1)^2``).
+    max_window : int, optional
+        Largest half-size the window may grow to with a fixed or shared blur,
+        ``ceil(3 sigma_major) + 2``; None keeps ``window``. Neighbouring corners must lie
+        outside it.
+    anisotropic : bool
+        With ``sigma='shared'``, allow the anisotropic PSF; False keeps the isotropic one.
 
     Returns
     -------
