@@ -918,30 +918,28 @@ def refine_corners(
         for c in chunks:
             c.regrow(img, grown)
             c.fix_blur(blur)
-    if not gaussian_only:
-        # The cheap model brings every corner close (its iterations cost a fraction of a
-        # quadrature one), so the quadrature stage only polishes (docs/performance.md).
-        for c in chunks:
-            c.fit(blur, "gaussian", 1, max_iter, 1e-3)
-    # From a blur of _GAUSSIAN_PIXEL_SIGMA on, the variance-matched Gaussian pixel model is as
-    # good as the quadrature on noise-free corners (module docstring).
+    # From a blur of _GAUSSIAN_PIXEL_SIGMA across both edges on, the variance-matched Gaussian
+    # pixel model is as good as the quadrature on noise-free corners (module docstring): such
+    # corners are fitted on it alone.
     for whole in chunks:
         cheap = np.full(len(whole.p), gaussian_only)
         if blur is not None and not gaussian_only:
             cheap = whole.edge_sd(blur) >= _GAUSSIAN_PIXEL_SIGMA
-        for c, final in ((whole.subset(cheap), "gaussian"), (whole.subset(~cheap), pixel_model)):
-            if len(c.p) == 0:
-                continue
-            if final == "gaussian":
-                c.fit(blur, "gaussian", 1, max_iter, tol)
-            else:
-                # A corner the cheap model brought close converges in a few of these
-                # iterations; one it did not rarely does at all, and must not cost max_iter
-                # quadrature ones.
-                budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
-                c.fit(blur, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(blur)),
-                      budget, tol)
-            c.store(out, blur)
+        fine = whole.subset(~cheap)
+        if len(fine.p):
+            # The cheap model brings every corner close (its iterations cost a fraction of a
+            # quadrature one), so the quadrature stage only polishes (docs/performance.md). A
+            # corner it brought close converges in a few of these iterations; one it did not
+            # rarely does at all, and must not cost max_iter quadrature ones.
+            fine.fit(blur, "gaussian", 1, max_iter, 1e-3)
+            budget = np.where(fine.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
+            fine.fit(blur, "quadrature", n_sub or auto_n_sub(fine.smallest_sigma(blur)),
+                     budget, tol)
+            fine.store(out, blur)
+        coarse = whole.subset(cheap)
+        if len(coarse.p):
+            coarse.fit(blur, "gaussian", 1, max_iter, tol)
+            coarse.store(out, blur)
     return out
 
 
@@ -969,7 +967,7 @@ def _cov_eig_sd(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cov = np.asarray(cov, dtype=float)
     half_tr = 0.5 * (cov[..., 0] + cov[..., 2])
     d = np.hypot(0.5 * (cov[..., 0] - cov[..., 2]), cov[..., 1])
-    return np.sqrt(np.maximum(half_tr - d, 0.0)), np.sqrt(half_tr + d)
+    return np.sqrt(np.maximum(half_tr - d, 0.0)), np.sqrt(np.maximum(half_tr + d, 0.0))
 
 
 def _minor_sd(blur: float | np.ndarray) -> float:
