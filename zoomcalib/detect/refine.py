@@ -710,7 +710,8 @@ class RefineResult:
     offset : (K,) ndarray
         ``b``.
     sigma : (K,) ndarray
-        Gaussian PSF sd, px (fitted or the fixed value).
+        Gaussian PSF sd, px (fitted or the fixed value); for an anisotropic PSF the root mean
+        square of its two principal sds, ``sqrt(tr(psf_cov) / 2)``.
     n_iter : (K,) ndarray
         Levenberg-Marquardt iterations.
     psf_cov : (K, 2, 2) ndarray
