@@ -542,7 +542,10 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     fails), ChArUco from the ChArUco detector, dots from findCirclesGrid.
 
     Chessboard and ChArUco corners: blurred X-junction fit in a ``(2 window + 1)^2`` window
-    (shrunk to 0.45 x the corner spacing). Dots: blurred-ellipse fit; the result is the
+    (shrunk to 0.45 x the corner spacing) with one blur shared by the image, isotropic or, when
+    the corners ask for it (motion blur, astigmatism), anisotropic; the window grows with the
+    shared blur to ``ceil(3 sigma_major) + 2`` px, at most ``_MAX_WINDOW`` and 0.45 x the
+    spacing. Dots: blurred-ellipse fit; the result is the
     centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
     see :func:`zoomcalib.detect.dots.dot_centre_bias`). Points whose fit did not converge keep
     OpenCV's position and are returned flagged (the third element, True where a point fell back).
@@ -572,12 +575,15 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
         res = refine_dots(img, pts, ratio * _min_spacing(pts, np.median), sigma=None)
         refined = res.centres
     else:
-        w = int(max(2, min(window, np.floor(0.45 * spacing))))
-        res = refine_corners(img, pts, window=w, sigma=sigma)
+        cap = int(max(2, np.floor(0.45 * spacing)))
+        res = refine_corners(img, pts, window=min(window, cap), sigma=sigma,
+                             max_window=min(_MAX_WINDOW, cap))
         refined = res.points
     out = np.where(res.converged[:, None], refined, pts)
     return out, ids, ~res.converged
 
+
+_MAX_WINDOW = 12  # px; the model fit's half-window grows with the blur up to this
 
 _DETECTORS = {"sb": _detect_sb, "classic": _detect_classic, "circles": _detect_circles,
               "charuco": _detect_charuco, "model": _detect_model}

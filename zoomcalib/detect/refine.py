@@ -32,6 +32,12 @@ integral (see :func:`bivariate_normal_cdf`) by Gauss-Legendre quadrature, with m
 ``|rho|`` grows, up to ``|rho| <= 0.98`` (edges at least 11.5 deg apart; ``rho`` is clipped
 there). The blur is thus exact up to the quadrature's round-off level, not an approximation.
 
+*Anisotropic blur.* Under motion blur or astigmatism the PSF is modelled as a Gaussian of
+covariance ``S`` (2 x 2, px^2). Then ``(n_1.z, n_2.z)`` for ``z ~ N(0, S)`` is bivariate normal
+with variances ``v_i = n_i^T S n_i`` and covariance ``n_1^T S n_2``, so the same expression holds
+with ``h = u_1 / sqrt(v_1)``, ``k = u_2 / sqrt(v_2)`` and ``rho = n_1^T S n_2 / sqrt(v_1 v_2)``:
+each edge is blurred by its own 1-D Gaussian, and the isotropic case is ``S = sigma^2 I``.
+
 *Pixel integration.* By default the blurred pattern is integrated over each pixel by an
 ``n_sub x n_sub`` Gauss-Legendre product rule (``pixel_model='quadrature'``, ``n_sub`` from
 :func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px), which keeps the intensity error far
@@ -40,13 +46,15 @@ sub-samples per pixel, blur on the fine grid, then pixel averaging; ``tests/test
 corner position error is negligible against the noise-limited error for sigma = 0.3 .. 1.6 px.
 
 The cheaper ``pixel_model='gaussian'`` replaces the box by a Gaussian of the same variance, i.e.
-one Gaussian of variance ``sigma^2 + 1/12`` per axis sampled at the pixel centre. The box is not
+one Gaussian of variance ``sigma^2 + 1/12`` per axis (``S + I / 12``) sampled at the pixel
+centre. The box is not
 a Gaussian (its projection on an edge normal is uniform for an axis-aligned edge and triangular at
 45 deg), so its intensity error grows quickly as the blur falls below a pixel. Both PSFs are
 point-symmetric, which keeps the corner position error smaller than that suggests (the fitted
 sigma absorbs part of the mismatch). The refiner uses this model to get close, then finishes with
-a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma) the difference has
-fallen to the level of the quadrature's own, so the fit ends on this model.
+a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma; for a covariance,
+the sd ``sqrt(n_i^T S n_i)`` across each of the corner's edges) the difference has fallen to the
+level of the quadrature's own, so the fit ends on this model.
 
 The errors of each of these approximations (quadrature orders, pixel models, the ``erf``
 product, noise-free corners and dots) are measured by ``python benchmarks/bench_refine.py
@@ -166,6 +174,32 @@ def _as_points(points: np.ndarray, name: str) -> np.ndarray:
 _XJ_NP = 7
 
 
+def _blur_variances(blur: np.ndarray, n1: np.ndarray, n2: np.ndarray):
+    """Variances of ``n_1 . z``, ``n_2 . z`` and their covariance for ``z ~ N(0, S)``.
+
+    ``blur`` is (K,) isotropic sd (``S = sigma^2 I``) or (K, 3) entries ``(S_xx, S_xy, S_yy)``;
+    ``n1, n2`` are (K, 2) unit normals. Returns ``v_i = n_i^T S n_i`` and ``c = n_1^T S n_2``.
+    """
+    if blur.ndim == 1:
+        var = blur * blur
+        return var, var.copy(), var * np.einsum("kd,kd->k", n1, n2)
+    sxx, sxy, syy = blur[:, 0], blur[:, 1], blur[:, 2]
+
+    def quad(a, b):
+        return sxx * a[:, 0] * b[:, 0] + sxy * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0]) \
+            + syy * a[:, 1] * b[:, 1]
+
+    return quad(n1, n1), quad(n2, n2), quad(n1, n2)
+
+
+def _apply_cov(blur: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``S v`` per corner for ``v`` (K, 2); ``blur`` as in :func:`_blur_variances`."""
+    if blur.ndim == 1:
+        return (blur * blur)[:, None] * v
+    return np.column_stack([blur[:, 0] * v[:, 0] + blur[:, 1] * v[:, 1],
+                            blur[:, 1] * v[:, 0] + blur[:, 2] * v[:, 1]])
+
+
 def _xj_eval(
     p: np.ndarray,
     sigma: np.ndarray,
@@ -180,8 +214,9 @@ def _xj_eval(
     ----------
     p : (K, 6) ndarray
         ``(cx, cy, alpha1, alpha2, a, b)`` in the coordinates of ``xy``.
-    sigma : (K,) ndarray
-        Gaussian PSF standard deviation, px.
+    sigma : (K,) or (K, 3) ndarray
+        Isotropic Gaussian PSF standard deviation, px; or the covariance ``S`` of an
+        anisotropic Gaussian PSF as ``(S_xx, S_xy, S_yy)``, px^2.
     xy : (M, 2) ndarray
         Pixel centres.
 
@@ -189,45 +224,55 @@ def _xj_eval(
     -------
     f : (K, M) ndarray
         ``b + a * P``.
-    jac : (K, M, 7) ndarray
-        ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma)``.
+    jac : (K, M, 7) or (K, M, 9) ndarray
+        ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma)``; with a covariance, the last three
+        columns are ``df / d(S_xx, S_xy, S_yy)`` instead (px^-2).
 
     Notes
     -----
-    With ``g = Phi(h) + Phi(k) - 2 Phi_2(h, k; rho)`` at each quadrature node, ``s =
-    sqrt(1 - rho^2)``, and the standard identities ``d Phi_2 / dh = phi(h) Phi((k - rho h) / s)``
-    and ``d Phi_2 / d rho = phi_2(h, k; rho)`` (Plackett):
+    The PSF blurs edge ``i`` by a 1-D Gaussian of variance ``v_i = n_i^T S n_i`` (``S = sigma^2
+    I`` when isotropic; plus ``I / 12`` for the Gaussian pixel model), so ``h = u_1 /
+    sqrt(v_1)``, ``k = u_2 / sqrt(v_2)`` and ``rho = n_1^T S n_2 / sqrt(v_1 v_2)``. With ``g =
+    Phi(h) + Phi(k) - 2 Phi_2(h, k; rho)`` at each quadrature node, ``s = sqrt(1 - rho^2)``, and
+    the standard identities ``d Phi_2 / dh = phi(h) Phi((k - rho h) / s)`` and ``d Phi_2 / d rho
+    = phi_2(h, k; rho)`` (Plackett):
 
         dg/dh = phi(h) (1 - 2 Phi((k - rho h) / s)),   dg/dk likewise,
         dg/drho = -2 exp(-(h^2 - 2 rho h k + k^2) / (2 s^2)) / (2 pi s),
 
-    and ``du_i/dc = -n_i``, ``du_i/dalpha_i = -t_i`` (``t_i`` the coordinate along edge ``i``),
-    ``drho/dalpha_1 = -sin(alpha_1 - alpha_2) = -drho/dalpha_2``, ``dh/dlog sigma = -h``. The
-    pixel value and its derivatives are the node sums weighted by :func:`pixel_nodes`.
+    and ``du_i/dc = -n_i``, ``dn_i/dalpha_i = -t_i`` (``t_i = (cos alpha_i, sin alpha_i)``), so
+    ``du_i/dalpha_i = -t_i . (x - c)``, ``dv_i/dalpha_i = -2 t_i^T S n_i``, ``d(n_1^T S
+    n_2)/dalpha_1 = -t_1^T S n_2``; ``dh/dv_1 = -h / (2 v_1)``, ``drho = d(n_1^T S n_2) /
+    sqrt(v_1 v_2) - rho (dv_1 / v_1 + dv_2 / v_2) / 2``. The pixel value and its derivatives
+    are the node sums weighted by :func:`pixel_nodes`.
     """
     if pixel_model == "quadrature":
         off, wts = pixel_nodes(n_sub)
-        s_eff = sigma
-        dlogs = np.ones_like(sigma)  # d log(s_eff) / d log(sigma)
+        box = 0.0
     elif pixel_model == "gaussian":
         off, wts = np.zeros((1, 2)), np.ones(1)
-        s_eff = np.sqrt(sigma**2 + 1.0 / 12.0)
-        dlogs = sigma**2 / s_eff**2
+        box = 1.0 / 12.0
     else:
         raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+    sigma = np.asarray(sigma, dtype=float)
+    aniso = sigma.ndim == 2
+    eff = sigma + np.array([box, 0.0, box]) if aniso else np.sqrt(sigma**2 + box)
     cx, cy, a1, a2, a, b = (p[:, i] for i in range(6))
     s1, c1, s2, c2 = np.sin(a1), np.cos(a1), np.sin(a2), np.cos(a2)
-    sd = np.sin(a1 - a2)
-    rho = np.clip(np.cos(a1 - a2), -_RHO_MAX, _RHO_MAX)
+    n1, n2 = np.column_stack([-s1, c1]), np.column_stack([-s2, c2])
+    v1, v2, c12 = _blur_variances(eff, n1, n2)
+    with np.errstate(invalid="ignore"):  # trial steps with an indefinite S are rejected later
+        sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
+    rho_raw = c12 / (sd1 * sd2)
+    rho = np.clip(rho_raw, -_RHO_MAX, _RHO_MAX)
     srho = np.sqrt(1.0 - rho * rho)
     # node coordinates relative to the corner: (K, M, S)
     dx = (xy[None, :, 0, None] + off[None, None, :, 0]) - cx[:, None, None]
     dy = (xy[None, :, 1, None] + off[None, None, :, 1]) - cy[:, None, None]
     e = (slice(None), None, None)
-    inv_s = 1.0 / s_eff[e]
     u1 = -s1[e] * dx + c1[e] * dy
     u2 = -s2[e] * dx + c2[e] * dy
-    h, k = u1 * inv_s, u2 * inv_s
+    h, k = u1 / sd1[e], u2 / sd2[e]
     r_ = rho[e]
     nh, nk = ndtr(h), ndtr(k)
     g = nh + nk - 2.0 * (nh * nk + _sheppard_by_rho(h, k, r_))
@@ -242,18 +287,48 @@ def _xj_eval(
     grho = -2.0 * np.exp(-(h * h - 2.0 * r_ * h * k + k * k) / (2.0 * sr * sr)) / (
         2.0 * np.pi * sr
     )
+    t1v, t2v = np.column_stack([c1, s1]), np.column_stack([c2, s2])
     t1 = c1[e] * dx + s1[e] * dy  # along-edge coordinates; d u_i / d alpha_i = -t_i
     t2 = c2[e] * dx + s2[e] * dy
-    jac = np.empty(f.shape + (_XJ_NP,))
+    Sn1, Sn2 = _apply_cov(eff, n1), _apply_cov(eff, n2)
+    t1Sn1 = np.einsum("kd,kd->k", t1v, Sn1)  # 0 when isotropic
+    t2Sn2 = np.einsum("kd,kd->k", t2v, Sn2)
+    sd12 = sd1 * sd2
+    drho_a1 = -np.einsum("kd,kd->k", t1v, Sn2) / sd12 + rho_raw * t1Sn1 / v1
+    drho_a2 = -np.einsum("kd,kd->k", t2v, Sn1) / sd12 + rho_raw * t2Sn2 / v2
+    ghh, gkk = (gh * h) @ wts, (gk * k) @ wts  # (K, M)
+    gr = grho @ wts
+    n_blur = 3 if aniso else 1
+    jac = np.empty(f.shape + (6 + n_blur,))
     av = a[:, None]
-    jac[..., 0] = av * ((gh * (s1[e] * inv_s) + gk * (s2[e] * inv_s)) @ wts)
-    jac[..., 1] = av * ((gh * (-c1[e] * inv_s) + gk * (-c2[e] * inv_s)) @ wts)
-    jac[..., 2] = av * ((-gh * t1 * inv_s - grho * sd[e]) @ wts)
-    jac[..., 3] = av * ((-gk * t2 * inv_s + grho * sd[e]) @ wts)
+    inv1, inv2 = (1.0 / sd1)[e], (1.0 / sd2)[e]
+    jac[..., 0] = av * ((gh * (s1[e] * inv1) + gk * (s2[e] * inv2)) @ wts)
+    jac[..., 1] = av * ((gh * (-c1[e] * inv1) + gk * (-c2[e] * inv2)) @ wts)
+    jac[..., 2] = av * ((-gh * t1 * inv1) @ wts + ghh * (t1Sn1 / v1)[:, None]
+                        + gr * drho_a1[:, None])
+    jac[..., 3] = av * ((-gk * t2 * inv2) @ wts + gkk * (t2Sn2 / v2)[:, None]
+                        + gr * drho_a2[:, None])
     jac[..., 4] = pix
     jac[..., 5] = 1.0
-    jac[..., 6] = av * (-(gh * h + gk * k) @ wts) * dlogs[:, None]
+    if not aniso:
+        # S = sigma^2 I (+ I/12): dv_i / dlog sigma = 2 sigma^2, rho does not depend on sigma
+        jac[..., 6] = av * (-(ghh + gkk)) * (sigma**2 / eff**2)[:, None]
+        return f, jac
+    for j, (dv1, dv2, dc) in enumerate(_cov_entry_derivatives(n1, n2)):
+        drho = dc / sd12 - 0.5 * rho_raw * (dv1 / v1 + dv2 / v2)
+        jac[..., 6 + j] = av * (-0.5 * ghh * (dv1 / v1)[:, None] - 0.5 * gkk * (dv2 / v2)[:, None]
+                                + gr * drho[:, None])
     return f, jac
+
+
+def _cov_entry_derivatives(n1: np.ndarray, n2: np.ndarray):
+    """Derivatives of ``(v_1, v_2, n_1^T S n_2)`` by ``S_xx``, ``S_xy`` and ``S_yy``."""
+    return (
+        (n1[:, 0] ** 2, n2[:, 0] ** 2, n1[:, 0] * n2[:, 0]),
+        (2 * n1[:, 0] * n1[:, 1], 2 * n2[:, 0] * n2[:, 1],
+         n1[:, 0] * n2[:, 1] + n1[:, 1] * n2[:, 0]),
+        (n1[:, 1] ** 2, n2[:, 1] ** 2, n1[:, 1] * n2[:, 1]),
+    )
 
 
 def _sheppard_by_rho(h: np.ndarray, k: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -635,9 +710,13 @@ class RefineResult:
     offset : (K,) ndarray
         ``b``.
     sigma : (K,) ndarray
-        Gaussian PSF sd, px (fitted or the fixed value).
+        Gaussian PSF sd, px (fitted or the fixed value); for an anisotropic PSF the root mean
+        square of its two principal sds, ``sqrt(tr(psf_cov) / 2)``.
     n_iter : (K,) ndarray
         Levenberg-Marquardt iterations.
+    psf_cov : (K, 2, 2) ndarray
+        Covariance of the Gaussian PSF, px^2, rows and columns in (x, y) order: ``sigma^2 I``
+        for an isotropic blur. ``sigma`` is ``sqrt(tr(psf_cov) / 2)``.
     """
 
     points: np.ndarray
@@ -649,6 +728,7 @@ class RefineResult:
     offset: np.ndarray
     sigma: np.ndarray
     n_iter: np.ndarray
+    psf_cov: np.ndarray
 
 
 def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
@@ -727,6 +807,8 @@ def refine_corners(
     max_iter: int = 30,
     tol: float = 1e-5,
     chunk: int = 256,
+    max_window: int | None = None,
+    anisotropic: bool = True,
 ) -> RefineResult:
     """Model-based subpixel refinement of chessboard X-junctions.
 
@@ -746,6 +828,14 @@ def refine_corners(
     exact (module docstring) and the fit ends on it. The covariance is ``s^2 (J^T J)^-1``
     (position block) with ``s^2 = RSS / (n - P)``.
 
+    With ``sigma='shared'`` the blur may come out anisotropic: a Gaussian PSF of covariance
+    ``S`` (module docstring), fixed for every corner, chosen only when up to 48 corners' own
+    fits of ``S`` find an anisotropy beyond its noise (chi^2 test of the median of
+    ``((S_xx - S_yy) / 2, S_xy)`` at p = 0.001) and a major over minor sd of at least 1.25; an
+    isotropic blur keeps the isotropic model. With ``max_window`` the window then grows to
+    ``ceil(3 sigma_major) + 2`` px (at most ``max_window``), so that it holds the blurred
+    edges.
+
     Parameters
     ----------
     image : (H, W) ndarray
@@ -757,7 +847,8 @@ def refine_corners(
     sigma : float, 'shared' or None
         Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it per
         corner, takes the median over converged corners and refits every corner with that value
-        fixed (a two-stage estimate of one common blur).
+        fixed (a two-stage estimate of one common blur), or with the shared anisotropic
+        covariance when the data ask for it (see above).
     pixel_model : {'quadrature', 'gaussian'}
         Pixel integration model for the final iterations.
     n_sub : int, optional
@@ -770,6 +861,12 @@ def refine_corners(
     chunk : int
         Corners per vectorised batch (bounds memory: about ``chunk * M * n_sub^2 * 16``
         doubles per temporary array, ``M = (2 window + 1)^2``).
+    max_window : int, optional
+        Largest half-size the window may grow to with a fixed or shared blur,
+        ``ceil(3 sigma_major) + 2``; None keeps ``window``. Neighbouring corners must lie
+        outside it.
+    anisotropic : bool
+        With ``sigma='shared'``, allow the anisotropic PSF; False keeps the isotropic one.
 
     Returns
     -------
@@ -800,47 +897,58 @@ def refine_corners(
         raise ValueError(f"window must be >= 2, got {window}")
     if isinstance(sigma, str) and sigma != "shared":
         raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
+    if pixel_model not in ("quadrature", "gaussian"):
+        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+    max_window = window if max_window is None else max(int(max_window), window)
     K = pts.shape[0]
     out = RefineResult(
         points=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
         rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan), contrast=np.full(K, np.nan),
         offset=np.full(K, np.nan), sigma=np.full(K, np.nan), n_iter=np.zeros(K, int),
+        psf_cov=np.full((K, 2, 2), np.nan),
     )
     chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
               for s in range(0, K, chunk)]
     gaussian_only = pixel_model == "gaussian"
+    blur: float | np.ndarray | None = sigma
     if sigma == "shared":
-        # Stage 1 fits the blur per corner with the cheap pixel model; stage 2 fixes the median.
+        blur = _shared_blur(img, chunks, window, max_window, max_iter,
+                            tol if gaussian_only else 1e-3, anisotropic)
+    if blur is not None:
+        grown = _blur_window(blur, window, max_window)
         for c in chunks:
-            c.fit(None, "gaussian", 1, max_iter, tol if gaussian_only else 1e-3)
-        fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
-        good = np.isfinite(fitted)
-        sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
-        for c in chunks:
-            c.drop_sigma(sigma)
-    if not gaussian_only:
-        # The cheap model brings every corner close (its iterations cost a fraction of a
-        # quadrature one), so the quadrature stage only polishes (docs/performance.md).
-        for c in chunks:
-            c.fit(sigma, "gaussian", 1, max_iter, 1e-3)
-    # From a blur of _GAUSSIAN_PIXEL_SIGMA on, the variance-matched Gaussian pixel model is as
-    # good as the quadrature on noise-free corners (module docstring).
-    cheap = gaussian_only or (sigma is not None and sigma >= _GAUSSIAN_PIXEL_SIGMA)
-    for c in chunks:
-        if cheap:
-            c.fit(sigma, "gaussian", 1, max_iter, tol)
-        else:
-            # A corner the cheap model brought close converges in a few of these iterations;
-            # one it did not rarely does at all, and must not cost max_iter quadrature ones.
-            budget = np.where(c.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
-            c.fit(sigma, "quadrature", n_sub or auto_n_sub(c.smallest_sigma(sigma)),
-                  budget, tol)
-        c.store(out, sigma)
+            c.regrow(img, grown)
+            c.fix_blur(blur)
+    # From a blur of _GAUSSIAN_PIXEL_SIGMA across both edges on, the variance-matched Gaussian
+    # pixel model is as good as the quadrature on noise-free corners (module docstring): such
+    # corners are fitted on it alone.
+    for whole in chunks:
+        cheap = np.full(len(whole.p), gaussian_only)
+        if blur is not None and not gaussian_only:
+            cheap = whole.edge_sd(blur) >= _GAUSSIAN_PIXEL_SIGMA
+        fine = whole.subset(~cheap)
+        if len(fine.p):
+            # The cheap model brings every corner close (its iterations cost a fraction of a
+            # quadrature one), so the quadrature stage only polishes (docs/performance.md). A
+            # corner it brought close converges in a few of these iterations; one it did not
+            # rarely does at all, and must not cost max_iter quadrature ones.
+            fine.fit(blur, "gaussian", 1, max_iter, 1e-3)
+            budget = np.where(fine.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
+            fine.fit(blur, "quadrature", n_sub or auto_n_sub(fine.smallest_sigma(blur)),
+                     budget, tol)
+            fine.store(out, blur)
+        coarse = whole.subset(cheap)
+        if len(coarse.p):
+            coarse.fit(blur, "gaussian", 1, max_iter, tol)
+            coarse.store(out, blur)
     return out
 
 
 _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corners
 _GAUSSIAN_PIXEL_SIGMA = 1.0  # px; a fixed or shared blur from which the cheap model is final
+_ANISO_SAMPLE = 48  # corners whose own anisotropic fits estimate the shared PSF covariance
+_ANISO_CHI2 = 13.8  # chi^2 (2 dof) at p = 0.001: the anisotropy is beyond its noise
+_ANISO_MIN_RATIO = 1.25  # major over minor PSF sd from which the anisotropy is used
 
 
 def _rho_node_counts(rho_abs: np.ndarray) -> np.ndarray:
@@ -848,19 +956,88 @@ def _rho_node_counts(rho_abs: np.ndarray) -> np.ndarray:
     return np.where(rho_abs <= 0.75, 6, np.where(rho_abs <= 0.9, 10, 16))
 
 
+def _cov_entries(sd: float) -> np.ndarray:
+    """``(S_xx, S_xy, S_yy)`` of the isotropic covariance ``sd^2 I``."""
+    return np.array([sd * sd, 0.0, sd * sd])
+
+
+def _cov_eig_sd(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Minor and major sd (px) of covariances given as ``(..., 3)`` entries ``(S_xx, S_xy,
+    S_yy)``: the square roots of the eigenvalues ``tr / 2 -+ sqrt(((S_xx - S_yy) / 2)^2 +
+    S_xy^2)``."""
+    cov = np.asarray(cov, dtype=float)
+    half_tr = 0.5 * (cov[..., 0] + cov[..., 2])
+    d = np.hypot(0.5 * (cov[..., 0] - cov[..., 2]), cov[..., 1])
+    return np.sqrt(np.maximum(half_tr - d, 0.0)), np.sqrt(np.maximum(half_tr + d, 0.0))
+
+
+def _minor_sd(blur: float | np.ndarray) -> float:
+    """Smallest PSF sd, px, of a fixed blur (sd or covariance entries)."""
+    return float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[0])
+
+
+def _blur_window(blur: float | np.ndarray, window: int, max_window: int) -> int:
+    """Half-size that holds ``3 sigma_major + 2`` px of the blurred edges, in
+    ``[window, max_window]``."""
+    major = float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[1])
+    return int(np.clip(np.ceil(3.0 * major) + 2, window, max_window))
+
+
+def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_window: int,
+                 max_iter: int, tol: float, anisotropic: bool) -> float | np.ndarray:
+    """The blur shared by the image's corners: an sd (px) or, when the data ask for it, the
+    entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance.
+
+    Every corner's blur is fitted (Gaussian pixel model); the median over converged corners is
+    the isotropic estimate ``sigma``. With ``anisotropic``, up to ``_ANISO_SAMPLE`` corners
+    spread over the list are refitted, in a window grown for ``sigma``, with their own
+    covariance ``S_k``; the anisotropy ``d_k = ((S_xx - S_yy) / 2, S_xy)`` is 0 for an
+    isotropic PSF. Its median ``d`` over converged corners, with per-component standard errors
+    ``se_j = 1.2533 * 1.4826 MAD_j / sqrt(n)`` (median of a normal sample), is significant when
+    ``sum_j (d_j / se_j)^2 > _ANISO_CHI2``; the covariance (median of each entry) is used only
+    when it is also physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
+    """
+    for c in chunks:
+        c.fit(None, "gaussian", 1, max_iter, tol)
+    fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
+    good = np.isfinite(fitted)
+    sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
+    if not anisotropic or good.sum() < 8:
+        return sigma
+    points = np.concatenate([c.p[:, :2] + c.origin for c in chunks])[good]
+    pick = np.unique(np.linspace(0, len(points) - 1, _ANISO_SAMPLE).round().astype(int))
+    sample = _CornerChunk.start(img, points[pick], _blur_window(sigma, window, max_window),
+                                slice(0, len(pick)))
+    sample.fit(sigma, "gaussian", 1, max_iter, tol)
+    sample.fit(_cov_entries(sigma), "gaussian", 1, max_iter, tol, free=True)
+    cov = sample.p[sample.lm.converged, 6:9]
+    if len(cov) < 8:
+        return sigma
+    d = np.column_stack([0.5 * (cov[:, 0] - cov[:, 2]), cov[:, 1]])
+    d_med = np.median(d, axis=0)
+    se = 1.2533 * 1.4826 * np.median(np.abs(d - d_med), axis=0) / np.sqrt(len(d))
+    shared = np.median(cov, axis=0)
+    minor, major = _cov_eig_sd(shared)
+    significant = np.sum((d_med / np.maximum(se, 1e-12)) ** 2) > _ANISO_CHI2
+    if significant and minor > 0 and major >= _ANISO_MIN_RATIO * minor:
+        return shared
+    return sigma
+
+
 @dataclass
 class _CornerChunk:
     """The windows of a batch of corners and the state of their fit, carried across stages.
 
-    ``p`` holds ``(cx, cy, alpha1, alpha2, a, b[, log sigma])`` in window coordinates (origin at
-    the pixel ``origin``); ``lm`` is the last stage's Levenberg-Marquardt output.
+    ``p`` holds ``(cx, cy, alpha1, alpha2, a, b)`` in window coordinates (origin at the pixel
+    ``origin``), followed by the fitted blur when it is fitted: ``log sigma`` or the covariance
+    entries ``(S_xx, S_xy, S_yy)``; ``lm`` is the last stage's Levenberg-Marquardt output.
     """
 
     data: np.ndarray
     weights: np.ndarray
     origin: np.ndarray
     window: int
-    where: slice
+    where: slice | np.ndarray
     p: np.ndarray
     lm: _LMOut | None = None
     n_iter: np.ndarray | None = None
@@ -879,26 +1056,42 @@ class _CornerChunk:
         p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
         return cls(data, wts, origin, window, where, p0, None, np.zeros(n, int))
 
-    def fit(self, sigma: float | None, model: PixelModel, n_sub: int,
-            max_iter: int | np.ndarray, tol: float) -> None:
-        """One Levenberg-Marquardt stage; ``sigma=None`` fits ``log sigma`` per corner;
-        ``max_iter`` is one cap or one per corner."""
+    def fit(self, blur: float | np.ndarray | None, model: PixelModel, n_sub: int,
+            max_iter: int | np.ndarray, tol: float, free: bool = False) -> None:
+        """One Levenberg-Marquardt stage. ``blur`` is a fixed sd (px) or covariance entries
+        ``(S_xx, S_xy, S_yy)`` (px^2); None fits ``log sigma`` per corner; ``free=True`` fits
+        the covariance per corner starting from ``blur``. ``max_iter`` is one cap or one per
+        corner."""
         xy = _window_grid(self.window)
-        fit_sigma = sigma is None
-        p = self.p
-        if fit_sigma and p.shape[1] == 6:
-            p = np.column_stack([p, np.zeros(len(p))])  # log sigma = 0: sigma starts at 1 px
-        n_par = p.shape[1]
+        n = len(self.p)
+        if blur is None:
+            n_par = 7
+            p = self.p if self.p.shape[1] == 7 else np.column_stack([self.p[:, :6], np.zeros(n)])
+        elif free:
+            n_par = 9
+            p = np.column_stack([self.p[:, :6], np.broadcast_to(blur, (n, 3))])
+        else:
+            n_par = 6
+            p = self.p[:, :6]
+            fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
 
         def fun(q, idx):
-            s = np.exp(q[:, 6]) if fit_sigma else np.full(len(q), float(sigma))
-            f, jac = _xj_eval(q[:, :6], s, xy, model, n_sub)
+            if n_par == 7:
+                b_ = np.exp(q[:, 6])
+            elif n_par == 9:
+                b_ = q[:, 6:9]
+            else:
+                b_ = fixed[idx]
+            f, jac = _xj_eval(q[:, :6], b_, xy, model, n_sub)
             return f, jac[..., :n_par]
 
         def valid(q):
             ok = np.all(np.abs(q[:, :2]) < self.window, axis=1)
-            if fit_sigma:
+            if n_par == 7:
                 ok &= (q[:, 6] > np.log(0.05)) & (q[:, 6] < np.log(self.window))
+            elif n_par == 9:
+                minor, major = _cov_eig_sd(q[:, 6:9])
+                ok &= (minor > 0.05) & (major < self.window)
             return ok
 
         self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
@@ -910,26 +1103,67 @@ class _CornerChunk:
         """Per-corner fitted blur, px; NaN where the stage did not converge."""
         return np.where(self.lm.converged, np.exp(self.p[:, 6]), np.nan)
 
-    def drop_sigma(self, sigma: float) -> None:
-        """Fix the blur for the next stage (``a, b`` refitted for it)."""
+    def regrow(self, img: np.ndarray, window: int) -> None:
+        """Re-extract the windows with half-size ``window`` around the current corners."""
+        if window == self.window:
+            return
+        pts = self.p[:, :2] + self.origin
+        self.data, self.weights, origin = _extract(img, pts, window)
+        self.p = self.p.copy()
+        self.p[:, :2] = pts - origin
+        self.origin, self.window = origin, window
+
+    def fix_blur(self, blur: float | np.ndarray) -> None:
+        """Fix the blur (sd or covariance entries) for the next stage (``a, b`` refitted)."""
         self.p = self.p[:, :6].copy()
-        pix, _ = _xj_eval(self.p, np.full(len(self.p), sigma), _window_grid(self.window),
-                          "gaussian", 1, jacobian=False)
+        n = len(self.p)
+        self.p[:, 4], self.p[:, 5] = 1.0, 0.0  # so that the model below is the pattern P
+        fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
+        pix, _ = _xj_eval(self.p, fixed, _window_grid(self.window), "gaussian", 1,
+                          jacobian=False)
         self.p[:, 4], self.p[:, 5] = _linear_ab(pix, self.data, self.weights)
 
-    def smallest_sigma(self, sigma: float | None) -> float:
-        """The smallest blur of the batch, for the pixel quadrature's order."""
-        if sigma is not None:
-            return float(sigma)
+    def edge_sd(self, blur: float | np.ndarray) -> np.ndarray:
+        """Per corner, the smaller blur across its two edges, px: ``sqrt(n_i^T S n_i)`` for a
+        fixed covariance ``S``, ``sigma`` for a fixed sd."""
+        if np.ndim(blur) == 0:
+            return np.full(len(self.p), float(blur))
+        a = self.p[:, 2:4]
+        normals = np.stack([-np.sin(a), np.cos(a)], axis=-1).reshape(-1, 2)
+        v, _, _ = _blur_variances(np.tile(np.asarray(blur, float), (len(normals), 1)),
+                                  normals, normals)
+        return np.sqrt(v.reshape(-1, 2).min(axis=1))
+
+    def smallest_sigma(self, blur: float | np.ndarray | None) -> float:
+        """The smallest blur of the batch (across an edge, for a fixed covariance), px, for the
+        pixel quadrature's order."""
+        if blur is not None:
+            return float(self.edge_sd(blur).min(initial=np.inf)) if len(self.p) else 1.0
         fitted = self.sigma_fitted()
         return float(np.nanmin(fitted)) if np.any(np.isfinite(fitted)) else 1.0
 
-    def store(self, out: RefineResult, sigma: float | None) -> None:
+    def subset(self, keep: np.ndarray) -> _CornerChunk:
+        """The corners ``keep`` (bool mask) of this batch, with their fit state."""
+        where = (np.arange(self.where.start, self.where.stop)
+                 if isinstance(self.where, slice) else self.where)
+        lm = None if self.lm is None else _LMOut(
+            self.lm.p[keep], self.lm.jac[keep], self.lm.resid[keep], self.lm.cost[keep],
+            self.lm.converged[keep], self.lm.n_iter[keep])
+        return _CornerChunk(self.data[keep], self.weights[keep], self.origin[keep],
+                            self.window, where[keep], self.p[keep], lm, self.n_iter[keep])
+
+    def store(self, out: RefineResult, blur: float | np.ndarray | None) -> None:
         """Write the fit into ``out`` with the acceptance tests of :func:`refine_corners`."""
         n_par = self.p.shape[1]
         cov, rms = _covariance(self.lm, self.weights, n_par)
         p = _normalise_xj(self.p)
-        sig = np.exp(p[:, 6]) if sigma is None else np.full(len(p), float(sigma))
+        n = len(p)
+        if blur is None:
+            entries = np.exp(2.0 * p[:, 6])[:, None] * np.array([1.0, 0.0, 1.0])
+        elif np.ndim(blur) == 0:
+            entries = np.tile(_cov_entries(float(blur)), (n, 1))
+        else:
+            entries = np.tile(np.asarray(blur, float), (n, 1))
         d_ang = np.abs(np.sin(p[:, 2] - p[:, 3]))
         ok = (
             self.lm.converged
@@ -946,7 +1180,8 @@ class _CornerChunk:
         out.angles[sl] = p[:, 2:4]
         out.contrast[sl] = p[:, 4]
         out.offset[sl] = p[:, 5]
-        out.sigma[sl] = sig
+        out.sigma[sl] = np.sqrt(0.5 * (entries[:, 0] + entries[:, 2]))
+        out.psf_cov[sl] = entries[:, [0, 1, 1, 2]].reshape(n, 2, 2)
         out.n_iter[sl] = self.n_iter
 
 
