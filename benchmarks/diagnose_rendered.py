@@ -53,6 +53,9 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--axis-tilt", default="", help="TX,TY mrad: the axis-tilt sweep instead")
+    ap.add_argument("--no-keystone", action="store_true",
+                    help="render the axis tilt as the image shift alone, without the tilted "
+                         "sensor's keystone")
     ap.add_argument("--static-decenter", default="",
                     help="X,Y um: the axis-tilt sweep with no tilt and this static decentre of "
                          "the variator instead (the converse check)")
@@ -86,6 +89,7 @@ def main() -> None:
                                                                                  a.settings)))
         render_dataset(lens, tol, out / "set", settings, a.views, a.board,
                        seed=a.seed, sensor=sensor, direction="in", axis_tilt_mrad=tilt,
+                       axis_tilt_keystone=not a.no_keystone,
                        optics=optics)
     else:
         settings = list(np.linspace(0.0, 0.4, 5))

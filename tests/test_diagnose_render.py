@@ -77,7 +77,12 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     """A hidden axis tilt of 0.9-1.0 mrad in a random direction, rendered over the whole zoom
     range (the axis-tilt set of benchmarks/diagnose_rendered.py, seed 12, not one used to
     design it): named with default settings, told from a static decentre by the tangential
-    distortion (which the principal points alone cannot do on this lens, docs/diagnose.md)."""
+    distortion (which the principal points alone cannot do on this lens, docs/diagnose.md).
+
+    Rendered as the image shift ``fx theta`` alone (``axis_tilt_keystone=False``), the axis tilt
+    the diagnosis models. The tilted sensor's keystone, which a calibration can turn into a
+    principal point moved by ``fx theta (1 - f / L)``, is not modelled by the diagnosis yet
+    (docs/diagnose.md, "Axis tilt with the keystone")."""
     rng = np.random.default_rng(20261124)
     angle = rng.uniform(0.0, 2.0 * np.pi)
     truth = rng.uniform(0.9, 1.0) * np.array([np.cos(angle), np.sin(angle)])
@@ -91,7 +96,8 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     settings = list(np.random.default_rng(12).permutation(np.linspace(0.0, 1.0, 8)))
     sensor = Sensor(640, 480, 0.0129)
     render_dataset(lens, tol, tmp_path / "set", settings, 10, "chessboard:9x6:25", seed=12,
-                   sensor=sensor, direction="in", axis_tilt_mrad=tuple(truth))
+                   sensor=sensor, direction="in", axis_tilt_mrad=tuple(truth),
+                   axis_tilt_keystone=False)
     run = diagnose_input(tmp_path / "set", tmp_path / "diag", lens, sensor.pixel_pitch_mm, tol,
                          "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
     doc = read_json(tmp_path / "diag" / "diagnosis.json")

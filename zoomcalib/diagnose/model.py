@@ -161,9 +161,10 @@ def decentring_distortion(lens: Prescription, z: np.ndarray, group: str,
     ``decenter_mm`` ((2,) x, y in the lens frame, mm), from the exact tracer.
 
     A decentred group bends the image (decentring distortion) as well as moving it; a lens
-    axis tilted against the sensor, as rendered (:func:`zoomcalib.render.dataset.render_dataset`),
-    only moves it. So a static decentre large enough to imitate an axis tilt in the principal
-    points shows in ``p1``, ``p2``, which the calibration table holds beside them.
+    axis tilted against the sensor is taken to move it only (the tilted sensor's keystone,
+    :class:`zoomcalib.optics.lens_camera.TiltedSensorMapping`, is not modelled here). So a
+    static decentre large enough to imitate an axis tilt in the principal points shows in
+    ``p1``, ``p2``, which the calibration table holds beside them.
     """
     names = list(lens.group_names)
     if group not in names:

@@ -4,7 +4,8 @@ On ``laikin-10x`` a static decentre of a group moves the principal point almost 
 axis tilt does (its shift per decentre is nearly a straight line in focal length). But a
 decentred group also bends the image: the calibration's tangential distortion ``p1``, ``p2``
 (OpenCV) changes with it (:func:`zoomcalib.diagnose.model.decentring_distortion`), while an
-axis tilt, as rendered, moves the image only. Every row of a calibration table holds ``p1``,
+axis tilt is taken to move the image only (its sensor keystone is not modelled; the renderer
+draws it unless ``axis_tilt_keystone=False``). Every row of a calibration table holds ``p1``,
 ``p2`` and their sigmas beside ``cx``, ``cy``.
 
 :func:`distortion_evidence` fits each candidate cause again with every row's ``p1``, ``p2``

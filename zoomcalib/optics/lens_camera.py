@@ -16,7 +16,7 @@ arrives as a parallel bundle of object-space slope (-x, -y) and is imaged, to fi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
@@ -25,11 +25,12 @@ from scipy.optimize import least_squares
 from ..camera import DEFAULT_SENSOR, CameraModel, Sensor, distort, invert_projection
 from .cam import solve_gaps
 from .misalignment import Misalignment
-from .paraxial import effective_focal_length
+from .paraxial import effective_focal_length, exit_pupil_distance
 from .prescription import Prescription
 from .raytrace import chief_ray_image_real
 
 __all__ = ["LensCamera", "lens_camera", "exact_projection", "fit_camera_model", "ExactMapping",
+           "TiltedSensorMapping", "tilted_sensor",
            "exact_mapping"]
 
 
@@ -214,3 +215,66 @@ def exact_mapping(lens: Prescription, zoom: float, misalignment: Misalignment | 
     du = RectBivariateSpline(xs, ys, res[:, 0].reshape(gx.shape), kx=3, ky=3)
     dv = RectBivariateSpline(xs, ys, res[:, 1].reshape(gx.shape), kx=3, ky=3)
     return ExactMapping(lc.camera, lc, du, dv)
+
+
+@dataclass
+class TiltedSensorMapping:
+    """An :class:`ExactMapping` seen on a sensor tilted against the lens axis.
+
+    The lens is turned by ``theta = (theta_x, theta_y)`` (rad, small) about its rear nodal
+    point. The axis then meets the sensor ``f theta`` from where it met it, and the sensor,
+    tilted by ``theta`` against the lens's image plane, cuts every ray at its distance from
+    that plane: a ray from the exit pupil (``L`` mm in front of the image plane) that reached
+    ``P`` (mm from the axis) meets the sensor at ``P (1 + theta . P / L)`` (first order in
+    ``theta``; the defocus across the sensor is not modelled). In pixels::
+
+        uv = c + (uv_0 - c) (1 + pitch theta . (uv_0 - c) / L) + fx theta
+
+    with ``uv_0`` the untilted image and ``c`` the lens's principal point. ``camera`` is the
+    untilted camera moved by ``fx theta``; the keystone is left to the residual. The keystone
+    has the form of a camera turned by ``theta f / L`` (``f`` the focal length, mm): a
+    calibration can take it into every view's pose and then reports the principal point moved
+    by up to ``fx theta (1 - f / L)`` rather than ``fx theta``; how much it takes depends on the
+    views. ``keystone=False`` gives the image shift alone.
+    """
+
+    base: ExactMapping
+    theta: np.ndarray  # shape (2,), rad
+    exit_pupil_mm: float
+    pixel_pitch_mm: float
+    keystone: bool = True
+
+    @property
+    def camera(self) -> CameraModel:
+        cam = self.base.camera
+        return replace(cam, cx=cam.cx + cam.fx * self.theta[0],
+                       cy=cam.cy + cam.fy * self.theta[1])
+
+    @property
+    def lens_camera(self) -> LensCamera:
+        return self.base.lens_camera
+
+    def project(self, xy: np.ndarray) -> np.ndarray:
+        """(M, 2) normalised coordinates -> (M, 2) pixels on the tilted sensor."""
+        uv0 = self.base.project(xy)
+        c = np.array([self.base.camera.cx, self.base.camera.cy])
+        p = uv0 - c
+        stretch = 1.0 + (self.keystone * self.pixel_pitch_mm * (p @ self.theta)
+                         / self.exit_pupil_mm)
+        shift = np.array([self.base.camera.fx, self.base.camera.fy]) * self.theta
+        return c + p * stretch[:, None] + shift
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        """(M, 2) pixels -> (M, 2) normalised coordinates (inverse of :meth:`project`)."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return invert_projection(self.project, uv, self.camera.unproject_normalized(uv))
+
+
+def tilted_sensor(mapping: ExactMapping, lens: Prescription, zoom: float,
+                  theta_rad: np.ndarray, keystone: bool = True) -> TiltedSensorMapping:
+    """``mapping`` (of ``lens`` at ``zoom``) on a sensor tilted by ``theta_rad`` (2,) against
+    the lens axis (:class:`TiltedSensorMapping`)."""
+    thickness = lens.thickness_at(solve_gaps(lens, [zoom]))[0]
+    return TiltedSensorMapping(mapping, np.asarray(theta_rad, float).reshape(2),
+                               float(exit_pupil_distance(lens, thickness)),
+                               float(mapping.camera.sensor.pixel_pitch_mm), keystone)

@@ -178,6 +178,21 @@ def chief_ray_image(lens: Prescription, thickness: np.ndarray,
     return base.y_image + h * unit.y_image
 
 
+def exit_pupil_distance(lens: Prescription, thickness: np.ndarray) -> np.ndarray:
+    """(...,) distance from the exit pupil to the image plane, mm (positive: the pupil lies in
+    front of the image plane): ``y / u`` of a paraxial chief ray (through the stop's centre)
+    at the image, ``y`` its height and ``u`` its slope there."""
+    shape = np.shape(thickness)[:-1]
+    slope = np.zeros(shape + (2,))
+    slope[..., 0] = 0.01
+    unit = trace_paraxial(lens, thickness, np.ones(shape + (2,)), np.zeros(shape + (2,)))
+    base = trace_paraxial(lens, thickness, np.zeros(shape + (2,)), slope)
+    h = -base.y_stop[..., 0] / unit.y_stop[..., 0]
+    y = base.y_image[..., 0] + h * unit.y_image[..., 0]
+    u = base.u_image[..., 0] + h * unit.u_image[..., 0]
+    return y / u
+
+
 def image_shift_sensitivity(lens: Prescription, thickness: np.ndarray,
                             group: str) -> tuple[np.ndarray, np.ndarray]:
     """Principal-point shift per unit decentre and per unit tilt of one group.

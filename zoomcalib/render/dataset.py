@@ -24,7 +24,7 @@ the surface under ``board_surface``). JPEG compression changes the images only, 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -33,7 +33,7 @@ import numpy as np
 from .. import __version__
 from ..camera import DEFAULT_SENSOR, Sensor
 from ..io import read_json, write_csv, write_json
-from ..optics.lens_camera import exact_mapping
+from ..optics.lens_camera import exact_mapping, tilted_sensor
 from ..optics.mechanics import Tolerances, draw_misalignment
 from ..optics.misalignment import Misalignment
 from ..optics.prescription import Prescription
@@ -220,14 +220,13 @@ def clear_previous_render(out: Path) -> list[Path]:
     return removed
 
 
-def _axis_tilted(em, axis_tilt_mrad):
-    """``em`` with its image moved by ``(fx theta_x, fy theta_y)`` px (see render_dataset)."""
+def _axis_tilted(em, lens, zoom, axis_tilt_mrad, keystone: bool):
+    """``em`` on a sensor tilted by ``axis_tilt_mrad`` against the lens axis: the image moved
+    by ``(fx theta_x, fy theta_y)`` px and, with ``keystone``, the tilted sensor's keystone
+    (:class:`~zoomcalib.optics.lens_camera.TiltedSensorMapping`)."""
     if axis_tilt_mrad is None:
         return em
-    cam = em.camera
-    moved = replace(cam, cx=cam.cx + cam.fx * 1e-3 * axis_tilt_mrad[0],
-                    cy=cam.cy + cam.fy * 1e-3 * axis_tilt_mrad[1])
-    return replace(em, camera=moved)
+    return tilted_sensor(em, lens, zoom, 1e-3 * np.asarray(axis_tilt_mrad, float), keystone)
 
 
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
@@ -239,7 +238,8 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
                    progress: Callable[[int], None] | None = None,
                    board_surface: BoardSurface | float | None = None,
                    jpeg_quality: int | None = None,
-                   axis_tilt_mrad: tuple[float, float] | None = None) -> dict:
+                   axis_tilt_mrad: tuple[float, float] | None = None,
+                   axis_tilt_keystone: bool = True) -> dict:
     """Render a multi-zoom calibration data set (layout in the module docstring).
 
     Parameters
@@ -259,9 +259,13 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     jpeg_quality : int, optional
         Write JPEG files of this quality (1-100, 8-bit images only) instead of PNG.
     axis_tilt_mrad : (float, float), optional
-        The lens's optical axis tilted against the sensor normal by ``(theta_x, theta_y)`` mrad:
-        to first order the image moves by ``(fx theta_x, fy theta_y)`` px at every zoom, which
-        is how it is rendered (the step's ``camera`` carries the moved principal point).
+        The lens's optical axis tilted against the sensor normal by ``(theta_x, theta_y)`` mrad
+        (the lens turned about its rear nodal point): the image moves by
+        ``(fx theta_x, fy theta_y)`` px at every zoom (the step's ``camera`` carries the moved
+        principal point) and the tilted sensor adds its keystone, from the exit pupil's
+        distance (:class:`~zoomcalib.optics.lens_camera.TiltedSensorMapping`).
+    axis_tilt_keystone : bool
+        False renders the axis tilt as the image shift alone, without the keystone.
 
     Returns
     -------
@@ -296,7 +300,8 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     for i, z in enumerate(zoom):
         rng = np.random.default_rng(step_seeds[i])
         mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
-        em = _axis_tilted(exact_mapping(lens, z, mis, sensor), axis_tilt_mrad)
+        em = _axis_tilted(exact_mapping(lens, z, mis, sensor), lens, z, axis_tilt_mrad,
+                          axis_tilt_keystone)
         mapping = em if through == "exact" else camera_mapping(em.camera)
         target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
         try:
@@ -342,6 +347,7 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
         "sensor": asdict(sensor), "seed": seed, "through": through,
         "axis_tilt_mrad": None if axis_tilt_mrad is None else [float(v) for v in axis_tilt_mrad],
+        "axis_tilt_keystone": bool(axis_tilt_keystone) if axis_tilt_mrad is not None else None,
         "tolerances": None if tolerances is None else tolerances.to_dict(),
         "optics": asdict(optics), "radiometry": asdict(radiometry),
         "distance_mm": distance_mm, "fill": fill, "supersample": supersample,
