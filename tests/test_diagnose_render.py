@@ -76,8 +76,9 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
 def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     """A hidden axis tilt of 0.9-1.0 mrad in a random direction, rendered over the whole zoom
     range (the axis-tilt set of benchmarks/diagnose_rendered.py, seed 12, not one used to
-    design it): named with default settings, told from a static decentre by the tangential
-    distortion (which the principal points alone cannot do on this lens, docs/diagnose.md).
+    design it) with the elliptical PSF: named with default settings, told from a static
+    decentre by the tangential distortion (which the principal points alone cannot do on this
+    lens, docs/diagnose.md).
 
     Rendered as the image shift ``fx theta`` alone (``axis_tilt_keystone=False``), the axis tilt
     the diagnosis models. The tilted sensor's keystone, which a calibration can turn into a
@@ -97,7 +98,7 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     sensor = Sensor(640, 480, 0.0129)
     render_dataset(lens, tol, tmp_path / "set", settings, 10, "chessboard:9x6:25", seed=12,
                    sensor=sensor, direction="in", axis_tilt_mrad=tuple(truth),
-                   axis_tilt_keystone=False)
+                   axis_tilt_keystone=False, optics=Optics(psf="elliptical"))
     run = diagnose_input(tmp_path / "set", tmp_path / "diag", lens, sensor.pixel_pitch_mm, tol,
                          "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
     doc = read_json(tmp_path / "diag" / "diagnosis.json")
