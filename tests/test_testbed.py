@@ -339,9 +339,12 @@ def test_cli_render_sweep(tmp_path):
     assert res.exit_code != 0 and "MIN <= MAX" in res.output
 
 
-def test_axis_tilt_moves_the_image_by_fx_theta(tmp_path, laikin):
+@pytest.mark.parametrize("keystone", [False, True])
+def test_axis_tilt_moves_the_image_by_fx_theta(tmp_path, laikin, keystone):
     from zoomcalib.camera import Sensor
     from zoomcalib.io import read_json
+    from zoomcalib.optics.cam import solve_gaps
+    from zoomcalib.optics.paraxial import exit_pupil_distance
     from zoomcalib.render.dataset import render_dataset
 
     sensor = Sensor(160, 120, 0.0516)  # the default field of view, few pixels
@@ -349,13 +352,15 @@ def test_axis_tilt_moves_the_image_by_fx_theta(tmp_path, laikin):
     docs = []
     for name, axis in (("flat", None), ("tilted", tuple(tilt))):
         render_dataset(laikin, None, tmp_path / name, [0.3], 1, "chessboard:5x4:25", seed=2,
-                       sensor=sensor, axis_tilt_mrad=axis)
+                       sensor=sensor, axis_tilt_mrad=axis, axis_tilt_keystone=keystone)
         docs.append(read_json(tmp_path / name / "dataset.json"))
     a, b = (d["steps"][0] for d in docs)
     shift = np.array([a["camera"]["fx"] * tilt[0], a["camera"]["fy"] * tilt[1]]) * 1e-3
     np.testing.assert_allclose([b["camera"]["cx"] - a["camera"]["cx"],
                                 b["camera"]["cy"] - a["camera"]["cy"]], shift, atol=1e-9)
     # the tilted set's truth is the untilted lens's projection of the same pose, moved by shift
+    # and, with the keystone, stretched about the principal point c by
+    # (1 + pitch theta . (uv - c) / L), L the exit pupil's distance from the image plane
     from zoomcalib.optics.lens_camera import exact_mapping
     from zoomcalib.render.image import project_points
     from zoomcalib.targets import parse_pattern
@@ -365,9 +370,15 @@ def test_axis_tilt_moves_the_image_by_fx_theta(tmp_path, laikin):
     board = parse_pattern(b["target"]).object_points
     plain = project_points(board, exact_mapping(laikin, 0.3, None, sensor), R,
                            np.asarray(view["tvec"]))
+    expected = plain + shift
+    if keystone:
+        c = np.array([a["camera"]["cx"], a["camera"]["cy"]])
+        pupil = exit_pupil_distance(laikin, laikin.thickness_at(solve_gaps(laikin, [0.3]))[0])
+        d = plain - c
+        expected += d * (sensor.pixel_pitch_mm * (d @ (1e-3 * tilt)) / pupil)[:, None]
+        assert np.abs(expected - plain - shift).max() > 1e-3  # the keystone shows at this size
     # 1e-4 px: the mapping rebuilt here (no misalignment object) is fitted anew, 4e-5 px apart
-    np.testing.assert_allclose(np.asarray(view["points_px"]) - plain,
-                               np.broadcast_to(shift, plain.shape), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(view["points_px"]), expected, atol=1e-4)
     assert docs[1]["axis_tilt_mrad"] == pytest.approx(list(tilt))
 
 
