@@ -50,8 +50,10 @@ def one_draw(args: tuple[str | None, int, tuple[float, float]]) -> dict:
            "noise": truth["noise_rms_px"], "cv_base": d.baseline.cv_rms_px, "z": []}
     if d.extended is not None:
         out["cv_ext"] = d.extended.fit.cv_rms_px
-        params, sds = d.extended.fit.param_dict(d.extended.n_baseline)
-        if d.cause == truth["cause"]:
+        own = [s for s in d.causes if s.cause == truth["cause"]]
+        if d.cause == truth["cause"] and own:
+            # the hidden cause's own parameters (another selected cause may share their names)
+            params, sds = own[0].params, own[0].params_sd
             out["z"] = [(params[k] - v) / sds[k] for k, v in truth["params"].items()
                         if k in params]
     return out

@@ -227,8 +227,12 @@ class LinearFit:
         return float(np.sqrt(np.mean(self.cv_residual_px ** 2 / v[:, None])))
 
     def param_dict(self, skip: int = 0) -> tuple[dict[str, float], dict[str, float]]:
-        """Values and 1-sigma of the parameters after the first ``skip`` ones."""
-        names = self.names[skip:]
+        """Values and 1-sigma of the parameters after the first ``skip`` ones. A name that two
+        terms share (e.g. a static decentre and a cam harmonic of one group) is qualified by
+        its term's name, ``"variator_x_um (cam harmonic, variator)"``."""
+        labels = [(p, t.name) for t in self.terms for p in t.params][skip:]
+        repeated = {p for p, _ in labels if sum(q == p for q, _ in labels) > 1}
+        names = [f"{p} ({term})" if p in repeated else p for p, term in labels]
         return ({n: float(v) for n, v in zip(names, self.params[skip:], strict=True)},
                 {n: float(s) for n, s in zip(names, self.sd[skip:], strict=True)})
 
@@ -428,11 +432,12 @@ def _describe(fitter: Fitter, base, chosen, final) -> None:
     """Fill in each chosen cause's ``drop_bic`` and parameters from the final model."""
     drops = _drop_each(fitter, base, chosen)
     start = sum(len(t.params) for t in base)
+    names = final.names
     for s, without in zip(chosen, drops, strict=True):
         k = sum(len(t.params) for t in s.terms)
-        params, sds = final.param_dict(start)
-        s.params = dict(list(params.items())[:k])
-        s.params_sd = dict(list(sds.items())[:k])
+        own = slice(start, start + k)
+        s.params = dict(zip(names[own], final.params[own].tolist(), strict=True))
+        s.params_sd = dict(zip(names[own], final.sd[own].tolist(), strict=True))
         s.drop_bic = float(without.bic - final.bic)
         start += k
     chosen.sort(key=lambda s: -s.drop_bic)
