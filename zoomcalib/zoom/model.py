@@ -333,21 +333,10 @@ class ZoomIntrinsics:
     sd: dict[str, float]
     extrapolated: bool = False
 
-    @property
-    def fx(self) -> float:
-        return self.values["fx"]
-
-    @property
-    def fy(self) -> float:
-        return self.values["fy"]
-
-    @property
-    def cx(self) -> float:
-        return self.values["cx"]
-
-    @property
-    def cy(self) -> float:
-        return self.values["cy"]
+    fx = property(lambda self: self.values["fx"], doc="Focal length along u, px.")
+    fy = property(lambda self: self.values["fy"], doc="Focal length along v, px.")
+    cx = property(lambda self: self.values["cx"], doc="Principal point u, px.")
+    cy = property(lambda self: self.values["cy"], doc="Principal point v, px.")
 
     @property
     def K(self) -> np.ndarray:
