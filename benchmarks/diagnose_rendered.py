@@ -132,7 +132,13 @@ def main() -> None:
     if ev:
         print(f"distortion evidence (p scale {ev['p_scale']:.2f}): " + ", ".join(
             f"{c} dBIC {v['delta_bic']:.1f}" for c, v in ev["causes"].items())
-              + f"; margin {ev['margin']:.1f}, excluded: {ev['excluded'] or '-'}")
+              + f"; margin {ev['margin']:.1f}, excluded: {ev['excluded'] or '-'}, required: "
+              f"{ev.get('required') or '-'}")
+        if tilt:
+            joint = ev["causes"]["axis_tilt"]
+            print("axis_tilt on p1, p2 too: " + ", ".join(
+                f"{k} = {v:.2f} +- {joint['params_sd'][k]:.2f} (hidden {t:.2f})"
+                for (k, v), t in zip(joint["params"].items(), truth, strict=True)))
 
 
 if __name__ == "__main__":

@@ -78,6 +78,7 @@ from zoomcalib.detect.opencv import IMAGE_EXTENSIONS, image_files
 from zoomcalib.io import read_json
 
 __all__ = [
+    "KEYSTONE_COLUMNS",
     "ZOOM_TABLE_COLUMNS",
     "ZOOM_TABLE_OPTIONAL",
     "ZOOM_TABLE_REQUIRED",
@@ -92,6 +93,11 @@ __all__ = [
     "zoom_steps",
 ]
 
+#: A calibration's response to a keystone of the image, as the rows (cx, cy) of the absorption
+#: ``A`` and (p1, p2) of ``B``, columns per camera-turn equivalent ``eps_x``, ``eps_y``
+#: (:func:`zoomcalib.calibrate.opencv_backend.keystone_response`).
+KEYSTONE_COLUMNS: tuple[str, ...] = tuple(f"keystone_{q}_{axis}" for q in ("cx", "cy", "p1", "p2")
+                                          for axis in "xy")
 #: Columns of ``zoom_calibration.csv``, always written, in this order.
 ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
     "step", "zoom", "fx", "fy", "cx", "cy", "sd_fx", "sd_fy", "sd_cx", "sd_cy",
@@ -100,7 +106,8 @@ ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
 ZOOM_TABLE_OPTIONAL: tuple[str, ...] = (
     "direction", "sequence", "focus", "temperature", "backend", "mode", "converged", "flags",
     "k4", "k5", "k6",
-    "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6")
+    "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6",
+    *KEYSTONE_COLUMNS)
 #: Columns :func:`read_zoom_table` cannot do without.
 ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
 

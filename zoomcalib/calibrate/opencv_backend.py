@@ -312,19 +312,12 @@ def _free_camera_columns(flags: int, n_dist: int, K: np.ndarray) -> np.ndarray:
     return np.array(cols).T
 
 
-def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
-                  dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, flags: int,
-                  n_dist: int) -> float:
-    r"""Length of the Gauss-Newton step left at OpenCV's solution, in sigma.
-
-    ``cv2.calibrateCamera*`` does not say how many iterations it used nor why it stopped, so
-    the solution is checked instead: with the Jacobian ``J`` of the reprojection errors ``r``
-    over the parameters OpenCV adjusted (camera under ``flags``, every pose; a released target
-    is held at its refined points), the step ``d = -N^-1 J^T r`` (``N = J^T J``) has length
-    ``sqrt(d^T N d / s^2)`` in the metric of the covariance ``s^2 N^-1``
-    (``s^2 = |r|^2 / (2 N_obs - n_unknowns)``): the largest distance, in 1-sigma, of any
-    parameter or combination of them from the stationary point. ``inf`` if ``N`` is singular.
-    """
+def _problem_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
+                         dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, flags: int,
+                         n_dist: int) -> tuple[_Problem, _State]:
+    """The bundle's least-squares problem over the parameters OpenCV adjusted under ``flags``
+    (camera, every pose; a released target held at its refined points), observing ``img``,
+    and OpenCV's solution as its state."""
     ids = [np.arange(len(o)) for o in obj]
     offsets = np.cumsum([0] + [len(o) for o in obj])
     points = np.concatenate([np.asarray(o, np.float64).reshape(-1, 3) for o in obj])
@@ -338,6 +331,23 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
     prob = _Problem(vi, pi, uv, np.ones(len(vi)), len(obj), len(points), cam_map,
                     np.zeros((len(points), 3), bool), points, None, 0.0)
     state = _State(cam, np.asarray(rvecs, np.float64), np.asarray(tvecs, np.float64), points)
+    return prob, state
+
+
+def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
+                  dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, flags: int,
+                  n_dist: int) -> float:
+    r"""Length of the Gauss-Newton step left at OpenCV's solution, in sigma.
+
+    ``cv2.calibrateCamera*`` does not say how many iterations it used nor why it stopped, so
+    the solution is checked instead: with the Jacobian ``J`` of the reprojection errors ``r``
+    over the parameters OpenCV adjusted (camera under ``flags``, every pose; a released target
+    is held at its refined points), the step ``d = -N^-1 J^T r`` (``N = J^T J``) has length
+    ``sqrt(d^T N d / s^2)`` in the metric of the covariance ``s^2 N^-1``
+    (``s^2 = |r|^2 / (2 N_obs - n_unknowns)``): the largest distance, in 1-sigma, of any
+    parameter or combination of them from the stationary point. ``inf`` if ``N`` is singular.
+    """
+    prob, state = _problem_at_solution(obj, img, K, dist, rvecs, tvecs, flags, n_dist)
     U, W, V, g, gp, r = prob.normal_equations(state)
     sol = _schur_solve(U, W, V, g, gp, 0.0)
     dof = 2 * prob.N - prob.n_unknowns
@@ -345,6 +355,51 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
     if sol is None or not s2 > 0:
         return float("inf")
     return float(np.sqrt(max(sol[2], 0.0) / s2))
+
+
+def keystone_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
+                      rvecs: np.ndarray, tvecs: np.ndarray, flags: int = 0,
+                      n_dist: int = 5) -> dict[str, np.ndarray] | None:
+    r"""How a calibration answers a keystone of the image (a sensor tilted against the lens).
+
+    A keystone moves every image point ``uv`` to ``uv + p (p . kappa)``, ``p = uv - c`` (px
+    from the principal point), ``kappa`` (2,) in 1/px (``kappa = pitch theta / L`` for a
+    sensor tilted by ``theta`` rad with the exit pupil ``L`` mm in front of it). To first order
+    it is the image of a camera turned by ``eps = f kappa`` (rad, ``f = (fx, fy)``) whose
+    principal point moved by ``-f eps``, so a calibration can take it into the poses; how much
+    it takes depends on the views and on the terms fitted (the distortion trades with it at a
+    long focal length), not only on the lens. Linearised at the solution, per ``eps``:
+
+        dc = -diag(f) A eps        (px; A = I: the keystone went into the poses and c,
+                                    A = 0: it stayed in the residuals)
+        d(p1, p2) = B eps          (OpenCV's tangential terms)
+
+    The response is the Gauss-Newton step ``N^-1 J^T delta`` of the problem over the
+    parameters OpenCV adjusted (``flags``; poses included) for ``delta`` the keystone of a unit
+    ``eps_x``, then ``eps_y`` (scaled down to stay linear), at the solution's own projections.
+
+    Returns
+    -------
+    dict or None
+        ``absorption`` A (2, 2) and ``tangential`` B (2, 2), dimensionless, rows (x, y) resp.
+        (p1, p2), columns (eps_x, eps_y); None when ``N`` is singular.
+    """
+    proj = [cv2.projectPoints(np.asarray(o, np.float64), np.asarray(r, np.float64),
+                              np.asarray(t, np.float64), K, dist)[0].reshape(-1, 2)
+            for o, r, t in zip(obj, rvecs, tvecs, strict=True)]
+    centre, f = K[[0, 1], [2, 2]], K[[0, 1], [0, 1]]
+    eps = 1e-6
+    response = np.zeros((12, 2))
+    for j in range(2):
+        kappa = np.eye(2)[j] * eps / f[j]
+        moved = [p + (p - centre) * ((p - centre) @ kappa)[:, None] for p in proj]
+        prob, state = _problem_at_solution(obj, moved, K, dist, rvecs, tvecs, flags, n_dist)
+        U, W, V, g, gp, _ = prob.normal_equations(state)
+        sol = _schur_solve(U, W, V, g, gp, 0.0)
+        if sol is None:
+            return None
+        response[:, j] = prob.cam_map @ sol[0][:prob.nc] / eps
+    return {"absorption": -response[2:4] / f[:, None], "tangential": response[6:8]}
 
 
 def _convergence(obj, img, K, dist, rv, tv, flags: int, n_dist: int, criteria) -> dict:
@@ -433,6 +488,10 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     }
     if notes:
         info["notes"] = notes
+    if backend == "opencv":  # the object-releasing fit moves the target too: not modelled
+        response = keystone_response(obj, K, dist, rv, tv, flags, n_dist)
+        if response is not None:
+            info["keystone_response"] = {k: v.tolist() for k, v in response.items()}
     return CalibrationResult(backend, K, dist, sd, rms, per_view, rv, tv, info=info), invalid
 
 

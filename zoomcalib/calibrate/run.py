@@ -50,7 +50,13 @@ from .guards import (
     step_file_stems,
     write_manifest,
 )
-from .io import ignored_top_images, write_calibration, write_zoom_table, zoom_steps
+from .io import (
+    KEYSTONE_COLUMNS,
+    ignored_top_images,
+    write_calibration,
+    write_zoom_table,
+    zoom_steps,
+)
 from .opencv_backend import calibrate_opencv, observations_from_detections
 from .result import DIST_NAMES, CalibrationResult, Observations
 
@@ -187,6 +193,10 @@ def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResu
         row[f"sd_{name}"] = res.sd.get(name, np.nan)
     row["rms_px"] = res.rms_px
     row["n_views"] = len(res.per_view_rms_px)
+    keystone = res.info.get("keystone_response")
+    if keystone:
+        values = np.vstack([keystone["absorption"], keystone["tangential"]]).ravel()
+        row.update(zip(KEYSTONE_COLUMNS, values.tolist(), strict=True))
     for k in ("direction", "sequence", "focus", "temperature"):
         if extras.get(k) not in (None, ""):
             row[k] = extras[k]

@@ -342,6 +342,8 @@ class Selected:
 
     ``drop_bic`` is the rise of the BIC when the cause is taken out of the selected model (the
     larger, the stronger the evidence); ``params``/``params_sd`` its parameters in that model.
+    ``evidence``: why the cause is in the model when other evidence than the principal points
+    put it there (:func:`select_causes` ``required``), else empty.
     """
 
     cause: str
@@ -349,14 +351,16 @@ class Selected:
     drop_bic: float = 0.0
     params: dict = field(default_factory=dict)
     params_sd: dict = field(default_factory=dict)
+    evidence: str = ""
 
     @property
     def variant(self) -> str:
         return " + ".join(t.name for t in self.terms)
 
     def to_dict(self) -> dict:
-        return {"cause": self.cause, "variant": self.variant, "drop_bic": self.drop_bic,
-                "params": self.params, "params_sd": self.params_sd}
+        out = {"cause": self.cause, "variant": self.variant, "drop_bic": self.drop_bic,
+               "params": self.params, "params_sd": self.params_sd}
+        return out | ({"evidence": self.evidence} if self.evidence else {})
 
 
 def _with(base: tuple[Term, ...], chosen: list[Selected]) -> tuple[Term, ...]:
@@ -381,7 +385,8 @@ def _best_variant(fitter: Fitter, base, chosen, cause, options
 
 
 def select_causes(fitter: Fitter, base: tuple[Term, ...],
-                  variants: dict[str, list[tuple[Term, ...]]]
+                  variants: dict[str, list[tuple[Term, ...]]],
+                  required: dict[str, str] | None = None
                   ) -> tuple[LinearFit, list[Selected]]:
     """Forward-backward selection of causes over the baseline.
 
@@ -389,15 +394,17 @@ def select_causes(fitter: Fitter, base: tuple[Term, ...],
     when it beats the current model (:data:`BIC_MARGIN` and held-out normalised residuals).
     Backward: the cause whose removal raises the BIC least leaves when that rise is below
     :data:`BIC_MARGIN`. Repeated until nothing changes (a set of causes is entered once),
-    with at most :data:`MAX_CAUSES`.
+    with at most :data:`MAX_CAUSES`. ``required`` causes (name: the evidence for it) are in
+    from the start, by their best variant, and never leave.
 
     Returns
     -------
     The selected model's fit and its causes, with ``drop_bic`` and parameters filled in.
     """
-    chosen: list[Selected] = []
-    base_fit = fitter(base)
-    current, seen = base_fit, {frozenset()}
+    chosen = _required(fitter, base, variants, required or {})
+    base_fit = fitter(_with(base, chosen))
+    current, seen = base_fit, {frozenset(s.cause for s in chosen)}
+    keep = len(chosen)  # the required causes lead the list and stay
     changed = True
     while changed:
         changed = False
@@ -412,15 +419,29 @@ def select_causes(fitter: Fitter, base: tuple[Term, ...],
                 chosen.append(new)
                 seen.add(frozenset(names | {new.cause}))
                 changed = True
-        if len(chosen) > 1:
+        if len(chosen) > max(1, keep):
             rise, i, fit = min(((f.bic - current.bic, i, f) for i, f in
-                                enumerate(_drop_each(fitter, base, chosen))),
+                                enumerate(_drop_each(fitter, base, chosen)) if i >= keep),
                                key=lambda t: t[0])
             if rise < BIC_MARGIN:
                 chosen.pop(i)
                 current, changed = fit, True
     _describe(fitter, base, chosen, current)
     return current, chosen
+
+
+def _required(fitter: Fitter, base, variants, required: dict[str, str]) -> list[Selected]:
+    """The ``required`` causes, each by its best variant, with its evidence."""
+    chosen: list[Selected] = []
+    for cause, evidence in required.items():
+        if cause not in variants:
+            raise ValueError(f"{fitter.ctx.table.source}: cause {cause!r} cannot be required: "
+                             f"the table cannot test it")
+        best = _best_variant(fitter, base, chosen, cause, variants[cause])
+        if best is not None:
+            chosen.append(best[1])
+            chosen[-1].evidence = evidence
+    return chosen
 
 
 def _drop_each(fitter: Fitter, base, chosen) -> list[LinearFit]:
@@ -770,8 +791,8 @@ def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
 
 def diagnose_table(table: ZoomTable, response: LensResponse | None,
                    tolerances: Tolerances | None = None, fit_pitch: bool = False,
-                   locked_tilt: bool = False, exclude: dict[str, str] | None = None
-                   ) -> Diagnosis:
+                   locked_tilt: bool = False, exclude: dict[str, str] | None = None,
+                   require: dict[str, str] | None = None) -> Diagnosis:
     """Fit the baseline, select the causes that the table supports, and check the result.
 
     Parameters
@@ -789,6 +810,9 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
     exclude : dict, optional
         Causes not to test, each with why (reported under ``skipped``), e.g. one that other
         evidence contradicts (:func:`zoomcalib.diagnose.tangential.resolve_with_distortion`).
+    require : dict, optional
+        Causes other evidence names (each with that evidence): in the selected model whatever
+        the principal points say (:func:`select_causes`).
 
     Returns
     -------
@@ -839,11 +863,11 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
     for cause, why in (exclude or {}).items():
         if variants.pop(cause, None) is not None:
             skipped[cause] = why
-    final, chosen = select_causes(fitter, base, variants)
+    final, chosen = select_causes(fitter, base, variants, require)
     if response is None and chosen and _lens_free_baseline(fitter, chosen) != base:
         # the path's degree chosen with the causes beside it, and the causes again
         base = _lens_free_baseline(fitter, chosen)
-        final, chosen = select_causes(fitter, base, variants)
+        final, chosen = select_causes(fitter, base, variants, require)
     base_fit = fitter(base)
     candidates = _single_causes(fitter, base, variants)
     check = fit_check(final, fitter.ctx, groups, shape)

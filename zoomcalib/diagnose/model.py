@@ -18,6 +18,16 @@ so each such term is two linear columns, ``-S_g R(m phi) e_x / pitch`` and
 Every model here is therefore linear in its parameters: a :class:`Term` gives a block of columns
 of shape (N, 2, k) (row, axis (cx, cy), parameter).
 
+An axis tilt ``theta`` (rad) of the lens against the sensor moves the image by ``f theta`` and
+tilts the sensor against the lens's image plane: a keystone ``kappa = pitch theta / L`` (1/px,
+``L`` the exit pupil's distance, mm), which a calibration takes partly into its poses and its
+principal point. When the table carries each row's keystone response (``A``, ``B`` of
+:func:`zoomcalib.calibrate.opencv_backend.keystone_response`), the calibrated values move by
+
+    Delta c = diag(f) (theta - A eps),    Delta (p1, p2) = B eps,    eps = diag(f) kappa
+
+(``f = (fx, fy)`` px); without it by ``f theta`` alone.
+
 The lens state of each measured row is found from its focal length: ``efl(z) = fx * pitch``,
 inverted on the lens's EFL curve, so the table's own zoom unit never matters.
 """
@@ -33,7 +43,7 @@ from ..optics.cam import barrel_angle, solve_gaps
 from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM, Tolerances
 from ..optics.misalignment import Misalignment, vertex_z
-from ..optics.paraxial import effective_focal_length, image_shift_sensitivity
+from ..optics.paraxial import effective_focal_length, exit_pupil_distance, image_shift_sensitivity
 from ..optics.prescription import Prescription
 from .table import ZoomTable
 
@@ -134,6 +144,11 @@ class LensResponse:
         return {g: image_shift_sensitivity(self.lens, thickness, g)
                 for g in self.lens.group_names}
 
+    def exit_pupil_mm(self, z: np.ndarray) -> np.ndarray:
+        """(N,) distance from the exit pupil to the image plane at states z, mm."""
+        thickness = self.lens.thickness_at(solve_gaps(self.lens, np.asarray(z, dtype=float)))
+        return exit_pupil_distance(self.lens, thickness)
+
     def play_sd_px(self, z: np.ndarray, tolerances: Tolerances) -> np.ndarray:
         """(N,) 1-sigma per axis of the principal point from the random play, px."""
         return play_sd_px(self.lens, z, tolerances, self.pitch_mm)
@@ -161,10 +176,10 @@ def decentring_distortion(lens: Prescription, z: np.ndarray, group: str,
     ``decenter_mm`` ((2,) x, y in the lens frame, mm), from the exact tracer.
 
     A decentred group bends the image (decentring distortion) as well as moving it; a lens
-    axis tilted against the sensor is taken to move it only (the tilted sensor's keystone,
-    :class:`zoomcalib.optics.lens_camera.TiltedSensorMapping`, is not modelled here). So a
-    static decentre large enough to imitate an axis tilt in the principal points shows in
-    ``p1``, ``p2``, which the calibration table holds beside them.
+    axis tilted against the sensor moves it and adds a keystone, whose share in ``p1``, ``p2``
+    depends on the calibration (:func:`axis_tilt_term`). So a static decentre large enough to
+    imitate an axis tilt in the principal points shows in ``p1``, ``p2``, which the
+    calibration table holds beside them.
     """
     names = list(lens.group_names)
     if group not in names:
@@ -187,12 +202,26 @@ class Context:
     z: np.ndarray  # shape (N,)
     response: LensResponse | None
     sens: dict[str, tuple[np.ndarray, np.ndarray]]
+    exit_pupil_mm: np.ndarray | None = None  # shape (N,)
 
     @classmethod
     def build(cls, table: ZoomTable, z: np.ndarray, response: LensResponse | None) -> Context:
         """``response`` None: no lens model (only terms that need no optics can be used)."""
-        sens = response.sensitivities(z) if response is not None else {}
-        return cls(table, np.asarray(z, dtype=float), response, sens)
+        if response is None:
+            return cls(table, np.asarray(z, dtype=float), None, {})
+        return cls(table, np.asarray(z, dtype=float), response, response.sensitivities(z),
+                   response.exit_pupil_mm(z))
+
+    @property
+    def keystone_per_mrad(self) -> np.ndarray | None:
+        """(N, 2, 2) camera-turn equivalent ``eps`` of the tilted sensor's keystone per mrad
+        of axis tilt (diagonal: ``f pitch / L``), None without the table's keystone response
+        or a lens model."""
+        if self.table.keystone is None or self.exit_pupil_mm is None:
+            return None
+        f = np.stack([self.table.fx, self.table.fy], -1)  # shape (N, 2)
+        ratio = 1e-3 * f * self.response.pitch_mm / self.exit_pupil_mm[:, None]
+        return ratio[:, :, None] * np.eye(2)[None]
 
     @property
     def phi(self) -> np.ndarray:
@@ -211,11 +240,16 @@ class Term:
         Parameter names with their unit in the name (``variator_x_um``).
     columns : callable
         ``columns(ctx) -> (N, 2, k)``: the change of (cx, cy) per unit of each parameter, px.
+    tangential : callable, optional
+        ``tangential(ctx) -> (N, 2, k)``: the change of the calibrated (p1, p2) per unit of
+        each parameter, for a term that is not a group's decentre or tilt (those come from
+        the tracer, :mod:`zoomcalib.diagnose.tangential`).
     """
 
     name: str
     params: tuple[str, ...]
     columns: Callable[[Context], np.ndarray]
+    tangential: Callable[[Context], np.ndarray] | None = None
 
 
 def _rotating(weight: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -247,9 +281,25 @@ def group_term(group: str, kind: str, harmonic: int, label: str, signed_by: str 
 
 
 def axis_tilt_term() -> Term:
-    """Optical axis tilted against the sensor normal: ``Delta c = fx * theta`` (theta in mrad)."""
-    return Term("axis tilt", ("tilt_x_mrad", "tilt_y_mrad"),
-                lambda ctx: 1e-3 * ctx.table.fx[:, None, None] * np.eye(2)[None])
+    """Optical axis tilted against the sensor normal by theta (mrad): ``Delta c = f theta``,
+    less what the calibration took of the tilted sensor's keystone when the table says
+    (module docstring)."""
+
+    def columns(ctx: Context) -> np.ndarray:
+        f = np.stack([ctx.table.fx, ctx.table.fy], -1)[:, :, None]  # shape (N, 2, 1)
+        shift = 1e-3 * f * np.eye(2)[None]
+        eps = ctx.keystone_per_mrad
+        if eps is None:
+            return shift
+        return shift - f * (ctx.table.keystone[:, :2] @ eps)
+
+    def tangential(ctx: Context) -> np.ndarray:
+        eps = ctx.keystone_per_mrad
+        if eps is None:
+            return np.zeros((len(ctx.z), 2, 2))
+        return ctx.table.keystone[:, 2:] @ eps
+
+    return Term("axis tilt", ("tilt_x_mrad", "tilt_y_mrad"), columns, tangential)
 
 
 def direction_offset_term() -> Term:

@@ -174,6 +174,7 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
                               for c, v in ev["causes"].items())
                   + f" (margin {ev['margin']:.1f}; "
                   + (f"{ev['excluded']} contradicted)." if ev["excluded"]
+                     else f"{ev['required']} named by it)." if ev.get("required")
                      else "not decisive)."), ""]
     lines += _setting_lines(diag, doc) + [""]
     b, e = doc["baseline"], doc["extended"]
@@ -191,7 +192,9 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
         lines += [f"`{c['cause']}` ({c['variant']}; BIC rises by {c['drop_bic']:.1f} without it): "
                   + _fmt_params(c["params"], c["params_sd"])
                   + (f". As magnitude and direction: {_polar(c['params'])}"
-                     if _polar(c["params"]) else ""), ""]
+                     if _polar(c["params"]) else "")
+                  + (f". In the model by other evidence: {c['evidence']}"
+                     if c.get("evidence") else ""), ""]
     lines += _check_lines(doc["explained"])
     lines += ["## Each cause alone", "",
               "| cause | variant | delta BIC | cv_rms [px] | parameters |",

@@ -179,7 +179,8 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     if response is not None:
         diag = resolve_with_distortion(
             diag, read_zoom_table(table_path),
-            lambda exclude: diagnose_table(table, response, tolerances, fit_pitch=fit_pitch,
-                                           exclude=exclude))
+            lambda exclude=None, require=None: diagnose_table(
+                table, response, tolerances, fit_pitch=fit_pitch, exclude=exclude,
+                require=require))
     files = write_diagnosis(diag, out)
     return DiagnoseRun(diag, table_path, files, failures)

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..calibrate.io import KEYSTONE_COLUMNS
+
 __all__ = ["ZoomTable", "direction_sign"]
 
 _IN = {"in", "+", "+1", "1", "up", "tele"}
@@ -64,6 +66,15 @@ def _single_backend(rows: Sequence[Mapping], steps: list[str], source: str) -> s
     return next(iter(by_backend), None)
 
 
+def _keystone(rows: Sequence[Mapping]) -> np.ndarray | None:
+    """(N, 4, 2) keystone response of every row, None unless all rows have it finite (a
+    per-step OpenCV calibration writes it; other backends do not)."""
+    cols = [_column(rows, key) for key in KEYSTONE_COLUMNS]
+    if any(c is None or not np.all(np.isfinite(c)) for c in cols):
+        return None
+    return np.stack(cols, axis=-1).reshape(len(rows), 4, 2)
+
+
 @dataclass
 class ZoomTable:
     """Per-zoom calibration results.
@@ -86,6 +97,11 @@ class ZoomTable:
     backend : str or None
         The calibration backend of every row (the table's ``backend`` column), None when the
         table does not say. A table whose rows come from different backends is refused.
+    keystone : (N, 4, 2) ndarray or None
+        Each row's calibration response to a keystone of the image (the ``keystone_*``
+        columns): rows ``A`` (cx, cy) and ``B`` (p1, p2) of
+        :func:`zoomcalib.calibrate.opencv_backend.keystone_response`; None unless every row
+        has all of them.
     """
 
     zoom: np.ndarray
@@ -102,6 +118,7 @@ class ZoomTable:
     step: list[str] = field(default_factory=list)
     source: str = "table"
     backend: str | None = None
+    keystone: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -166,7 +183,7 @@ class ZoomTable:
         steps = [str(r.get("step", k)) for k, r in enumerate(rows)]
         backend = _single_backend(rows, steps, source)
         return cls(**req, **sds, direction=direction, step=steps, source=source,
-                   backend=backend, **extras)
+                   backend=backend, keystone=_keystone(rows), **extras)
 
     def zoom_groups(self) -> np.ndarray:
         """(N,) int label of the distinct zoom setting of each row (for held-out-step CV)."""

@@ -4,16 +4,19 @@ On ``laikin-10x`` a static decentre of a group moves the principal point almost 
 axis tilt does (its shift per decentre is nearly a straight line in focal length). But a
 decentred group also bends the image: the calibration's tangential distortion ``p1``, ``p2``
 (OpenCV) changes with it (:func:`zoomcalib.diagnose.model.decentring_distortion`), while an
-axis tilt is taken to move the image only (its sensor keystone is not modelled; the renderer
-draws it unless ``axis_tilt_keystone=False``). Every row of a calibration table holds ``p1``,
-``p2`` and their sigmas beside ``cx``, ``cy``.
+axis tilt moves the image and, through the tilted sensor's keystone, changes ``p1``, ``p2``
+only as far as the calibration took the keystone into them (the table's keystone response,
+:func:`zoomcalib.diagnose.model.axis_tilt_term`; nothing without it). Every row of a
+calibration table holds ``p1``, ``p2`` and their sigmas beside ``cx``, ``cy``.
 
 :func:`distortion_evidence` fits each candidate cause again with every row's ``p1``, ``p2``
 stacked under its principal point. Each decentre or tilt of a group adds its distortion rows
 (``J_g(z) R(m phi) a``, ``J_g`` the change of (p1, p2) per decentre, or per tilt, at the row's
-lens state, from the exact tracer's camera fits); the sensor offset and the axis tilt add none.
+lens state, from the exact tracer's camera fits); the axis tilt adds its keystone's, the
+sensor offset none.
 The baseline is the diagnosis's with the locked tilt of each moving group (a locked tilt and
-a locked decentre move the principal point alike but bend the image differently). Weights: the
+a locked decentre move the principal point alike but bend the image differently) and the
+other causes the diagnosis selected (a backlash of a group bends the image too). Weights: the
 principal points keep the variances of the diagnosis's selected model; the distortion rows
 have ``(k sd_p)^2`` with one scale ``k`` estimated from the largest model's distortion
 residuals (chi2 per degree of freedom, since calibration sigmas are often off by a common
@@ -79,6 +82,8 @@ class _Tangential:
     def rows(self, term: Term) -> np.ndarray:
         """(2N, k) change of (p1, p2) per unit of each parameter of ``term``."""
         n, k = len(self.ctx.z), len(term.params)
+        if term.tangential is not None:
+            return term.tangential(self.ctx).reshape(2 * n, k)
         group, kind, harmonic = _group_term_parts(term, self.ctx.response.groups)
         if group is None:
             return np.zeros((2 * n, k))
@@ -123,7 +128,8 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
 
     Returns
     -------
-    dict with ``p_scale`` (the estimated ``k``), ``baseline_chi2``, and per cause in
+    dict with ``p_scale`` (the estimated ``k``), ``baseline_chi2`` (the baseline with the
+    diagnosis's other selected causes, ``base_causes``), and per cause in
     ``causes``: ``variant``, ``delta_bic`` (against the baseline with distortion rows),
     ``params`` and ``params_sd``; ``best``, the cause of lowest ``delta_bic``.
 
@@ -146,7 +152,8 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
                           np.hstack([tangential.rows(t) for t in terms])])
 
     variants, _ = cause_variants(diag.table, diag.response.groups)
-    base = baseline_terms(diag.response.groups, locked_tilt=True)
+    others = tuple(t for s in diag.causes if s.cause not in causes for t in s.terms)
+    base = baseline_terms(diag.response.groups, locked_tilt=True) + others
     y = np.concatenate([diag.table.principal_point.reshape(-1), p.reshape(-1)])
     w_c = np.repeat(1.0 / diag.final.variance, 2)
     largest = base + tuple(t for c in causes for v in variants[c] for t in v)
@@ -161,7 +168,8 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
         scale = new
     w = np.concatenate([w_c, 1.0 / (scale * sd_p.reshape(-1)) ** 2])
     base_chi2, _, _ = _fit(columns(base), y, w)
-    out: dict = {"p_scale": scale, "baseline_chi2": base_chi2, "causes": {}}
+    out: dict = {"p_scale": scale, "baseline_chi2": base_chi2, "causes": {},
+                 "base_causes": [s.cause for s in diag.causes if s.cause not in causes]}
     for cause in causes:
         scored = []
         for extra in variants[cause]:
@@ -191,30 +199,55 @@ def table_distortion(rows: list[dict]) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
-                            refit: Callable[[dict[str, str]], Diagnosis]) -> Diagnosis:
-    """Settle an axis tilt against a static decentre with the tangential distortion.
+                            refit: Callable[..., Diagnosis]) -> Diagnosis:
+    """Weigh an axis tilt against a static decentre with the tangential distortion too.
 
-    Only when the diagnosis has both among its selected causes or ``ambiguous_with``, a lens
-    model, and every row its ``p1``, ``p2`` with sigmas. The causes are scored by
-    :func:`distortion_evidence`; when one's ``delta_bic`` is lower by more than
-    :data:`~zoomcalib.diagnose.discrepancy.BIC_MARGIN` and the other was selected, the
-    diagnosis is made again without the other (``refit(exclude)``, its reason under
-    ``skipped``). The scores are attached as ``distortion`` either way, with ``margin`` and
-    ``excluded`` (the contradicted cause, None when the margin is not passed), which
-    ``ambiguous_with`` then leaves out.
+    Needs a lens model and every row's ``p1``, ``p2`` with sigmas. The causes are scored by
+    :func:`distortion_evidence` when
+
+    - both are among the selected causes or ``ambiguous_with`` (the principal points cannot
+      part them): when one's ``delta_bic`` is lower by more than
+      :data:`~zoomcalib.diagnose.discrepancy.BIC_MARGIN` and the other was selected, the
+      diagnosis is made again without the other (``refit(exclude=...)``, its reason under
+      ``skipped``);
+    - or the axis tilt was not selected but the table holds the calibration's keystone
+      response (:attr:`ZoomTable.keystone`): a calibration takes most of a tilted sensor's
+      keystone into its poses, which leaves the tilt a faint trace in the principal points
+      and a clear one in ``p1``, ``p2``. When the tilt lowers the BIC of the principal points
+      and ``p1``, ``p2`` together by more than ``BIC_MARGIN`` and leads the static decentre by
+      as much, the diagnosis is made again with it required (``refit(require=...)``).
+
+    The scores are attached as ``distortion`` either way, with ``margin`` and ``excluded``
+    (the contradicted cause, None when the margin is not passed), which ``ambiguous_with``
+    then leaves out, and ``required`` (the cause the scores put in, or None).
     """
     named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
+    selected = {s.cause for s in diag.causes}
     data = table_distortion(rows)
-    if diag.response is None or data is None or not set(EVIDENCE_CAUSES) <= named:
+    settle = set(EVIDENCE_CAUSES) <= named
+    keystone = diag.table.keystone is not None and "axis_tilt" not in selected
+    if diag.response is None or data is None or not (settle or keystone):
         return diag
     ev = distortion_evidence(diag, *data)
     winner = ev["best"]
     loser = next(c for c in EVIDENCE_CAUSES if c != winner)
     margin = ev["causes"][loser]["delta_bic"] - ev["causes"][winner]["delta_bic"]
-    ev |= {"margin": margin, "excluded": loser if margin > BIC_MARGIN else None}
-    if margin > BIC_MARGIN and loser in {s.cause for s in diag.causes}:
-        diag = refit({loser: f"contradicted by the tangential distortion p1, p2: {winner} "
-                             f"fits them and the principal points better by {margin:.1f} in "
-                             f"BIC (distortion_evidence)"})
+    ev |= {"margin": margin, "excluded": None, "required": None}
+    if settle:
+        ev["excluded"] = loser if margin > BIC_MARGIN else None
+        if margin > BIC_MARGIN and loser in selected:
+            diag = refit(exclude={loser: f"contradicted by the tangential distortion p1, p2: "
+                                         f"{winner} fits them and the principal points better "
+                                         f"by {margin:.1f} in BIC (distortion_evidence)"})
+    elif (winner == "axis_tilt" and margin > BIC_MARGIN
+          and ev["causes"][winner]["delta_bic"] < -BIC_MARGIN):
+        ev["required"] = winner
+        tilt = ev["causes"][winner]
+        diag = refit(require={winner: (
+            f"the tangential distortion p1, p2 with the calibrations' keystone response: "
+            f"delta_bic {tilt['delta_bic']:.1f} on the principal points and p1, p2 together, "
+            f"{margin:.1f} ahead of {loser}; tilt " + ", ".join(
+                f"{k} {v:.2f} +- {tilt['params_sd'][k]:.2f}" for k, v in tilt["params"].items())
+            + " (distortion_evidence)")})
     diag.distortion = ev
     return diag

@@ -1,0 +1,169 @@
+"""The calibration's response to a tilted sensor's keystone, and the axis tilt diagnosed with it.
+
+A keystone ``uv -> uv + p (p . kappa)`` (``p`` from the principal point) is to first order a
+camera turned by ``f kappa`` with its principal point moved by ``-f^2 kappa``: a pinhole
+calibration takes all of it into the poses and the principal point (``A = I``).
+:func:`keystone_response` predicts, from the solution alone, how far a calibration with
+distortion terms does; the tests compare that with what OpenCV's own fit does with and without
+the keystone, and diagnose a table whose points were projected through the exact lens on a
+tilted sensor (the renderer's mapping, not the diagnosis's model).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+from zoomcalib.calibrate.io import KEYSTONE_COLUMNS, read_zoom_table, write_zoom_table
+from zoomcalib.calibrate.opencv_backend import calibrate_opencv, keystone_response
+from zoomcalib.calibrate.result import Observations
+from zoomcalib.calibrate.run import _table_row
+from zoomcalib.camera import Sensor
+from zoomcalib.diagnose.discrepancy import diagnose_table
+from zoomcalib.diagnose.model import LensResponse
+from zoomcalib.diagnose.table import ZoomTable
+from zoomcalib.diagnose.tangential import resolve_with_distortion
+from zoomcalib.optics.lens_camera import exact_mapping, tilted_sensor
+from zoomcalib.optics.mechanics import Tolerances
+from zoomcalib.optics.misalignment import Misalignment
+from zoomcalib.optics.prescription import load_prescription
+from zoomcalib.render.dataset import generate_poses, scaled_target_for_view
+from zoomcalib.render.image import project_points
+from zoomcalib.targets import parse_pattern
+
+BOARD = parse_pattern("chessboard:9x6:25")
+SIZE = (640, 480)
+
+
+def _views(rng, fx: float, n_views: int = 10):
+    """Board points and seeded poses filling a 640x480 image at focal length ``fx``."""
+    obj = BOARD.object_points.astype(float)
+    obj = obj - obj.mean(axis=0)
+    scale = 0.6 * SIZE[1] * 1000.0 / fx / np.ptp(obj[:, 1])
+    poses = []
+    for _ in range(n_views):
+        axis = rng.normal(size=3) * np.array([1.0, 1.0, 0.2])
+        rvec = axis / np.linalg.norm(axis) * np.deg2rad(rng.uniform(15, 40))
+        tvec = np.array([*rng.uniform(-0.1, 0.1, 2) * 1000.0 * SIZE[0] / fx, 1000.0])
+        poses.append((rvec, tvec))
+    return obj * scale, poses
+
+
+def _keystoned(points: np.ndarray, centre: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+    p = points - centre
+    return points + p * (p @ kappa)[:, None]
+
+
+def _calibrate(obj, poses, K, dist, kappa, flags):
+    views = []
+    for rvec, tvec in poses:
+        uv = cv2.projectPoints(obj, rvec, tvec, K, dist)[0].reshape(-1, 2)
+        views.append((np.arange(len(obj)), _keystoned(uv, K[:2, 2], kappa)))
+    return calibrate_opencv(Observations(obj, views, SIZE), flags=flags)
+
+
+@pytest.mark.parametrize("fx, k1, flags", [
+    (900.0, 0.0, cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+     | cv2.CALIB_ZERO_TANGENT_DIST),
+    (900.0, -0.2, 0),
+    (6000.0, 0.3, cv2.CALIB_FIX_K3),
+])
+def test_keystone_response_predicts_the_calibrated_principal_point(fx, k1, flags):
+    rng = np.random.default_rng(int(fx) + 7)
+    obj, poses = _views(rng, fx)
+    K = np.array([[fx, 0, 321.3], [0, fx, 238.1], [0, 0, 1.0]])
+    dist = np.array([k1, 0.0, 0.0, 0.0, 0.0])
+    eps = rng.uniform(1.0, 2.0, 2) * rng.choice([-1, 1], 2) * 1e-3  # camera-turn equivalent
+    plain = _calibrate(obj, poses, K, dist, np.zeros(2), flags)
+    tilted = _calibrate(obj, poses, K, dist, eps / fx, flags)
+    moved = np.array([tilted.cx - plain.cx, tilted.cy - plain.cy])
+    response = keystone_response([obj] * len(poses), plain.K, plain.dist, plain.rvecs,
+                                 plain.tvecs, flags, 5)
+    predicted = -fx * response["absorption"] @ eps
+    # first order in eps: the neglected terms are ~ fx eps^2 ~ 0.02 px of shifts of 1-12 px
+    assert np.allclose(moved, predicted, atol=0.03 + 0.01 * np.abs(predicted).max())
+    if flags & cv2.CALIB_ZERO_TANGENT_DIST:  # a pinhole fit takes the keystone whole
+        assert np.allclose(response["absorption"], np.eye(2), atol=0.01)
+        assert np.allclose(response["tangential"], 0.0)
+    else:
+        tangential = np.array([tilted.dist[2] - plain.dist[2], tilted.dist[3] - plain.dist[3]])
+        assert np.allclose(tangential, response["tangential"] @ eps,
+                           atol=0.05 * np.abs(tangential).max() + 1e-7)
+
+
+def test_keystone_columns_round_trip_through_the_zoom_table(tmp_path):
+    rng = np.random.default_rng(3)
+    rows = [{"step": f"s{i}", "zoom": float(i), "fx": 1000.0 + i, "fy": 1000.0 + i, "cx": 320.0,
+             "cy": 240.0, **dict(zip(KEYSTONE_COLUMNS, rng.normal(size=8), strict=True))}
+            for i in range(4)]
+    table = ZoomTable.from_rows(read_zoom_table(write_zoom_table(tmp_path / "t.csv", rows)))
+    expected = np.array([[r[c] for c in KEYSTONE_COLUMNS] for r in rows]).reshape(4, 4, 2)
+    assert np.array_equal(table.keystone, expected)
+    rows[2].pop("keystone_p1_y")  # one row without: the table has no keystone response
+    table = ZoomTable.from_rows(read_zoom_table(write_zoom_table(tmp_path / "u.csv", rows)))
+    assert table.keystone is None
+
+
+def _tilted_lens_table(theta_mrad: np.ndarray, noise_px: float, seed: int) -> list[dict]:
+    """Per-setting OpenCV calibrations of points projected through the exact ``laikin-10x``
+    on a sensor tilted by ``theta_mrad`` (keystone included), with Gaussian detection noise."""
+    lens = load_prescription("laikin-10x")
+    sensor = Sensor(*SIZE, 0.0129)
+    still = Misalignment(np.zeros((len(lens.groups), 2)), np.zeros((len(lens.groups), 2)))
+    rng = np.random.default_rng(seed)
+    rows = []
+    for i, z in enumerate(np.linspace(0.0, 1.0, 8)):
+        mapping = tilted_sensor(exact_mapping(lens, z, still, sensor), lens, z,
+                                1e-3 * theta_mrad)
+        target = scaled_target_for_view(BOARD, mapping.camera.fy, sensor, 2000.0, 0.6)
+        poses = generate_poses(target, mapping, sensor, 12, 2000.0, rng)
+        pts = target.object_points
+        views = [(np.arange(len(pts)), project_points(pts, mapping, R, t)
+                  + rng.normal(0.0, noise_px, (len(pts), 2))) for R, t in poses]
+        res = calibrate_opencv(Observations(pts, views, SIZE), flags=cv2.CALIB_FIX_K3)
+        rows.append(_table_row(f"z{i}", float(z), {}, res))
+    return rows
+
+
+@functools.cache
+def _response() -> LensResponse:
+    return LensResponse.of(load_prescription("laikin-10x"), 0.0129, n_grid=201)
+
+
+def _diagnose(rows: list[dict]):
+    """The diagnosis as ``diagnose`` makes it: the principal points, then the tangential
+    distortion (no mechanical errors in these tables: zero tolerances)."""
+    response = _response()
+    table = ZoomTable.from_rows(rows)
+
+    def refit(exclude=None, require=None):
+        return diagnose_table(table, response, Tolerances.zero(), exclude=exclude,
+                              require=require)
+
+    return resolve_with_distortion(refit(), rows, refit)
+
+
+def test_axis_tilt_with_its_keystone_is_named_by_the_tangential_distortion():
+    rng = np.random.default_rng(2024)
+    angle = rng.uniform(0, 2 * np.pi)
+    theta = rng.uniform(0.9, 1.2) * np.array([np.cos(angle), np.sin(angle)])  # mrad
+    rows = _tilted_lens_table(theta, 0.02, seed=11)
+    assert ZoomTable.from_rows(rows).keystone is not None
+    diag = _diagnose(rows)
+    assert "axis_tilt" in {s.cause for s in diag.causes}
+    assert diag.distortion["required"] == "axis_tilt"
+    joint = diag.distortion["causes"]["axis_tilt"]
+    got = np.array([joint["params"]["tilt_x_mrad"], joint["params"]["tilt_y_mrad"]])
+    sd = np.array([joint["params_sd"]["tilt_x_mrad"], joint["params_sd"]["tilt_y_mrad"]])
+    assert np.all(sd < 0.3), sd  # a tilt of about 1 mrad is measured, not just bounded
+    assert np.all(np.abs(got - theta) <= 3 * sd), (got, sd, theta)
+
+
+def test_no_axis_tilt_is_named_on_an_aligned_lens():
+    rows = _tilted_lens_table(np.zeros(2), 0.02, seed=12)
+    diag = _diagnose(rows)
+    assert "axis_tilt" not in {s.cause for s in diag.causes}
+    assert diag.distortion is None or diag.distortion["required"] is None
