@@ -5,7 +5,8 @@ Renders 5 zoom settings (lens states 0-0.4) swept in and then out, 10 chessboard
 640x480 with 12.9 um pixels through ``laikin-10x`` whose compensator has 100 um of backlash;
 calibrates every step with OpenCV and diagnoses the per-zoom table. With ``--axis-tilt TX,TY``
 (mrad) it renders instead 8 settings over the whole range (0-1) in a shuffled capture order,
-all approached zooming in, no backlash, the lens axis tilted against the sensor. ``--psf``
+all approached zooming in, no backlash, the lens axis tilted against the sensor (the image
+shift and the tilted sensor's keystone; ``--no-keystone``: the shift alone). ``--psf``
 renders with another PSF shape than the Gaussian the default ``model`` detector assumes (the
 renderer's default shape parameters, ``zoomcalib.render.image.Optics``).
 
@@ -16,8 +17,9 @@ baseline for every placement (uniform, long- or short-end heavy), 8-16 settings,
 a 9x6 or 13x9 board and 640-1920 px wide sensors, so a larger set buys a stronger tilt but not
 a separation (docs/diagnose.md). ``--settings``, ``--sensor`` and ``--board`` render the others.
 What parts them is the tangential distortion of each setting's calibration, which the diagnosis
-fits beside the principal points when the two are not told apart (printed as ``distortion
-evidence``). ``--static-decenter X,Y`` (um, variator) renders the converse: the same set with
+fits beside the principal points when the two are not told apart, or when the table carries the
+calibrations' keystone response and the tilt was not selected (printed as ``distortion
+evidence``, and the tilt fitted on both as ``axis_tilt on p1, p2 too``). ``--static-decenter X,Y`` (um, variator) renders the converse: the same set with
 no tilt and a static decentre.
 
 Usage::
