@@ -19,8 +19,9 @@ a separation (docs/diagnose.md). ``--settings``, ``--sensor`` and ``--board`` re
 What parts them is the tangential distortion of each setting's calibration, which the diagnosis
 fits beside the principal points when the two are not told apart, or when the table carries the
 calibrations' keystone response and the tilt was not selected (printed as ``distortion
-evidence``, and the tilt fitted on both as ``axis_tilt on p1, p2 too``). ``--static-decenter X,Y`` (um, variator) renders the converse: the same set with
-no tilt and a static decentre.
+evidence``, and the tilt fitted on both as ``axis_tilt on p1, p2 too``).
+``--static-decenter X,Y`` (um, variator) renders the converse: the same set with no tilt and a
+static decentre.
 
 Usage::
 
