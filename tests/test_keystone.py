@@ -1,4 +1,5 @@
-"""The calibration's response to a tilted sensor's keystone, and the axis tilt diagnosed with it.
+"""A calibration's response to a tilted sensor's keystone and to a decentred group, and the
+diagnosis made with them.
 
 A keystone ``uv -> uv + p (p . kappa)`` (``p`` from the principal point) is to first order a
 camera turned by ``f kappa`` with its principal point moved by ``-f^2 kappa``: a pinhole
@@ -6,7 +7,9 @@ calibration takes all of it into the poses and the principal point (``A = I``).
 :func:`keystone_response` predicts, from the solution alone, how far a calibration with
 distortion terms does; the tests compare that with what OpenCV's own fit does with and without
 the keystone, and diagnose a table whose points were projected through the exact lens on a
-tilted sensor (the renderer's mapping, not the diagnosis's model).
+tilted sensor (the renderer's mapping, not the diagnosis's model). Likewise a decentred group:
+the calibrated principal point follows it by more than its paraxial image shift, as
+:func:`zoomcalib.diagnose.response.calibration_response` predicts.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from zoomcalib.calibrate.opencv_backend import calibrate_opencv, keystone_respon
 from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.run import _table_row
 from zoomcalib.camera import Sensor
-from zoomcalib.diagnose.discrepancy import diagnose_table
-from zoomcalib.diagnose.model import LensResponse
+from zoomcalib.diagnose.discrepancy import Fitter, diagnose_table, noise_shape
+from zoomcalib.diagnose.model import Context, LensResponse, group_term, offset_term
+from zoomcalib.diagnose.response import RowCalibration, calibration_response
 from zoomcalib.diagnose.table import ZoomTable
 from zoomcalib.diagnose.tangential import resolve_with_distortion
 from zoomcalib.optics.lens_camera import exact_mapping, tilted_sensor
@@ -139,9 +143,8 @@ def _diagnose(rows: list[dict]):
     response = _response()
     table = ZoomTable.from_rows(rows)
 
-    def refit(exclude=None, require=None):
-        return diagnose_table(table, response, Tolerances.zero(), exclude=exclude,
-                              require=require)
+    def refit(**changes):
+        return diagnose_table(table, response, Tolerances.zero(), **changes)
 
     return resolve_with_distortion(refit(), rows, refit)
 
@@ -167,3 +170,86 @@ def test_no_axis_tilt_is_named_on_an_aligned_lens():
     diag = _diagnose(rows)
     assert "axis_tilt" not in {s.cause for s in diag.causes}
     assert diag.distortion is None or diag.distortion["required"] is None
+
+
+def _decentred_lens_table(decenter_um: np.ndarray, noise_px: float, seed: int):
+    """Per-setting OpenCV calibrations (rows and the calibrations themselves) of points
+    projected through the exact ``laikin-10x`` with its variator statically decentred."""
+    lens = load_prescription("laikin-10x")
+    sensor = Sensor(*SIZE, 0.0129)
+    names = list(lens.group_names)
+    offset = np.zeros((len(names), 2))
+    offset[names.index("variator")] = 1e-3 * decenter_um
+    moved = Misalignment(offset, np.zeros_like(offset))
+    rng = np.random.default_rng(seed)
+    rows, cals = [], []
+    for i, z in enumerate(np.linspace(0.0, 0.86, 7)):
+        mapping = exact_mapping(lens, z, moved, sensor)
+        target = scaled_target_for_view(BOARD, mapping.camera.fy, sensor, 2000.0, 0.6)
+        poses = generate_poses(target, mapping, sensor, 10, 2000.0, rng)
+        pts = target.object_points
+        obs = Observations(pts, [(np.arange(len(pts)), project_points(pts, mapping, R, t)
+                                  + rng.normal(0.0, noise_px, (len(pts), 2)))
+                                 for R, t in poses], SIZE)
+        res = calibrate_opencv(obs, flags=cv2.CALIB_FIX_K3)
+        rows.append(_table_row(f"z{i}", float(z), {}, res))
+        cals.append(RowCalibration(res, obs))
+    return rows, cals
+
+
+def test_a_decentre_is_recovered_at_its_size_through_the_calibrations_response():
+    """The calibrated principal points follow a decentred group by 1.3-1.9 times its paraxial
+    image shift (they take part of its decentring distortion too): fitted with the paraxial
+    shift the decentre comes out too large; with each calibration's own response, right."""
+    rng = np.random.default_rng(77)
+    angle = rng.uniform(0, 2 * np.pi)
+    hidden = rng.uniform(250.0, 350.0) * np.array([np.cos(angle), np.sin(angle)])  # um
+    rows, cals = _decentred_lens_table(hidden, 0.02, seed=5)
+    fits = {}
+    for label, calibrations in (("response", cals), ("paraxial", None)):
+        table = ZoomTable.from_rows(rows)
+        table.calibrations = calibrations
+        ctx = Context.build(table, _response().state_of_focal(table.fx), _response())
+        fitter = Fitter(ctx, noise_shape(table, np.zeros(table.n)), table.zoom_groups())
+        terms = (offset_term(), group_term("variator", "decenter", 0, "static decentre"))
+        fits[label] = fitter(terms)
+    got, sd = fits["response"].params[2:], fits["response"].sd[2:]
+    assert np.all(np.abs(got - hidden) <= 3 * sd), (got, sd, hidden)
+    paraxial = fits["paraxial"].params[2:]
+    assert np.linalg.norm(paraxial) > 1.2 * np.linalg.norm(hidden), (paraxial, hidden)
+
+
+@pytest.mark.parametrize("z", [0.1, 0.6])
+def test_calibration_response_predicts_a_decentred_groups_principal_point(z):
+    """Same views through the aligned and the decentred lens, no noise: the move of the
+    calibrated principal point is what the aligned calibration's response predicts, and not
+    the paraxial image shift."""
+    lens = load_prescription("laikin-10x")
+    sensor = Sensor(*SIZE, 0.0129)
+    rng = np.random.default_rng(int(100 * z))
+    decenter_mm = 1e-3 * rng.uniform(60.0, 120.0) * rng.choice([-1, 1], 2)
+    names = list(lens.group_names)
+    offset = np.zeros((len(names), 2))
+    offset[names.index("variator")] = decenter_mm
+    zero = np.zeros_like(offset)
+    aligned = exact_mapping(lens, z, Misalignment(zero, zero), sensor)
+    moved = exact_mapping(lens, z, Misalignment(offset, zero), sensor)
+    target = scaled_target_for_view(BOARD, aligned.camera.fy, sensor, 2000.0, 0.6)
+    poses = generate_poses(target, aligned, sensor, 10, 2000.0, rng)
+    pts = target.object_points
+
+    def calibrate(mapping):
+        obs = Observations(pts, [(np.arange(len(pts)), project_points(pts, mapping, R, t))
+                                 for R, t in poses], SIZE)
+        return calibrate_opencv(obs), obs
+
+    plain, obs = calibrate(aligned)
+    shifted, _ = calibrate(moved)
+    actual = np.array([shifted.cx - plain.cx, shifted.cy - plain.cy])
+    G = calibration_response(lens, z, 0.0129, RowCalibration(plain, obs), "variator",
+                             "decenter")
+    predicted = G[:2] @ decenter_mm
+    assert np.allclose(actual, predicted, atol=0.02 * np.abs(actual).max() + 0.01)
+    s_d, _ = _response().sensitivities(np.array([z]))["variator"]
+    paraxial = -s_d[0] * decenter_mm / 0.0129  # what the renderer records as the move
+    assert np.linalg.norm(actual) > 1.2 * np.linalg.norm(paraxial)

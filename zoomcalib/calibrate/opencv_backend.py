@@ -357,6 +357,51 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
     return float(np.sqrt(max(sol[2], 0.0) / s2))
 
 
+def solution_points(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
+                    rvecs: np.ndarray, tvecs: np.ndarray
+                    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per view, a calibration's projections of its target points ``(k, 2)`` px and their
+    normalised camera coordinates ``(X/Z, Y/Z)`` ``(k, 2)`` (the scene directions)."""
+    uv, xn = [], []
+    for o, r, t in zip(obj, rvecs, tvecs, strict=True):
+        o, r, t = (np.asarray(a, np.float64) for a in (o, r, t))
+        uv.append(cv2.projectPoints(o, r, t, K, dist)[0].reshape(-1, 2))
+        cam = o.reshape(-1, 3) @ cv2.Rodrigues(r.reshape(3, 1))[0].T + t.reshape(3)
+        xn.append(cam[:, :2] / cam[:, 2:3])
+    return uv, xn
+
+
+def displacement_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
+                          rvecs: np.ndarray, tvecs: np.ndarray, flags: int, n_dist: int,
+                          fields: list[list[np.ndarray]]) -> np.ndarray | None:
+    r"""How a calibration answers small displacements of its image points.
+
+    Each field moves every observed point by a displacement ``delta`` (per view ``(k, 2)``,
+    px). Linearised at the solution, the parameters move by the Gauss-Newton step
+    ``N^-1 J^T delta`` of the problem over the parameters OpenCV adjusted (``flags``; the
+    poses with them), evaluated at the solution's own projections: what the calibration would
+    report had the images been displaced so, to first order.
+
+    Returns
+    -------
+    (F, 12) ndarray or None
+        Per field, the change of ``fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (0 for the
+        terms not adjusted); None when ``N`` is singular.
+    """
+    proj, _ = solution_points(obj, K, dist, rvecs, tvecs)
+    out = np.zeros((len(fields), 12))
+    for i, field in enumerate(fields):
+        moved = [p + np.asarray(d, np.float64).reshape(-1, 2) for p, d in zip(proj, field,
+                                                                               strict=True)]
+        prob, state = _problem_at_solution(obj, moved, K, dist, rvecs, tvecs, flags, n_dist)
+        U, W, V, g, gp, _ = prob.normal_equations(state)
+        sol = _schur_solve(U, W, V, g, gp, 0.0)
+        if sol is None:
+            return None
+        out[i] = prob.cam_map @ sol[0][:prob.nc]
+    return out
+
+
 def keystone_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
                       rvecs: np.ndarray, tvecs: np.ndarray, flags: int = 0,
                       n_dist: int = 5) -> dict[str, np.ndarray] | None:
@@ -368,15 +413,13 @@ def keystone_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
     it is the image of a camera turned by ``eps = f kappa`` (rad, ``f = (fx, fy)``) whose
     principal point moved by ``-f eps``, so a calibration can take it into the poses; how much
     it takes depends on the views and on the terms fitted (the distortion trades with it at a
-    long focal length), not only on the lens. Linearised at the solution, per ``eps``:
+    long focal length), not only on the lens. Linearised at the solution, per ``eps``
+    (:func:`displacement_response` of the keystone of a unit ``eps_x``, then ``eps_y``, scaled
+    down to stay linear):
 
         dc = -diag(f) A eps        (px; A = I: the keystone went into the poses and c,
                                     A = 0: it stayed in the residuals)
         d(p1, p2) = B eps          (OpenCV's tangential terms)
-
-    The response is the Gauss-Newton step ``N^-1 J^T delta`` of the problem over the
-    parameters OpenCV adjusted (``flags``; poses included) for ``delta`` the keystone of a unit
-    ``eps_x``, then ``eps_y`` (scaled down to stay linear), at the solution's own projections.
 
     Returns
     -------
@@ -384,21 +427,15 @@ def keystone_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
         ``absorption`` A (2, 2) and ``tangential`` B (2, 2), dimensionless, rows (x, y) resp.
         (p1, p2), columns (eps_x, eps_y); None when ``N`` is singular.
     """
-    proj = [cv2.projectPoints(np.asarray(o, np.float64), np.asarray(r, np.float64),
-                              np.asarray(t, np.float64), K, dist)[0].reshape(-1, 2)
-            for o, r, t in zip(obj, rvecs, tvecs, strict=True)]
+    proj, _ = solution_points(obj, K, dist, rvecs, tvecs)
     centre, f = K[[0, 1], [2, 2]], K[[0, 1], [0, 1]]
     eps = 1e-6
-    response = np.zeros((12, 2))
-    for j in range(2):
-        kappa = np.eye(2)[j] * eps / f[j]
-        moved = [p + (p - centre) * ((p - centre) @ kappa)[:, None] for p in proj]
-        prob, state = _problem_at_solution(obj, moved, K, dist, rvecs, tvecs, flags, n_dist)
-        U, W, V, g, gp, _ = prob.normal_equations(state)
-        sol = _schur_solve(U, W, V, g, gp, 0.0)
-        if sol is None:
-            return None
-        response[:, j] = prob.cam_map @ sol[0][:prob.nc] / eps
+    fields = [[(p - centre) * ((p - centre) @ (np.eye(2)[j] * eps / f[j]))[:, None]
+               for p in proj] for j in range(2)]
+    response = displacement_response(obj, K, dist, rvecs, tvecs, flags, n_dist, fields)
+    if response is None:
+        return None
+    response = response.T / eps  # shape (12, 2)
     return {"absorption": -response[2:4] / f[:, None], "tangential": response[6:8]}
 
 

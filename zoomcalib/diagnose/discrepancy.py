@@ -43,7 +43,7 @@ above 10 is "very strong" evidence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -680,6 +680,9 @@ class Diagnosis:
                                   "model explains the table, 'unexplained' when not, else "
                                   "'none'"},
             "lens": self.response.lens.name if self.response is not None else "none",
+            "group_columns": ("each row's calibration response (diagnose/response.py)"
+                              if self.table.calibrations is not None and self.response is not None
+                              else "paraxial image shift"),
             "moving_groups": list(self.response.groups) if self.response is not None else [],
             "pixel_pitch_mm": self.pitch_mm, "pitch_fit": self.pitch_fit,
             "noise": self._noise_dict(),
@@ -739,6 +742,7 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
     """
     lo, hi = response.pitch_range(table.fx, table.source)
     grid = np.geomspace(lo, hi, n_grid) if hi > lo else np.array([lo])
+    table = replace(table, calibrations=None)  # the paraxial shift: one trace per pitch is too dear
     groups = table.zoom_groups()
     terms = baseline_terms(response.groups, locked_tilt)
     deviance = np.empty(len(grid))
@@ -792,7 +796,8 @@ def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
 def diagnose_table(table: ZoomTable, response: LensResponse | None,
                    tolerances: Tolerances | None = None, fit_pitch: bool = False,
                    locked_tilt: bool = False, exclude: dict[str, str] | None = None,
-                   require: dict[str, str] | None = None) -> Diagnosis:
+                   require: dict[str, str] | None = None,
+                   restrict: dict[str, str] | None = None) -> Diagnosis:
     """Fit the baseline, select the causes that the table supports, and check the result.
 
     Parameters
@@ -813,6 +818,9 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
     require : dict, optional
         Causes other evidence names (each with that evidence): in the selected model whatever
         the principal points say (:func:`select_causes`).
+    restrict : dict, optional
+        Causes to try in one variant only (cause: variant name, e.g. ``"static decentre,
+        variator"``), which other evidence chose.
 
     Returns
     -------
@@ -863,6 +871,11 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
     for cause, why in (exclude or {}).items():
         if variants.pop(cause, None) is not None:
             skipped[cause] = why
+    for cause, name in (restrict or {}).items():
+        kept = [v for v in variants.get(cause, []) if " + ".join(t.name for t in v) == name]
+        if not kept:
+            raise ValueError(f"{table.source}: cause {cause!r} has no variant {name!r}")
+        variants[cause] = kept
     final, chosen = select_causes(fitter, base, variants, require)
     if response is None and chosen and _lens_free_baseline(fitter, chosen) != base:
         # the path's degree chosen with the causes beside it, and the causes again

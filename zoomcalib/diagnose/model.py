@@ -28,6 +28,11 @@ principal point. When the table carries each row's keystone response (``A``, ``B
 
 (``f = (fx, fy)`` px); without it by ``f theta`` alone.
 
+Likewise a group's decentre or tilt: when the table holds each row's calibration (a diagnosis of
+an image folder), the columns are that calibration's own response to the error's traced image
+(:mod:`zoomcalib.diagnose.response`), ``G(z) R(m phi)``, instead of the paraxial
+``-S_g(z) / pitch R(m phi)``.
+
 The lens state of each measured row is found from its focal length: ``efl(z) = fx * pitch``,
 inverted on the lens's EFL curve, so the table's own zoom unit never matters.
 """
@@ -45,6 +50,7 @@ from ..optics.mechanics import ARCMIN, UM, Tolerances
 from ..optics.misalignment import Misalignment, vertex_z
 from ..optics.paraxial import effective_focal_length, exit_pupil_distance, image_shift_sensitivity
 from ..optics.prescription import Prescription
+from .response import calibration_response
 from .table import ZoomTable
 
 __all__ = ["LensResponse", "Context", "Term", "moving_groups", "play_sd_px", "FocalRangeError",
@@ -212,6 +218,22 @@ class Context:
         return cls(table, np.asarray(z, dtype=float), response, response.sensitivities(z),
                    response.exit_pupil_mm(z))
 
+    def group_response(self, group: str, kind: str) -> np.ndarray | None:
+        """(N, 4, 2) each row's calibration response to a unit decentre (mm) or tilt (rad) of
+        ``group`` (:func:`zoomcalib.diagnose.response.calibration_response`), None when the
+        table has no calibrations (the paraxial shift is used then)."""
+        cals = self.table.calibrations
+        if cals is None or self.response is None:
+            return None
+        key = (group, kind, self.response.pitch_mm, self.z.tobytes())
+        cache = self.table.response_cache
+        if key not in cache:
+            rows = [calibration_response(self.response.lens, float(z), self.response.pitch_mm,
+                                         cal, group, kind) for z, cal in zip(self.z, cals,
+                                                                             strict=True)]
+            cache[key] = None if any(r is None for r in rows) else np.array(rows)
+        return cache[key]
+
     @property
     def keystone_per_mrad(self) -> np.ndarray | None:
         """(N, 2, 2) camera-turn equivalent ``eps`` of the tilted sensor's keystone per mrad
@@ -271,11 +293,16 @@ def group_term(group: str, kind: str, harmonic: int, label: str, signed_by: str 
     scale = UM if kind == "decenter" else ARCMIN
 
     def columns(ctx: Context) -> np.ndarray:
-        s_d, s_t = ctx.sens[group]
-        weight = -(s_d if kind == "decenter" else s_t) * scale / ctx.response.pitch_mm
+        measured = ctx.group_response(group, kind)
+        if measured is None:  # the paraxial image shift
+            s_d, s_t = ctx.sens[group]
+            weight = -(s_d if kind == "decenter" else s_t) * scale / ctx.response.pitch_mm
+            cols = _rotating(weight, harmonic * ctx.phi)
+        else:  # as each row's calibration takes it
+            cols = scale * measured[:, :2] @ _rotating(np.ones(len(ctx.z)), harmonic * ctx.phi)
         if signed_by == "direction":
-            weight = weight * ctx.table.direction
-        return _rotating(weight, harmonic * ctx.phi)
+            cols = cols * ctx.table.direction[:, None, None]
+        return cols
 
     return Term(f"{label}, {group}", (f"{group}_x_{unit}", f"{group}_y_{unit}"), columns)
 

@@ -175,7 +175,9 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
                   + f" (margin {ev['margin']:.1f}; "
                   + (f"{ev['excluded']} contradicted)." if ev["excluded"]
                      else f"{ev['required']} named by it)." if ev.get("required")
-                     else "not decisive)."), ""]
+                     else "not decisive).")
+                  + "".join(f" It chose the variant of {c}: {v}."
+                            for c, v in (ev.get("restricted") or {}).items()), ""]
     lines += _setting_lines(diag, doc) + [""]
     b, e = doc["baseline"], doc["extended"]
     base_name = "paper's model" if diag.response is not None else "smooth path in log f"

@@ -23,6 +23,7 @@ from ..optics.prescription import Prescription
 from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
 from .model import LensResponse, moving_groups
 from .report import write_diagnosis
+from .response import RowCalibration
 from .table import ZoomTable
 from .tangential import resolve_with_distortion
 
@@ -112,6 +113,18 @@ def load_zoom_table(path: str | Path) -> ZoomTable:
     return ZoomTable.from_rows(read_zoom_table(path), str(path))
 
 
+def _row_calibrations(table: ZoomTable, cal) -> list[RowCalibration] | None:
+    """Each row's per-step OpenCV calibration from the calibrate run, None unless every row
+    has one (the group terms then keep the paraxial shift)."""
+    rows = []
+    for step in table.step:
+        result = cal.results.get(step, {}).get("opencv")
+        if result is None or step not in cal.observations:
+            return None
+        rows.append(RowCalibration(result, cal.observations[step]))
+    return rows
+
+
 def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | None,
                    pixel_pitch: float | str = 0.00645, tolerances: Tolerances | None = None,
                    pattern: str | None = None, backends: tuple[str, ...] = ("opencv",),
@@ -167,6 +180,8 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     else:
         raise FileNotFoundError(f"{source}: no such file or folder")
     table = load_zoom_table(table_path)
+    if source.is_dir():
+        table.calibrations = _row_calibrations(table, cal)
     check_table_size(table.zoom, table.fx, table.source, groups)
     fit_pitch = isinstance(pixel_pitch, str)
     if fit_pitch and pixel_pitch != "auto":
@@ -179,8 +194,7 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     if response is not None:
         diag = resolve_with_distortion(
             diag, read_zoom_table(table_path),
-            lambda exclude=None, require=None: diagnose_table(
-                table, response, tolerances, fit_pitch=fit_pitch, exclude=exclude,
-                require=require))
+            lambda **changes: diagnose_table(table, response, tolerances, fit_pitch=fit_pitch,
+                                             **changes))
     files = write_diagnosis(diag, out)
     return DiagnoseRun(diag, table_path, files, failures)

@@ -102,6 +102,12 @@ class ZoomTable:
         columns): rows ``A`` (cx, cy) and ``B`` (p1, p2) of
         :func:`zoomcalib.calibrate.opencv_backend.keystone_response`; None unless every row
         has all of them.
+    calibrations : list of RowCalibration or None
+        Each row's per-step calibration (observations and solution), when the diagnosis made
+        them itself (an image folder): its group terms then use each calibration's own response
+        (:mod:`zoomcalib.diagnose.response`). Not read from a table file.
+    response_cache : dict
+        Those responses, once computed, by (group, kind, pitch, lens states).
     """
 
     zoom: np.ndarray
@@ -119,6 +125,8 @@ class ZoomTable:
     source: str = "table"
     backend: str | None = None
     keystone: np.ndarray | None = None
+    calibrations: list | None = field(default=None, repr=False, compare=False)
+    response_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n(self) -> int:

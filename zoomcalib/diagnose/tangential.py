@@ -70,6 +70,9 @@ class _Tangential:
         self._jac: dict[tuple[str, str, float], np.ndarray] = {}
 
     def _jacobians(self, group: str, kind: str) -> np.ndarray:
+        measured = self.ctx.group_response(group, kind)
+        if measured is not None:  # as each row's calibration takes it
+            return measured[:, 2:]
         out = []
         for z in self.ctx.z:
             key = (group, kind, round(float(z), 9))
@@ -131,7 +134,8 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
     dict with ``p_scale`` (the estimated ``k``), ``baseline_chi2`` (the baseline with the
     diagnosis's other selected causes, ``base_causes``), and per cause in
     ``causes``: ``variant``, ``delta_bic`` (against the baseline with distortion rows),
-    ``params`` and ``params_sd``; ``best``, the cause of lowest ``delta_bic``.
+    ``params`` and ``params_sd`` of its best variant, and ``variants`` (each variant's
+    ``delta_bic``); ``best``, the cause of lowest ``delta_bic``.
 
     Raises
     ------
@@ -182,6 +186,7 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
                            "params_sd": dict(zip(names, np.sqrt(np.diag(cov))[-k:].tolist(),
                                                  strict=True))})
         out["causes"][cause] = min(scored, key=lambda s: s["delta_bic"])
+        out["causes"][cause]["variants"] = {s["variant"]: s["delta_bic"] for s in scored}
     out["best"] = min(out["causes"], key=lambda c: out["causes"][c]["delta_bic"])
     return out
 
@@ -208,21 +213,25 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     - both are among the selected causes or ``ambiguous_with`` (the principal points cannot
       part them): when one's ``delta_bic`` is lower by more than
       :data:`~zoomcalib.diagnose.discrepancy.BIC_MARGIN` and the other was selected, the
-      diagnosis is made again without the other (``refit(exclude=...)``, its reason under
-      ``skipped``);
+      diagnosis is made again without the other (``exclude``, its reason under ``skipped``);
     - or the axis tilt was not selected but the table holds the calibration's keystone
       response (:attr:`ZoomTable.keystone`): a calibration takes most of a tilted sensor's
       keystone into its poses, which leaves the tilt a faint trace in the principal points
       and a clear one in ``p1``, ``p2``. When the tilt lowers the BIC of the principal points
       and ``p1``, ``p2`` together by more than ``BIC_MARGIN`` and leads the static decentre by
-      as much, the diagnosis is made again with it required (``refit(require=...)``).
+      as much, the diagnosis is made again with it required (``require``).
 
-    The scores are attached as ``distortion`` either way, with ``margin`` and ``excluded``
-    (the contradicted cause, None when the margin is not passed), which ``ambiguous_with``
-    then leaves out, and ``required`` (the cause the scores put in, or None).
+    Either way, a selected cause whose variant (e.g. which group is decentred) the two together
+    put behind another of its variants by more than ``BIC_MARGIN`` is made again with that
+    variant (``restrict``): groups whose principal-point signatures are nearly one bend the
+    image differently. ``refit(exclude=..., require=..., restrict=...)`` makes the diagnosis
+    again. The scores are attached as ``distortion`` either way, with ``margin``,
+    ``excluded`` (the contradicted cause, None when the margin is not passed), which
+    ``ambiguous_with`` then leaves out, ``required`` (the cause the scores put in, or None) and
+    ``restricted`` (cause: variant).
     """
     named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
-    selected = {s.cause for s in diag.causes}
+    selected = {s.cause: s.variant for s in diag.causes}
     data = table_distortion(rows)
     settle = set(EVIDENCE_CAUSES) <= named
     keystone = diag.table.keystone is not None and "axis_tilt" not in selected
@@ -232,22 +241,34 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     winner = ev["best"]
     loser = next(c for c in EVIDENCE_CAUSES if c != winner)
     margin = ev["causes"][loser]["delta_bic"] - ev["causes"][winner]["delta_bic"]
-    ev |= {"margin": margin, "excluded": None, "required": None}
+    ev |= {"margin": margin, "excluded": None, "required": None, "restricted": {}}
+    changes: dict[str, dict[str, str]] = {"exclude": {}, "require": {}, "restrict": {}}
     if settle:
         ev["excluded"] = loser if margin > BIC_MARGIN else None
         if margin > BIC_MARGIN and loser in selected:
-            diag = refit(exclude={loser: f"contradicted by the tangential distortion p1, p2: "
-                                         f"{winner} fits them and the principal points better "
-                                         f"by {margin:.1f} in BIC (distortion_evidence)"})
+            changes["exclude"][loser] = (
+                f"contradicted by the tangential distortion p1, p2: {winner} fits them and the "
+                f"principal points better by {margin:.1f} in BIC (distortion_evidence)")
     elif (winner == "axis_tilt" and margin > BIC_MARGIN
           and ev["causes"][winner]["delta_bic"] < -BIC_MARGIN):
         ev["required"] = winner
-        tilt = ev["causes"][winner]
-        diag = refit(require={winner: (
-            f"the tangential distortion p1, p2 with the calibrations' keystone response: "
+        changes["require"][winner] = _tilt_evidence(ev, margin, loser)
+    for cause, variant in selected.items():
+        scores = ev["causes"].get(cause, {}).get("variants", {})
+        best = min(scores, key=scores.get, default=variant)
+        if cause not in changes["exclude"] and scores.get(variant, 0.0) - scores.get(
+                best, 0.0) > BIC_MARGIN:
+            ev["restricted"][cause] = changes["restrict"][cause] = best
+    if any(changes.values()):
+        diag = refit(**{k: v for k, v in changes.items() if v})
+    diag.distortion = ev
+    return diag
+
+
+def _tilt_evidence(ev: dict, margin: float, loser: str) -> str:
+    tilt = ev["causes"]["axis_tilt"]
+    return (f"the tangential distortion p1, p2 with the calibrations' keystone response: "
             f"delta_bic {tilt['delta_bic']:.1f} on the principal points and p1, p2 together, "
             f"{margin:.1f} ahead of {loser}; tilt " + ", ".join(
                 f"{k} {v:.2f} +- {tilt['params_sd'][k]:.2f}" for k, v in tilt["params"].items())
-            + " (distortion_evidence)")})
-    diag.distortion = ev
-    return diag
+            + " (distortion_evidence)")
