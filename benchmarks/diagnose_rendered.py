@@ -29,12 +29,13 @@ Usage::
                                            [--axis-tilt TX,TY] [--psf elliptical]
                                            [--settings 8] [--sensor 640x480@0.0129]
                                            [--board chessboard:9x6:25] [--seed 3]
-                                           [--static-decenter X,Y]
+                                           [--static-decenter X,Y] [--reuse]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -67,6 +68,9 @@ def main() -> None:
     ap.add_argument("--settings", type=int, default=8, help="axis-tilt set: zoom settings")
     ap.add_argument("--sensor", default="640x480@0.0129", help="WxH@PITCH_MM")
     ap.add_argument("--board", default="chessboard:9x6:25")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep OUT/set when it was rendered with the same options (calibrate "
+                         "and diagnose again only)")
     a = ap.parse_args()
     optics = Optics(psf=a.psf)
     tilt = tuple(float(v) for v in a.axis_tilt.split(",")) if a.axis_tilt else None
@@ -87,7 +91,11 @@ def main() -> None:
     size, pitch = a.sensor.split("@")
     sensor = Sensor(*(int(v) for v in size.split("x")), float(pitch))
     t0 = time.perf_counter()
-    if sweep:
+    options = {k: v for k, v in vars(a).items() if k not in ("out", "reuse")}
+    stamp = out / "set" / "benchmark_options.json"
+    if a.reuse and stamp.exists() and json.loads(stamp.read_text()) == options:
+        print(f"reusing the rendered set in {out / 'set'}")
+    elif sweep:
         settings = list(np.random.default_rng(a.seed).permutation(np.linspace(0.0, 1.0,
                                                                                  a.settings)))
         render_dataset(lens, tol, out / "set", settings, a.views, a.board,
@@ -99,6 +107,7 @@ def main() -> None:
         render_dataset(lens, tol, out / "set", settings + settings[::-1], a.views, a.board,
                        seed=a.seed, sensor=sensor, direction=["in"] * 5 + ["out"] * 5,
                        optics=optics)
+    stamp.write_text(json.dumps(options))
     t1 = time.perf_counter()
     run = diagnose_input(out / "set", out / "diag", lens, sensor.pixel_pitch_mm, tol,
                          a.board, ("opencv",), workers=1, log=lambda m: None)

@@ -188,6 +188,11 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
         out["causes"][cause] = min(scored, key=lambda s: s["delta_bic"])
         out["causes"][cause]["variants"] = {s["variant"]: s["delta_bic"] for s in scored}
     out["best"] = min(out["causes"], key=lambda c: out["causes"][c]["delta_bic"])
+    pairs = [base + a + b for a in variants[causes[0]] for b in variants[causes[1]]]
+    k_pair = [sum(len(t.params) for t in terms) - sum(len(t.params) for t in base)
+              for terms in pairs]
+    out["pair_delta_bic"] = min(_fit(columns(terms), y, w)[0] - base_chi2 + k * np.log(y.size)
+                                for terms, k in zip(pairs, k_pair, strict=True))
     return out
 
 
@@ -221,14 +226,17 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
       and ``p1``, ``p2`` together by more than ``BIC_MARGIN`` and leads the static decentre by
       as much, the diagnosis is made again with it required (``require``).
 
-    Either way, a selected cause whose variant (e.g. which group is decentred) the two together
-    put behind another of its variants by more than ``BIC_MARGIN`` is made again with that
-    variant (``restrict``): groups whose principal-point signatures are nearly one bend the
-    image differently. ``refit(exclude=..., require=..., restrict=...)`` makes the diagnosis
-    again. The scores are attached as ``distortion`` either way, with ``margin``,
-    ``excluded`` (the contradicted cause, None when the margin is not passed), which
-    ``ambiguous_with`` then leaves out, ``required`` (the cause the scores put in, or None) and
-    ``restricted`` (cause: variant).
+    Either way, a selected one of the two that does not lower the BIC of the two together by
+    more than ``BIC_MARGIN`` is left out (``exclude``): its trace in the principal points is
+    not matched in ``p1``, ``p2``. And a selected cause whose variant (e.g. which group is
+    decentred) the two together put behind another of its variants by more than
+    ``BIC_MARGIN`` is made again with that variant (``restrict``): groups whose
+    principal-point signatures are nearly one bend the image differently.
+    ``refit(exclude=..., require=..., restrict=...)`` makes the diagnosis again. The scores
+    are attached as ``distortion`` either way, with ``margin``, ``excluded`` (the contradicted
+    cause, None when the margin is not passed), which ``ambiguous_with`` then leaves out,
+    ``required`` (the cause the scores put in, or None), ``unsupported`` (the causes left out
+    for want of support) and ``restricted`` (cause: variant).
     """
     named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
     selected = {s.cause: s.variant for s in diag.causes}
@@ -253,6 +261,14 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
           and ev["causes"][winner]["delta_bic"] < -BIC_MARGIN):
         ev["required"] = winner
         changes["require"][winner] = _tilt_evidence(ev, margin, loser)
+    ev["unsupported"] = [c for c in EVIDENCE_CAUSES if c in selected
+                         and c not in changes["exclude"]
+                         and ev["causes"][c]["delta_bic"] > -BIC_MARGIN]
+    for cause in ev["unsupported"]:
+        changes["exclude"][cause] = (
+            f"not supported by the principal points and p1, p2 together: delta_bic "
+            f"{ev['causes'][cause]['delta_bic']:.1f} (distortion_evidence); its trace in the "
+            f"principal points is not matched in p1, p2")
     for cause, variant in selected.items():
         scores = ev["causes"].get(cause, {}).get("variants", {})
         best = min(scores, key=scores.get, default=variant)
@@ -261,6 +277,14 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
             ev["restricted"][cause] = changes["restrict"][cause] = best
     if any(changes.values()):
         diag = refit(**{k: v for k, v in changes.items() if v})
+        if set(EVIDENCE_CAUSES) <= {s.cause for s in diag.causes} and (
+                ev["pair_delta_bic"] > ev["causes"][winner]["delta_bic"] - BIC_MARGIN):
+            # the refit selected the other one beside the winner on the principal points
+            ev["unsupported"].append(loser)
+            changes["exclude"][loser] = (
+                f"adds less than {BIC_MARGIN:g} in BIC to {winner} on the principal points "
+                f"and p1, p2 together (distortion_evidence)")
+            diag = refit(**{k: v for k, v in changes.items() if v})
     diag.distortion = ev
     return diag
 
