@@ -94,6 +94,8 @@ class _Tangential:
         c, s = np.cos(angle), np.sin(angle)
         rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], 1)  # shape (N, 2, 2)
         unit = UM if kind == "decenter" else ARCMIN
+        if term.name.startswith("backlash"):  # the side follows the last zoom move
+            rot = rot * self.ctx.table.direction[:, None, None]
         return unit * np.einsum("nij,njk->nik", self._jacobians(group, kind),
                                 rot).reshape(2 * n, 2)
 
@@ -101,7 +103,8 @@ class _Tangential:
 def _group_term_parts(term: Term, groups: tuple[str, ...]) -> tuple[str | None, str, int]:
     """(group, kind, harmonic) of a group term by its name, (None, '', 0) for any other."""
     harmonics = {"locked decentre": ("decenter", 1), "locked tilt": ("tilt", 1),
-                 "static decentre": ("decenter", 0), "cam harmonic": ("decenter", 2)}
+                 "static decentre": ("decenter", 0), "cam harmonic": ("decenter", 2),
+                 "backlash": ("decenter", 1)}
     label, _, group = term.name.rpartition(", ")
     if group in groups and label in harmonics:
         return (group, *harmonics[label])
