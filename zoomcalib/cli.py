@@ -429,17 +429,27 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
               help="Gaussian blur sigma, px (added to diffraction at f/2.8, 3 um pixels).")
 @click.option("--supersample", default=3, show_default=True, type=click.IntRange(1, 8),
               help="Sub-samples per pixel side for non-Gaussian PSFs.")
+@click.option("--pp-path", default="bow", show_default=True,
+              type=click.Choice(["bow", "traced"]),
+              help="Principal-point path: bow (30, -18 px, quadratic in log fx) or traced (the "
+                   "ray-traced zoom lens laikin-10x with mechanical errors drawn from --seed).")
+@click.option("--pp-span", default=40.0, show_default=True, type=click.FloatRange(min=0),
+              help="traced: largest distance of the path from its short-end point, px.")
+@click.option("--pp-runout", default=1.0, show_default=True, type=click.FloatRange(min=0),
+              help="traced: cam-track run-out, times the default tolerance file's (0: none).")
 @_testbed_options
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
-def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, wave, psf,
-                 airy_radius, halo, ellipse, jpeg_quality, seed, out):
+def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
+                 pp_span, pp_runout, wave, psf, airy_radius, halo, ellipse, jpeg_quality, seed,
+                 out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
-    fx log-spaced over --fx, a principal point drifting by tens of px, barrel distortion fading
-    towards the long end, tilts up to 40 degrees at the short end and near-fronto-parallel
-    views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg), OUT/steps.csv (zoom =
-    fx) and OUT/truth.json (K, dist, board surface, poses and true points per step).
+    fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
+    distortion fading towards the long end, tilts up to 40 degrees at the short end and
+    near-fronto-parallel views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg),
+    OUT/steps.csv (zoom = fx) and OUT/truth.json (K, dist, board surface, principal-point
+    path, poses and true points per step).
     """
     from .render.image import Radiometry
     from .render.sweep import render_zoom_sweep
@@ -460,7 +470,8 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
             doc = render_zoom_sweep(out, fx, steps, views, (width, height), pattern,
                                     wave or None, jpeg_quality=jpeg_quality, seed=seed,
                                     optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
-                                    supersample=supersample, progress=bar.update)
+                                    supersample=supersample, progress=bar.update,
+                                    pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout)
         except RuntimeError as exc:
             raise click.ClickException(str(exc)) from None
     for st in doc["steps"]:
