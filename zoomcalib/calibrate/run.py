@@ -318,7 +318,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         zw = run.zoom_wide
         meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
                              "iterations": zw.iterations, "tau": zw.tau,
-                             "tau_source": zw.tau_source,
+                             "tau_source": zw.tau_source, "zoom_model": zw.zoom_models,
                              "board_modes_mm": zw.board_modes.tolist(),
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
