@@ -187,7 +187,7 @@ def main() -> None:
     truth = _render(out / "images", args)
     t1 = time.perf_counter()
     run = calibrate_folder(out / "images", PATTERN, out / "calibration", ("opencv",),
-                           workers=2, log=lambda m: None)
+                           workers=2, log=lambda m: None, pp_model="select")
     t2 = time.perf_counter()
     print(f"# render {t1 - t0:.1f} s (0 when reused); calibrate (2 workers) {t2 - t1:.1f} s")
     run.prior2 = calibrate_zoom_wide(run.observations, pp_model="prior2")

@@ -566,6 +566,11 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--per-step", is_flag=True,
               help="Calibrate each zoom step on its own only (no zoom-wide adjustment); the "
                    "zoom table then comes from the per-step backends.")
+@click.option("--pp-model", default="prior2", show_default=True,
+              type=click.Choice(["prior2", "select"]),
+              help="Zoom-wide: how cx, cy follow the zoom. prior2: a second-difference prior in "
+                   "log fx of REML strength; select: that prior, a third-difference prior or a "
+                   "polynomial of degree 1-3 in log fx, chosen by held-out steps.")
 @click.option("--cross-validate", is_flag=True,
               help="Also calibrate the even and the odd images of every step apart and report "
                    "their differences in combined sigmas (flags |z| > 3).")
@@ -586,8 +591,8 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
-def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
-              grid_points, camera_name, no_report, report_distance):
+def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, model, method,
+              workers, out, grid_points, camera_name, no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -630,7 +635,8 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
                                zoom_wide=not per_step, cross_validate=cross_validate,
                                grid_points=grid_points, camera_name=camera_name,
-                               report=not no_report, report_distance=report_distance)
+                               report=not no_report, report_distance=report_distance,
+                               pp_model=pp_model)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

@@ -93,7 +93,7 @@ PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: ``pp_model`` of :func:`calibrate_zoom_wide`: the principal point's zoom model chosen by
 #: held-out steps, or the second-difference prior alone.
-ZOOM_MODELS = ("select", "prior2")
+ZOOM_MODELS = ("prior2", "select")
 #: Parameters whose zoom model is chosen by held-out steps (``pp_model="select"``).
 SELECTED = ("cx", "cy")
 #: Distortion term sets, simplest first.
@@ -578,7 +578,7 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
-                        pp_model: str = "select") -> ZoomWideResult:
+                        pp_model: str = "prior2") -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -598,10 +598,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         Steps with different labels (e.g. the direction of the last zoom move, ``in`` or
         ``out``) are not tied by the smoothness prior: each label's steps form their own chain
         (with one shared ``tau``). Default: one chain.
-    pp_model : {'select', 'prior2'}
-        How cx and cy follow the zoom: the model chosen by held-out steps among the difference
-        priors of order 2 and 3 and the polynomials of degree 1-3 in ``log fx``
-        (:mod:`~zoomcalib.calibrate.zoommodel`), or the second-difference prior alone.
+    pp_model : {'prior2', 'select'}
+        How cx and cy follow the zoom: the second-difference prior alone, or the model chosen
+        by held-out steps among the difference priors of order 2 and 3 and the polynomials of
+        degree 1-3 in ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). Not the default: on
+        the traced lens path it can pick a polynomial the path does not follow
+        (``docs/calibration.md``).
 
     Returns
     -------
