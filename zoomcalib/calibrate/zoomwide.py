@@ -52,6 +52,12 @@ Levenberg-Marquardt on the sparse Jacobian. The covariance of every parameter is
 ``(J^T J)^{-1}`` of the whole problem (prior rows included), so a long-end step's sigma includes
 what it borrows from its neighbours.
 
+With ``pp_model="select"`` the prior of cx and cy is instead chosen by held-out steps from the
+first solve's values and joint covariance (:mod:`zoomcalib.calibrate.zoommodel`): the prior
+above, a third-difference prior, or a polynomial of degree 1-3 in ``u`` (a difference prior of
+the next order with ``tau -> 0``), kept to the second-difference prior unless another candidate
+predicts the left-out steps better by 2 standard errors.
+
 Which distortion terms a step supports is chosen by held-out views (:func:`select_distortion`):
 two-fold cross-validation over the step's views with OpenCV, the simplest term set whose held-out
 error is within 1 % of the best.
