@@ -2,14 +2,19 @@
 its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
-[--jpeg 85] [--mc 20] [--seed 0] [--out DIR]``
+[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--mc 20] [--seed 0]
+[--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
-   board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG) unless
-   ``DIR/images/truth.json`` exists.
+   board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
+   principal point on the ``--pp-path``) unless ``DIR/images/truth.json`` exists.
 2. Runs the calibrate job with its defaults (model detector, per-step OpenCV beside the zoom-wide
-   adjustment) and prints, per step and backend, the error against the rendered truth: fx in %,
-   cx and cy in px and in reported sigmas, and the sigmas.
+   adjustment, the principal point's zoom model chosen by held-out steps), and the zoom-wide
+   adjustment again with the second-difference prior alone (``prior2``, the earlier default).
+   Prints, per step and backend, the error against the rendered truth: fx in %, cx and cy in px
+   and in reported sigmas, and the sigmas; the zoom models chosen; and at the two longest steps
+   the per-step OpenCV principal-point sigma over the zoom-wide one (cx, cy, and as a point:
+   the root of the sum of the two variances) for both.
 3. Monte Carlo: the true image points of every detected corner (``truth.json``) plus Gaussian
    noise of the detector's measured RMS error per coordinate, ``--mc`` draws, each adjusted
    zoom-wide; printed per step: the spread of fx, cx, cy over the draws divided by the mean
@@ -30,9 +35,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
+from zoomcalib.calibrate.opencv_backend import calibrate_opencv  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
 from zoomcalib.calibrate.zoomwide import (  # noqa: E402
+    DISTORTION_SETS,
+    _distortion_flags,
     calibrate_zoom_wide,
     prior_strength,
     second_difference,
@@ -46,7 +54,9 @@ def _render(images: Path, args) -> dict:
     if not (images / "truth.json").exists():
         render_zoom_sweep(images, steps=args.steps, views=args.views, pattern=PATTERN,
                           board_surface=args.wave or None, psf=args.psf,
-                          jpeg_quality=args.jpeg, seed=args.seed, supersample=2)
+                          jpeg_quality=args.jpeg, seed=args.seed, supersample=2,
+                          pp_path=args.pp_path, pp_span_px=args.pp_span,
+                          pp_runout=args.pp_runout)
     return json.loads((images / "truth.json").read_text())
 
 
@@ -56,6 +66,7 @@ def _truth_points(truth: dict) -> dict[str, dict[str, np.ndarray]]:
 
 
 def _errors_table(run, truth: dict) -> None:
+    print("# prior2: the zoom-wide adjustment with the second-difference prior alone")
     print(f"{'step':>9s} {'backend':>9s} {'dfx %':>8s} {'sd fx %':>8s} {'dcx':>7s} {'sd cx':>6s} "
           f"{'z cx':>5s} {'dcy':>7s} {'sd cy':>6s} {'z cy':>5s}")
     for st in truth["steps"]:
@@ -68,20 +79,52 @@ def _errors_table(run, truth: dict) -> None:
                   f"{dcy / r.sd['cy']:+5.1f}")
 
 
+def _per_step_opencv(run, step: str):
+    """The calibrate job's per-step OpenCV result (k1 k2 p1 p2 k3), or, where it failed (OpenCV
+    cannot give a sigma for k3 at the long end), OpenCV with k1 k2 p1 p2."""
+    res = run.results.get(step, {})
+    if "opencv" in res:
+        return res["opencv"], "opencv"
+    flags = _distortion_flags(DISTORTION_SETS["k1k2p"])
+    return calibrate_opencv(run.observations[step], flags=flags), "opencv without k3"
+
+
+def _long_end_table(run, truth: dict) -> None:
+    """Per-step OpenCV principal-point sigma over the zoom-wide one at the two longest steps."""
+    print("# long end: per-step OpenCV sigma / zoom-wide sigma")
+    print(f"{'step':>9s} {'model':>9s} {'cx':>6s} {'cy':>6s} {'point':>6s}  per-step")
+    for st in truth["steps"][-2:]:
+        cv, label = _per_step_opencv(run, st["step"])
+        for backend in ("zoom-wide", "prior2"):
+            zw = run.results[st["step"]][backend]
+            point = np.hypot(cv.sd["cx"], cv.sd["cy"]) / np.hypot(zw.sd["cx"], zw.sd["cy"])
+            print(f"{st['step']:>9s} {backend:>9s} {cv.sd['cx'] / zw.sd['cx']:6.2f} "
+                  f"{cv.sd['cy'] / zw.sd['cy']:6.2f} {point:6.2f}  {label}")
+
+
+def _models_table(run) -> None:
+    print("# zoom models chosen by held-out steps (log predictive density of each candidate)")
+    for q in ("cx", "cy"):
+        m = run.zoom_wide.zoom_models[q]
+        scores = " ".join(f"{k} {v:.1f}" if v is not None else f"{k} -"
+                          for k, v in (m["held_out_log_density"] or {}).items())
+        print(f"{q}: {m['model']} (tau {m['tau'] or float('inf'):.3g}); {scores}")
+
+
 def _prior_table(run, truth: dict) -> None:
     """The smoothness prior's ``tau`` as the adjustment estimated it, as per-step OpenCV values
     would give it, and the rendered path's own RMS second difference in ``u = log fx``."""
     steps = [st for st in truth["steps"] if "opencv" in run.results.get(st["step"], {})]
     u = np.log([np.asarray(st["K"])[0, 0] for st in steps])
     D = second_difference(u)
-    print(f"# smoothness prior (px per u^2), from: {run.zoom_wide.tau_source}")
+    print(f"# second-difference prior (px per u^2), from: {run.prior2.tau_source}")
     print(f"{'param':>6s} {'zoom-wide':>10s} {'opencv':>10s} {'truth':>10s}")
     for q, row in (("cx", 0), ("cy", 1)):
         cv = [run.results[st["step"]]["opencv"] for st in steps]
         tau_cv, _ = prior_strength(np.array([getattr(r, q) for r in cv]),
                                    np.array([r.sd[q] for r in cv]), u)
         path = np.array([np.asarray(st["K"])[row, 2] for st in steps])
-        print(f"{q:>6s} {run.zoom_wide.tau[q]:10.2f} {tau_cv:10.2f} "
+        print(f"{q:>6s} {run.prior2.tau[q]:10.2f} {tau_cv:10.2f} "
               f"{np.sqrt(np.mean((D @ path) ** 2)):10.2f}")
 
 
@@ -95,7 +138,7 @@ def _detection_error(run, points: dict) -> float:
     return float(np.sqrt(sq / n))
 
 
-def _monte_carlo(run, points: dict, noise: float, draws: int, seed: int) -> None:
+def _monte_carlo(run, points: dict, noise: float, draws: int, seed: int, model: str) -> None:
     rng = np.random.default_rng(seed)
     values = {s: [] for s in run.observations}
     sds = {s: [] for s in run.observations}
@@ -105,11 +148,11 @@ def _monte_carlo(run, points: dict, noise: float, draws: int, seed: int) -> None
             views = [(ids, points[step][name][ids] + rng.normal(0, noise, (len(ids), 2)))
                      for name, (ids, _) in zip(o.names, o.views, strict=True)]
             obs[step] = Observations(o.object_points, views, o.image_size, o.names)
-        zw = calibrate_zoom_wide(obs)
+        zw = calibrate_zoom_wide(obs, pp_model=model)
         for step, r in zw.results.items():
             values[step].append([r.fx, r.cx, r.cy])
             sds[step].append([r.sd["fx"], r.sd["cx"], r.sd["cy"]])
-    print(f"# Monte Carlo: {draws} draws, noise {noise:.4f} px per coordinate; "
+    print(f"# Monte Carlo ({model}): {draws} draws, noise {noise:.4f} px per coordinate; "
           "spread / mean reported sigma")
     print(f"{'step':>9s} {'fx':>6s} {'cx':>6s} {'cy':>6s}")
     for step in values:
@@ -124,29 +167,41 @@ def main() -> None:
     ap.add_argument("--psf", default="airy", choices=["gaussian", "airy", "halo", "elliptical"])
     ap.add_argument("--wave", type=float, default=0.3, help="board wave amplitude, mm")
     ap.add_argument("--jpeg", type=int, default=85, help="JPEG quality (0: PNG)")
+    ap.add_argument("--pp-path", default="bow", choices=["bow", "traced"])
+    ap.add_argument("--pp-span", type=float, default=40.0, help="traced path's span, px")
+    ap.add_argument("--pp-runout", type=float, default=1.0, help="traced path's run-out scale")
     ap.add_argument("--mc", type=int, default=20, help="Monte Carlo draws (0: none)")
+    ap.add_argument("--mc-model", default="select", choices=["select", "prior2"],
+                    help="pp_model of the Monte Carlo's adjustments")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
     args.jpeg = args.jpeg or None
     out = Path(args.out)
     print(f"# sweep: {args.steps} steps x {args.views} views, 1280x720, {PATTERN}, psf {args.psf}, "
-          f"wave {args.wave} mm, jpeg {args.jpeg or 'none'}, seed {args.seed}")
+          f"wave {args.wave} mm, jpeg {args.jpeg or 'none'}, seed {args.seed}, pp path "
+          f"{args.pp_path}" + (f" (span {args.pp_span} px, run-out x {args.pp_runout})"
+                               if args.pp_path == "traced" else ""))
     print(f"# machine: {platform.machine()}, Python {platform.python_version()}")
     t0 = time.perf_counter()
     truth = _render(out / "images", args)
     t1 = time.perf_counter()
     run = calibrate_folder(out / "images", PATTERN, out / "calibration", ("opencv",),
-                           workers=2, log=lambda m: None)
+                           workers=2, log=lambda m: None, pp_model="select")
     t2 = time.perf_counter()
     print(f"# render {t1 - t0:.1f} s (0 when reused); calibrate (2 workers) {t2 - t1:.1f} s")
+    run.prior2 = calibrate_zoom_wide(run.observations, pp_model="prior2")
+    for step, r in run.prior2.results.items():
+        run.results[step]["prior2"] = r
     _errors_table(run, truth)
+    _models_table(run)
+    _long_end_table(run, truth)
     _prior_table(run, truth)
     points = _truth_points(truth)
     noise = _detection_error(run, points)
     print(f"# detection error against the truth: {noise:.4f} px RMS per coordinate")
     if args.mc:
-        _monte_carlo(run, points, noise, args.mc, args.seed + 1)
+        _monte_carlo(run, points, noise, args.mc, args.seed + 1, args.mc_model)
 
 
 if __name__ == "__main__":

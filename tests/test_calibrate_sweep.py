@@ -54,3 +54,11 @@ def test_cross_validation_is_reported_everywhere(rendered):
         assert all(abs(z) < 4.0 for z in step["z"].values()), step["z"]
     assert "cross-validation (zoom-wide" in res.output
     assert (out / "cross_validation.png").stat().st_size > 10_000
+
+
+def test_zoom_model_of_the_principal_point_is_reported(rendered):
+    _, out, _ = rendered
+    models = json.loads((out / "calibration.json").read_text())["meta"]["zoom_wide"]["zoom_model"]
+    for q in ("cx", "cy"):  # the default: the second-difference prior with its REML tau
+        assert models[q]["model"] == "prior2" and models[q]["order"] == 2
+        assert models[q]["tau"] > 0

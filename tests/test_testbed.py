@@ -448,3 +448,33 @@ def test_an_interrupted_lens_render_rerun_equals_one_run(tmp_path, laikin):
                     if p.is_file()} for r in (tmp_path / "once", tmp_path / "twice"))
     assert once.keys() == twice.keys()
     assert [k for k in once if once[k] != twice[k]] == []
+
+
+def test_traced_principal_point_path_is_not_a_low_degree_polynomial():
+    from zoomcalib.render.sweep import principal_point_path
+
+    fx, bow, rec = principal_point_path((2300.0, 23000.0), 25, "bow")
+    u = np.log(fx)
+    cubic = lambda p: p - np.polynomial.polynomial.polyval(  # noqa: E731
+        u, np.polynomial.polynomial.polyfit(u, p, 3)).T
+    assert rec["kind"] == "bow" and np.abs(cubic(bow)).max() < 1e-6  # a quadratic in u
+    for runout in (0.0, 1.0):
+        _, path, rec = principal_point_path((2300.0, 23000.0), 25, "traced", span_px=40.0,
+                                            runout=runout, seed=7)
+        assert rec["kind"] == "traced" and np.allclose(path[0], 0.0)
+        # tens of px over the sweep, and a cubic in log fx misses it by more than a long-end
+        # sigma of the adjustment (~1 px): the sensitivities change with zoom, the run-out turns
+        # (the span is that of the static errors; the run-out adds a few px)
+        assert 20.0 < np.linalg.norm(path, axis=1).max() <= (40.0 + 1e-9 if not runout else 50.0)
+        assert np.abs(cubic(path)).max() > (1.0 if runout else 0.1), runout
+
+
+def test_cli_render_sweep_traced_path_in_truth(tmp_path):
+    res = CliRunner().invoke(main, ["render-sweep", "--fx", "1150,11500", "--steps", "3",
+                                    "--views", "1", "--size", "320x180", "--pp-path", "traced",
+                                    "--pp-span", "30", "--seed", "2", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "truth.json").read_text())
+    assert doc["pp_path"]["kind"] == "traced" and doc["pp_path"]["lens"] == "laikin-10x"
+    c = np.array([np.asarray(st["K"])[:2, 2] for st in doc["steps"]])
+    assert 5.0 < np.linalg.norm(c - c[0], axis=1).max() < 40.0

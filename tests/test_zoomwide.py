@@ -22,6 +22,7 @@ from zoomcalib.calibrate.zoomwide import (
     prior_strength,
     second_difference,
 )
+from zoomcalib.render.pp_path import traced_path
 from zoomcalib.targets import parse_pattern
 
 SIZE = (1280, 720)
@@ -29,8 +30,9 @@ SIZE = (1280, 720)
 
 def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
                        pattern="chessboard:22x15:20", fx_range=(2300.0, 23000.0),
-                       shift_odd_cx=0.0):
-    """A zoom sweep's detections and its truth (see the module docstring)."""
+                       shift_odd_cx=0.0, pp=None):
+    """A zoom sweep's detections and its truth (see the module docstring); ``pp(u)`` (steps, 2)
+    px replaces the principal-point path, ``u = log(fx / fx_0)``."""
     target = parse_pattern(pattern)
     X0 = target.object_points.astype(float)
     centre = X0.mean(axis=0)
@@ -44,10 +46,13 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
     fx = np.geomspace(*fx_range, steps)
     u = np.log(fx / fx[0])
     a, b = rng.uniform(-30, 30, 2)
+    path = None if pp is None else pp(u)
     obs, truth = {}, {}
     for s in range(steps):
         cx = 640 + a * np.sin(0.6 * u[s]) + 5 * u[s]
         cy = 360 + b * (u[s] / u[-1]) ** 2 - 4 * u[s]
+        if path is not None:
+            cx, cy = path[s]
         k1, k2 = -0.25 * np.exp(-1.5 * u[s]), 0.12 * np.exp(-3 * u[s])
         tilt = 35 * np.exp(-u[s] / 1.2) + 3
         vlist = []
@@ -215,3 +220,37 @@ def test_a_step_that_cannot_start_is_left_out_not_fatal(rng):
     assert set(zw.results) == {"step0", "step1", "step3"}
     for name, r in zw.results.items():
         assert abs(r.fx / truth[name]["fx"] - 1) < 0.003
+
+
+def _recovered_within(zw, truth, limit=4.0):
+    # 4 sigma: a 1-in-16000 event per value for honest Gaussian sigmas
+    for name, t in truth.items():
+        for q in ("cx", "cy"):
+            err = getattr(zw.results[name], q) - t[q]
+            assert abs(err) < limit * zw.results[name].sd[q], (name, q, err)
+
+
+def test_zoom_model_follows_a_curved_path(rng):
+    # a quadratic in log fx whose bow (15 px in cx, in the middle) a line misses
+    def quadratic(u):
+        t = u / u[-1]
+        return np.column_stack([640 + 80 * t - 60 * t**2, 360 - 40 * t + 60 * t**2])
+
+    obs, truth, _ = sweep_observations(rng, views=6, noise=0.012, pp=quadratic)
+    zw = calibrate_zoom_wide(obs, select=False, pp_model="select")
+    assert not {zw.zoom_models[q]["model"] for q in ("cx", "cy")} & {"poly1"}, zw.zoom_models
+    assert zw.results["step0"].info["zoom_model"]["cx"] == zw.zoom_models["cx"]["model"]
+    _recovered_within(zw, truth)
+
+
+def test_zoom_model_keeps_the_prior_on_the_traced_lens(rng):
+    # the principal point of the ray-traced zoom lens with mechanical errors, its cam-track
+    # run-out turning twice over the range: no polynomial in log fx follows it
+    def traced(u):
+        return np.array([640.0, 360.0]) + traced_path(u / u[-1], (2300.0, 23000.0), 40.0, 11)[0]
+
+    obs, truth, _ = sweep_observations(rng, noise=0.012, pp=traced)
+    zw = calibrate_zoom_wide(obs, select=False, pp_model="select")
+    assert not any(zw.zoom_models[q]["model"].startswith("poly") for q in ("cx", "cy")), \
+        zw.zoom_models
+    _recovered_within(zw, truth)

@@ -429,17 +429,27 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
               help="Gaussian blur sigma, px (added to diffraction at f/2.8, 3 um pixels).")
 @click.option("--supersample", default=3, show_default=True, type=click.IntRange(1, 8),
               help="Sub-samples per pixel side for non-Gaussian PSFs.")
+@click.option("--pp-path", default="bow", show_default=True,
+              type=click.Choice(["bow", "traced"]),
+              help="Principal-point path: bow (30, -18 px, quadratic in log fx) or traced (the "
+                   "ray-traced zoom lens laikin-10x with mechanical errors drawn from --seed).")
+@click.option("--pp-span", default=40.0, show_default=True, type=click.FloatRange(min=0),
+              help="traced: largest distance of the path from its short-end point, px.")
+@click.option("--pp-runout", default=1.0, show_default=True, type=click.FloatRange(min=0),
+              help="traced: cam-track run-out, times the default tolerance file's (0: none).")
 @_testbed_options
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
-def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, wave, psf,
-                 airy_radius, halo, ellipse, jpeg_quality, seed, out):
+def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
+                 pp_span, pp_runout, wave, psf, airy_radius, halo, ellipse, jpeg_quality, seed,
+                 out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
-    fx log-spaced over --fx, a principal point drifting by tens of px, barrel distortion fading
-    towards the long end, tilts up to 40 degrees at the short end and near-fronto-parallel
-    views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg), OUT/steps.csv (zoom =
-    fx) and OUT/truth.json (K, dist, board surface, poses and true points per step).
+    fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
+    distortion fading towards the long end, tilts up to 40 degrees at the short end and
+    near-fronto-parallel views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg),
+    OUT/steps.csv (zoom = fx) and OUT/truth.json (K, dist, board surface, principal-point
+    path, poses and true points per step).
     """
     from .render.image import Radiometry
     from .render.sweep import render_zoom_sweep
@@ -460,7 +470,8 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
             doc = render_zoom_sweep(out, fx, steps, views, (width, height), pattern,
                                     wave or None, jpeg_quality=jpeg_quality, seed=seed,
                                     optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
-                                    supersample=supersample, progress=bar.update)
+                                    supersample=supersample, progress=bar.update,
+                                    pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout)
         except RuntimeError as exc:
             raise click.ClickException(str(exc)) from None
     for st in doc["steps"]:
@@ -555,6 +566,11 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--per-step", is_flag=True,
               help="Calibrate each zoom step on its own only (no zoom-wide adjustment); the "
                    "zoom table then comes from the per-step backends.")
+@click.option("--pp-model", default="prior2", show_default=True,
+              type=click.Choice(["prior2", "select"]),
+              help="Zoom-wide: how cx, cy follow the zoom. prior2: a second-difference prior in "
+                   "log fx of REML strength; select: that prior, a third-difference prior or a "
+                   "polynomial of degree 1-3 in log fx, chosen by held-out steps.")
 @click.option("--cross-validate", is_flag=True,
               help="Also calibrate the even and the odd images of every step apart and report "
                    "their differences in combined sigmas (flags |z| > 3).")
@@ -575,8 +591,8 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
-def calibrate(folder, pattern, backend, per_step, cross_validate, model, method, workers, out,
-              grid_points, camera_name, no_report, report_distance):
+def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, model, method,
+              workers, out, grid_points, camera_name, no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -619,7 +635,8 @@ def calibrate(folder, pattern, backend, per_step, cross_validate, model, method,
                                workers or os.cpu_count() or 1, bar.update, messages.append,
                                zoom_wide=not per_step, cross_validate=cross_validate,
                                grid_points=grid_points, camera_name=camera_name,
-                               report=not no_report, report_distance=report_distance)
+                               report=not no_report, report_distance=report_distance,
+                               pp_model=pp_model)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

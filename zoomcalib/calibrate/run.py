@@ -210,7 +210,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
-                     report_distance: float | None = None) -> CalibrateRun:
+                     report_distance: float | None = None, pp_model: str = "prior2"
+                     ) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -236,6 +237,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
         and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
+    pp_model : {'prior2', 'select'}
+        How the zoom-wide adjustment ties cx, cy across zoom (``pp_model`` of
+        :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
     grid_points : int
         Zoom values of ``zoom_model_grid.csv`` (:mod:`zoomcalib.calibrate.export`).
     camera_name : str, optional
@@ -301,14 +305,14 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         extras_of[step] = extras
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
-                                             extras_of.items()})
+                                             extras_of.items()}, pp_model)
     for step in [s for s, r in run.results.items() if not r]:
         del run.results[step]
         run.backend_failures.pop(step, None)
         run.dropped.append(step)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
-        run.cross_validation = _cross_validate(run, model, target)
+        run.cross_validation = _cross_validate(run, model, target, pp_model)
     run.flags = _step_flags(run)
     rows = [_table_row(step, run.zoom[step], extras_of[step],
                        run.results[step][run.table_backend[step]]) | {
@@ -328,7 +332,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         zw = run.zoom_wide
         meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
                              "iterations": zw.iterations, "tau": zw.tau,
-                             "tau_source": zw.tau_source,
+                             "tau_source": zw.tau_source, "zoom_model": zw.zoom_models,
                              "board_modes_mm": zw.board_modes.tolist(),
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
@@ -440,7 +444,7 @@ def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[s
 
 
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
-               directions: dict[str, str]) -> None:
+               directions: dict[str, str], pp_model: str = "prior2") -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -457,7 +461,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
                if run.results.get(s) else o for s, o in obs.items()}
     try:
-        zw = calibrate_zoom_wide(obs, chains=directions)
+        zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -476,7 +480,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     run.zoom_wide = zw
 
 
-def _cross_validate(run: CalibrateRun, model: str, target: Target):
+def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "prior2"):
     """Two-halves check with the backend (and mode) of the zoom table."""
     from .checks import cross_validate
 
@@ -484,7 +488,8 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target):
     if backend == "zoom-wide":
         from .zoomwide import calibrate_zoom_wide
 
-        return cross_validate(run.observations, lambda o: calibrate_zoom_wide(o).results,
+        return cross_validate(run.observations,
+                              lambda o: calibrate_zoom_wide(o, pp_model=pp_model).results,
                               backend)
 
     def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:

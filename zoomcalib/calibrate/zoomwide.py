@@ -52,6 +52,12 @@ Levenberg-Marquardt on the sparse Jacobian. The covariance of every parameter is
 ``(J^T J)^{-1}`` of the whole problem (prior rows included), so a long-end step's sigma includes
 what it borrows from its neighbours.
 
+With ``pp_model="select"`` the prior of cx and cy is instead chosen by held-out steps from the
+first solve's values and joint covariance (:mod:`zoomcalib.calibrate.zoommodel`): the prior
+above, a third-difference prior, or a polynomial of degree 1-3 in ``u`` (a difference prior of
+the next order with ``tau -> 0``), kept to the second-difference prior unless another candidate
+predicts the left-out steps better by 2 standard errors.
+
 Which distortion terms a step supports is chosen by held-out views (:func:`select_distortion`):
 two-fold cross-validation over the step's views with OpenCV, the simplest term set whose held-out
 error is within 1 % of the best.
@@ -74,15 +80,28 @@ import scipy.sparse
 from .bundle import project_jacobian
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
+from .zoommodel import (
+    ZoomModel,
+    divided_difference,
+    pooled_prior_strength,
+    prior_strength,
+    second_difference,
+    select_zoom_model,
+)
 
-__all__ = ["PARAMS", "SMOOTHED", "DISTORTION_SETS", "ZoomWideResult", "calibrate_zoom_wide",
-           "select_distortion", "prior_strength", "pooled_prior_strength", "second_difference",
-           "board_height_modes"]
+__all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResult",
+           "calibrate_zoom_wide", "select_distortion", "prior_strength", "pooled_prior_strength",
+           "second_difference", "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Parameters tied across zoom by the smoothness prior.
 SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: ``pp_model`` of :func:`calibrate_zoom_wide`: the principal point's zoom model chosen by
+#: held-out steps, or the second-difference prior alone.
+ZOOM_MODELS = ("prior2", "select")
+#: Parameters whose zoom model is chosen by held-out steps (``pp_model="select"``).
+SELECTED = ("cx", "cy")
 #: Distortion term sets, simplest first.
 DISTORTION_SETS: dict[str, tuple[str, ...]] = {
     "none": (), "k1": ("k1",), "k1k2": ("k1", "k2"), "k1k2p": ("k1", "k2", "p1", "p2"),
@@ -108,78 +127,6 @@ def board_height_modes(points: np.ndarray, max_degree: int = 4) -> np.ndarray:
             * np.polynomial.legendre.legval(t[:, 1], np.eye(d - k + 1)[d - k])
             for d in range(2, max_degree + 1) for k in range(d + 1)]
     return np.column_stack(cols) if cols else np.zeros((len(xy), 0))
-
-
-def second_difference(u: np.ndarray) -> np.ndarray:
-    """``(n - 2, n)`` second divided differences over increasing abscissae ``u`` (module doc)."""
-    u = np.asarray(u, float)
-    n = len(u)
-    D = np.zeros((max(n - 2, 0), n))
-    for i in range(n - 2):
-        h0, h1, h2 = u[i + 1] - u[i], u[i + 2] - u[i + 1], u[i + 2] - u[i]
-        D[i, i:i + 3] = 2.0 * np.array([1.0 / (h0 * h2), -1.0 / (h0 * h1), 1.0 / (h1 * h2)])
-    return D
-
-
-def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
-    """Restricted maximum-likelihood ``tau`` of the second-difference prior.
-
-    Model: ``q_hat = q + e``, ``e ~ N(0, S)`` with ``S = diag sd^2`` (or ``sd`` itself when it
-    is an ``(n, n)`` covariance), ``D q ~ N(0, tau^2 I)`` with a flat prior
-    on the straight lines in ``u`` (the null space of ``D``). With ``N`` an orthonormal basis
-    orthogonal to ``[1, u]``, ``y = N^T q_hat ~ N(0, tau^2 (D N)^{-1} (D N)^{-T} + N^T S N)``;
-    ``tau`` maximises that likelihood over a log grid.
-
-    Returns
-    -------
-    tau : float
-        In units of ``q`` per ``u^2``; ``inf`` with fewer than 3 steps (no prior).
-    at_bound : bool
-        The maximum lies at the grid's lower end: the data are as smooth as their noise shows.
-    """
-    return pooled_prior_strength([(values, sd, u)])
-
-
-def pooled_prior_strength(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-                          ) -> tuple[float, bool]:
-    """:func:`prior_strength` of one ``tau`` shared by several chains ``(values, sd, u)`` (e.g.
-    the zoom-in and the zoom-out sweep of one lens): the chains' restricted likelihoods add."""
-    terms = [_restricted_terms(*c) for c in chains if len(c[0]) >= 3]
-    if not terms:
-        return float("inf"), False
-    top = max(max(t[3] for t in terms), 1e-12)
-    # below 1 % of the noise's own second differences the likelihood is flat: the grid stops
-    # there (a smaller tau only makes the problem ill-conditioned)
-    bottom = max(min(t[4] for t in terms) * 1e-2, top * 1e-6)
-    grid = np.geomspace(bottom, max(top * 1e4, bottom * 1e2), 201)
-    loglik = [sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, *_ in terms)
-              for g in grid]
-    best = int(np.argmax(loglik))
-    return float(grid[best]), best == 0
-
-
-def _restricted_terms(values, sd, u):
-    """``y = N^T q_hat``, the prior's shape ``(D N)^-1 (D N)^-T``, the noise ``N^T S N``, the
-    scale of the values' roughness and the RMS second difference of the noise alone, of one
-    chain (see :func:`prior_strength`)."""
-    values, sd, u = (np.asarray(a, float) for a in (values, sd, u))
-    n = len(values)
-    if sd.ndim == 1:
-        sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmax(np.abs(values)) + 1.0)
-        sd = np.diag(sd ** 2)
-    N = scipy.linalg.null_space(np.column_stack([np.ones(n), u - u.mean()]).T)  # (n, n - 2)
-    D = second_difference(u)
-    B = np.linalg.inv(D @ N)
-    scale = float(np.std(values)) / max(np.ptp(u), 1e-9) ** 2
-    noise_roughness = float(np.sqrt(np.mean(np.diag(D @ sd @ D.T))))
-    return N.T @ values, B @ B.T, N.T @ sd @ N, scale, noise_roughness
-
-
-def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
-    """Log density of ``y ~ N(0, cov)`` up to a constant (small matrices: plain NumPy)."""
-    c = np.linalg.cholesky(cov)
-    z = np.linalg.solve(c, y)
-    return float(-np.sum(np.log(np.diag(c))) - 0.5 * z @ z)
 
 
 def _subset(obs: Observations, keep: np.ndarray) -> Observations:
@@ -288,9 +235,10 @@ class _ZoomProblem:
     def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
                  free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                  tau: dict[str, float],
-                 board_prior_mm: float):
+                 board_prior_mm: float, order: dict[str, int] | None = None):
         self.steps, self.board, self.phi = steps, board, modes_basis
         self.free, self.chains, self.u, self.tau = free, chains, u, tau
+        self.order = order or {}
         self.board_prior = board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
@@ -304,12 +252,12 @@ class _ZoomProblem:
         rows = []
         for name in SMOOTHED:
             j = PARAMS.index(name)
-            tau = self.tau.get(name, np.inf)
+            tau, order = self.tau.get(name, np.inf), self.order.get(name, 2)
             for chain in self.chains:
                 steps = [s for s in chain if self.free[s, j]]
-                if len(steps) < 3 or not np.isfinite(tau):
+                if len(steps) <= order or not np.isfinite(tau):
                     continue
-                D = second_difference(self.u[steps]) / tau
+                D = divided_difference(self.u[steps], order) / tau
                 block = np.zeros((len(D), self.n_unknowns))
                 block[:, self.cam_col[steps, j]] = D
                 rows.append(block)
@@ -479,6 +427,10 @@ class ZoomWideResult:
         Estimated prior strength per smoothed parameter (units per (log px)^2); ``inf`` = none.
     tau_source : str
         Which per-step values ``tau`` was estimated from (module docstring).
+    zoom_models : dict of str to dict
+        Per smoothed parameter: the zoom model (``model``: ``prior2``, ``prior3``, ``poly1`` ..
+        ``poly3``, :mod:`~zoomcalib.calibrate.zoommodel`), its difference ``order``, ``tau`` and
+        the held-out log predictive density of every candidate tried.
     terms : dict of str to tuple
         Distortion terms chosen per step.
     held_out : dict of str to dict
@@ -503,6 +455,7 @@ class ZoomWideResult:
     iterations: int = 0
     skipped: dict[str, str] = field(default_factory=dict)
     tau_source: str = ""
+    zoom_models: dict[str, dict] = field(default_factory=dict)
 
 
 def _initial(observations: Mapping[str, Observations], select: bool):
@@ -549,23 +502,35 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
     return _State(cams, np.zeros(0), rvecs, tvecs), free, sds
 
 
-def _estimate_tau(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
-                  u: np.ndarray) -> tuple[dict[str, float], dict[str, bool]]:
-    """REML ``tau`` per smoothed parameter, pooled over the chains, from per-step values
-    ``cams`` (S, 9) and either their sigmas (S, 9) or a function ``cov(steps, j)`` giving the
-    covariance of parameter ``j`` over those steps."""
-    tau, at_bound = {}, {}
+def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
+            j: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``(values, noise, u)`` of parameter ``j`` per chain of 3 or more free steps; ``noise``
+    from the sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance."""
+    series = []
+    for chain in chains:
+        steps = [s for s in chain if free[s, j]]
+        if len(steps) >= 3:
+            noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
+            series.append((cams[steps, j], noise, u[steps]))
+    return series
+
+
+def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
+                 u: np.ndarray, selected: tuple[str, ...]) -> dict[str, ZoomModel]:
+    """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
+    held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
+    ``selected`` ones, else the second-difference prior with its REML ``tau``, pooled over the
+    chains."""
+    models = {}
     for name in SMOOTHED:
-        j = PARAMS.index(name)
-        series = []
-        for chain in chains:
-            steps = [s for s in chain if free[s, j]]
-            if len(steps) >= 3:
-                noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
-                series.append((cams[steps, j], noise, u[steps]))
-        if series:
-            tau[name], at_bound[name] = pooled_prior_strength(series)
-    return tau, at_bound
+        series = _series(cams, cov, free, chains, u, PARAMS.index(name))
+        if not series:
+            continue
+        if name in selected:
+            models[name] = select_zoom_model(series)
+        else:
+            models[name] = ZoomModel("prior2", 2, *pooled_prior_strength(series, 2))
+    return models
 
 
 def _joint_covariance(prob: _ZoomProblem, state: _State):
@@ -618,8 +583,8 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
-                        max_rounds: int = 4, chains: Mapping[str, str] | None = None
-                        ) -> ZoomWideResult:
+                        max_rounds: int = 4, chains: Mapping[str, str] | None = None,
+                        pp_model: str = "prior2") -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -639,6 +604,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         Steps with different labels (e.g. the direction of the last zoom move, ``in`` or
         ``out``) are not tied by the smoothness prior: each label's steps form their own chain
         (with one shared ``tau``). Default: one chain.
+    pp_model : {'prior2', 'select'}
+        How cx and cy follow the zoom: the second-difference prior alone, or the model chosen
+        by held-out steps among the difference priors of order 2 and 3 and the polynomials of
+        degree 1-3 in ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). Not the default: on
+        the traced lens path it can pick a polynomial the path does not follow
+        (``docs/calibration.md``).
 
     Returns
     -------
@@ -650,6 +621,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         If the steps see different boards or have different image sizes, or fewer than 2
         steps are given.
     """
+    if pp_model not in ZOOM_MODELS:
+        raise ValueError(f"pp_model must be one of {ZOOM_MODELS}, got {pp_model!r}")
     names = list(observations)
     if len(names) < 2:
         raise ValueError(f"a zoom-wide calibration needs 2 or more steps, got {len(names)}")
@@ -681,17 +654,21 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
     if joint_cov is not None:
         state, tau_source = solve.state, "zoom-wide solve without the prior"
-        tau, tau_at_bound = _estimate_tau(state.cams, joint_cov, free, chain_idx, u)
-    else:
+        models = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
+                              SELECTED if pp_model == "select" else ())
+    else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        tau, tau_at_bound = _estimate_tau(state.cams, sds, free, chain_idx, u)
-    prob = _ZoomProblem(steps, board, phi, free, chain_idx, u, tau, board_prior_mm)
+        models = _zoom_models(state.cams, sds, free, chain_idx, u, ())
+    prob = _ZoomProblem(steps, board, phi, free, chain_idx, u,
+                        {k: m.tau for k, m in models.items()}, board_prior_mm,
+                        {k: m.order for k, m in models.items()})
     solve, more = _solve_with_noise(prob, state, free, max_rounds)
     state, total_iterations = solve.state, iterations + more
-    result = _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, total_iterations)
+    result = _finish(prob, solve, state, init, terms, held, models, total_iterations)
     result.skipped, result.tau_source = skipped, tau_source
     for r in result.results.values():
         r.info["tau_source"] = tau_source
+        r.info["zoom_model"] = {k: m.name for k, m in models.items()}
     return result
 
 
@@ -719,8 +696,9 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
     return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
 
 
-def _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, iterations
+def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations
             ) -> ZoomWideResult:
+    tau = {k: float(m.tau) for k, m in models.items()}
     cov = _posterior_covariance(prob, state)
     if np.any(np.diag(cov) <= 0):
         raise RuntimeError("zoom-wide covariance is not positive definite")
@@ -734,12 +712,12 @@ def _finish(prob, solve, state, init, terms, held, tau, tau_at_bound, iterations
         results[step.name].info.update({
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "held_out_mse_px2": held.get(step.name, {}),
-            "tau_at_lower_bound": dict(tau_at_bound),
+            "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
         })
     modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
     return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
-                          {k: float(v) for k, v in tau.items()}, terms, held, solve.converged,
-                          solve.stop_reason, iterations)
+                          tau, terms, held, solve.converged, solve.stop_reason, iterations,
+                          zoom_models={k: m.to_dict() for k, m in models.items()})
 
 
 def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: np.ndarray,

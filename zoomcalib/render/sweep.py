@@ -5,8 +5,11 @@ Camera per step
 ``steps`` focal lengths ``fx`` log-spaced over ``fx_range`` (px, square pixels: ``fy = fx``).
 With ``s = log(fx / fx_0) / log(fx_1 / fx_0)`` (0 at the short end, 1 at the long end):
 
-* principal point ``c(s) = centre + pp_offset_px + pp_drift_px * s (3 - s) / 2``: a smooth, bowed
-  drift of ``pp_drift_px`` over the sweep (the centre is ``((W - 1) / 2, (H - 1) / 2)``);
+* principal point ``c(s) = centre + pp_offset_px + p(s)`` (the centre is
+  ``((W - 1) / 2, (H - 1) / 2)``), the path ``p`` one of :mod:`zoomcalib.render.pp_path`:
+  ``bow`` (default), ``p(s) = pp_drift_px * s (3 - s) / 2``, a quadratic in ``log fx``; or
+  ``traced``, the principal point of the ray-traced zoom lens with drawn mechanical errors,
+  ``pp_span_px`` from its short-end point at most, not a polynomial in ``log fx``;
 * distortion ``(k1, 0, 0, 0, 0)`` with ``k1 = k1_short * fx_0 / fx``: barrel at the short end,
   nearly none at the long end.
 
@@ -22,7 +25,9 @@ middle fifth of the image; a view is kept when every point lies 10 px inside the
 Layout written by :func:`render_zoom_sweep`::
 
     OUT/steps.csv            step, zoom (= fx, px), sequence
-    OUT/truth.json           settings, board surface, and per step: zoom, K, dist, camera,
+    OUT/truth.json           settings, board surface, the principal-point path
+                             (``pp_path``: kind and its drawn errors), and per step:
+                             zoom, K, dist, camera,
                              psf_sigma_px, per view: file, rvec, tvec (board -> camera, mm),
                              points_px (true, OpenCV convention), visible; render_s
                              (wall clock) and render_cpu_s (CPU time of the process)
@@ -49,8 +54,10 @@ from ..io import write_csv, write_json
 from ..targets import Target, parse_pattern
 from .dataset import check_jpeg_quality, clear_previous_render, write_image
 from .image import BoardSurface, Optics, Radiometry, camera_mapping, project_points, render_image
+from .pp_path import PP_PATHS, bowed_path, traced_path
 
-__all__ = ["SWEEP_SENSOR", "sweep_cameras", "sweep_poses", "render_zoom_sweep"]
+__all__ = ["SWEEP_SENSOR", "sweep_cameras", "principal_point_path", "sweep_poses",
+           "render_zoom_sweep"]
 
 SWEEP_SENSOR = Sensor(1280, 720, 0.003)  # a video camera's frame, 3 um pixels
 MARGIN_PX = 10.0
@@ -65,20 +72,41 @@ def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int 
                   sensor: Sensor = SWEEP_SENSOR,
                   pp_offset_px: tuple[float, float] = (6.0, -4.0),
                   pp_drift_px: tuple[float, float] = (30.0, -18.0),
-                  k1_short: float = -0.12) -> list[CameraModel]:
-    """The cameras of the sweep, short end first (module docstring, section Camera per step)."""
-    if steps < 1 or not 0 < fx_range[0] <= fx_range[1]:
-        raise ValueError(f"need steps >= 1 and 0 < fx_min <= fx_max, got {steps} and {fx_range}")
-    fx = np.geomspace(fx_range[0], fx_range[1], steps)
-    s = _zoom_position(fx, fx_range) if fx_range[1] > fx_range[0] else np.zeros(steps)
-    bow = s * (3 - s) / 2
+                  k1_short: float = -0.12, pp_path: str = "bow", pp_span_px: float = 40.0,
+                  pp_runout: float = 1.0, pp_seed: int | np.random.SeedSequence = 0
+                  ) -> list[CameraModel]:
+    """The cameras of the sweep, short end first (module docstring, section Camera per step).
+
+    ``pp_path`` 'bow' uses ``pp_drift_px``; 'traced' uses ``pp_span_px``, ``pp_runout`` and
+    ``pp_seed`` (:func:`zoomcalib.render.pp_path.traced_path`).
+    """
+    fx, path, _ = principal_point_path(fx_range, steps, pp_path, pp_drift_px, pp_span_px,
+                                       pp_runout, pp_seed)
     centre = np.array([(sensor.width_px - 1) / 2, (sensor.height_px - 1) / 2])
     cams = []
-    for f, b in zip(fx, bow, strict=True):
-        cx, cy = centre + np.asarray(pp_offset_px) + np.asarray(pp_drift_px) * b
+    for f, p in zip(fx, path, strict=True):
+        cx, cy = centre + np.asarray(pp_offset_px) + p
         dist = np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0])
         cams.append(CameraModel(float(f), float(f), float(cx), float(cy), dist, sensor))
     return cams
+
+
+def principal_point_path(fx_range: tuple[float, float], steps: int, kind: str = "bow",
+                         drift_px: tuple[float, float] = (30.0, -18.0), span_px: float = 40.0,
+                         runout: float = 1.0, seed: int | np.random.SeedSequence = 0
+                         ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The steps' fx (px), the path ``p`` (steps, 2) px of the principal point from
+    ``centre + pp_offset_px`` and its record for ``truth.json`` (module docstring)."""
+    if steps < 1 or not 0 < fx_range[0] <= fx_range[1]:
+        raise ValueError(f"need steps >= 1 and 0 < fx_min <= fx_max, got {steps} and {fx_range}")
+    if kind not in PP_PATHS:
+        raise ValueError(f"pp_path must be one of {PP_PATHS}, got {kind!r}")
+    fx = np.geomspace(fx_range[0], fx_range[1], steps)
+    s = _zoom_position(fx, fx_range) if fx_range[1] > fx_range[0] else np.zeros(steps)
+    if kind == "bow":
+        return fx, bowed_path(s, drift_px), {"kind": "bow", "drift_px": list(drift_px)}
+    path, record = traced_path(s, fx_range, span_px, seed, runout)
+    return fx, path, record
 
 
 def _rotation(axis_angle) -> np.ndarray:
@@ -158,7 +186,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     tilt_deg : (float, float)
         Largest tilt at the short and at the long end, degrees.
     **camera_options
-        ``pp_offset_px``, ``pp_drift_px``, ``k1_short`` of :func:`sweep_cameras`.
+        ``pp_offset_px``, ``pp_drift_px``, ``k1_short``, ``pp_path``, ``pp_span_px``,
+        ``pp_runout`` of :func:`sweep_cameras`; a traced path is drawn from ``seed``.
 
     Returns
     -------
@@ -173,8 +202,14 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     radiometry = radiometry or Radiometry()
     check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
     target = parse_pattern(pattern)
+    # the path's seed is one child more than the board's and the steps': earlier renders stay
+    surface_seed, *step_seeds, path_seed = np.random.SeedSequence(seed).spawn(steps + 2)
+    camera_options.setdefault("pp_seed", path_seed)
     cameras = sweep_cameras(fx_range, steps, sensor, **camera_options)
-    surface_seed, *step_seeds = np.random.SeedSequence(seed).spawn(steps + 1)
+    path_options = {k[3:]: camera_options[k] for k in ("pp_drift_px", "pp_span_px", "pp_runout",
+                                                       "pp_seed") if k in camera_options}
+    *_, path_record = principal_point_path(fx_range, steps, camera_options.get("pp_path", "bow"),
+                                           **path_options)
     surface = board_surface
     if isinstance(board_surface, int | float):
         surface = BoardSurface.random(target.extent_mm, float(board_surface),
@@ -210,6 +245,7 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         "optics": asdict(optics), "radiometry": asdict(radiometry),
         "supersample": supersample, "jpeg_quality": jpeg_quality,
         "board_surface": None if surface is None else surface.to_dict(),
+        "pp_path": path_record,
         "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
                       "rvec/tvec: board -> camera, mm; points_px: true image position of every "
                       "object point on the (waving) board",
