@@ -30,15 +30,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
-from keystone_absorption import SENSOR, _observations, calibrate_or_none  # noqa: E402
+from keystone_absorption import (  # noqa: E402
+    SENSOR,
+    _observations,
+    calibrate_or_none,
+    set_views,
+)
 
 from zoomcalib.diagnose.model import LensResponse  # noqa: E402
 from zoomcalib.diagnose.response import RowCalibration, calibration_response  # noqa: E402
 from zoomcalib.optics.lens_camera import exact_mapping, lens_camera  # noqa: E402
 from zoomcalib.optics.misalignment import Misalignment  # noqa: E402
 from zoomcalib.optics.prescription import load_prescription  # noqa: E402
-from zoomcalib.render.dataset import generate_poses, scaled_target_for_view  # noqa: E402
-from zoomcalib.targets import parse_pattern  # noqa: E402
 
 GROUP = "variator"
 
@@ -46,10 +49,7 @@ GROUP = "variator"
 def _calibrated_move(lens, z: float, still: Misalignment, moved: Misalignment):
     aligned = exact_mapping(lens, z, still, SENSOR)
     decentred = exact_mapping(lens, z, moved, SENSOR)
-    target = scaled_target_for_view(parse_pattern("chessboard:9x6:25"), aligned.camera.fy,
-                                    SENSOR, 2000.0, 0.6)
-    poses = generate_poses(target, aligned, SENSOR, 10, 2000.0,
-                           np.random.default_rng(int(z * 100) + 1))
+    target, poses = set_views(aligned, z)
     for flags in (0, cv2.CALIB_FIX_K3):
         obs = _observations(aligned, target, poses)
         plain = calibrate_or_none(obs, flags)

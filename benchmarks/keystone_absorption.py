@@ -48,14 +48,20 @@ def _observations(mapping, target, poses) -> Observations:
                               for R, t in poses], (SENSOR.width_px, SENSOR.height_px))
 
 
+def set_views(mapping, z: float):
+    """The axis-tilt set's board (scaled for ``mapping``'s focal length) and 10 poses seen
+    through ``mapping``, seeded by the lens state ``z``."""
+    target = scaled_target_for_view(parse_pattern("chessboard:9x6:25"), mapping.camera.fy,
+                                    SENSOR, 2000.0, 0.6)
+    return target, generate_poses(target, mapping, SENSOR, 10, 2000.0,
+                                  np.random.default_rng(int(z * 100) + 1))
+
+
 def _row(lens, z: float, theta: np.ndarray) -> str:
     still = Misalignment(np.zeros((len(lens.groups), 2)), np.zeros((len(lens.groups), 2)))
     aligned = exact_mapping(lens, z, still, SENSOR)
     tilted = tilted_sensor(aligned, lens, z, theta)
-    target = scaled_target_for_view(parse_pattern("chessboard:9x6:25"), aligned.camera.fy,
-                                    SENSOR, 2000.0, 0.6)
-    poses = generate_poses(target, tilted, SENSOR, 10, 2000.0,
-                           np.random.default_rng(int(z * 100) + 1))
+    target, poses = set_views(tilted, z)
     f_mm = aligned.camera.fx * SENSOR.pixel_pitch_mm
     out = f"{z:5.2f} {f_mm:6.1f} {f_mm / tilted.exit_pupil_mm:5.2f} |"
     for flags in FLAG_SETS.values():

@@ -35,7 +35,8 @@ from ..optics.lens_camera import exact_projection
 from ..optics.misalignment import Misalignment
 from ..optics.prescription import Prescription
 
-__all__ = ["RowCalibration", "traced_displacement", "calibration_response", "ERROR_STEP"]
+__all__ = ["RowCalibration", "traced_displacement", "calibration_response", "opposite_errors",
+           "ERROR_STEP"]
 
 #: central-difference steps of a group's error: decentre (mm) and tilt (rad)
 ERROR_STEP = {"decenter": 0.01, "tilt": 2e-4}
@@ -59,21 +60,28 @@ def traced_displacement(lens: Prescription, z: float, xn: np.ndarray, sensor: Se
     """(2, M, 2) displacement of the images of scene directions ``xn`` (M, 2) per unit error
     (mm of decentre, rad of tilt) of ``group`` along the lens's x, then y axis, px, from the
     exact tracer by central differences."""
-    names = list(lens.group_names)
-    if group not in names:
-        raise ValueError(f"lens {lens.name!r} has no group {group!r}")
     thickness = lens.thickness_at(solve_gaps(lens, [z]))[0]
     step = ERROR_STEP[kind]
     out = []
     for axis in np.eye(2):
-        moved = np.zeros((len(names), 2))
-        moved[names.index(group)] = step * axis
-        zero = np.zeros_like(moved)
-        plus, minus = ((Misalignment(m, zero) if kind == "decenter" else Misalignment(zero, m))
-                       for m in (moved, -moved))
+        plus, minus = opposite_errors(lens, group, kind, step * axis)
         out.append((exact_projection(lens, thickness, xn, plus, sensor)
                     - exact_projection(lens, thickness, xn, minus, sensor)) / (2 * step))
     return np.array(out)
+
+
+def opposite_errors(lens: Prescription, group: str, kind: str, error: np.ndarray
+                    ) -> tuple[Misalignment, Misalignment]:
+    """The misalignments ``+error`` and ``-error`` ((2,) mm of decentre or rad of tilt, by
+    ``kind``) of ``group`` alone, for central differences."""
+    names = list(lens.group_names)
+    if group not in names:
+        raise ValueError(f"lens {lens.name!r} has no group {group!r}")
+    moved = np.zeros((len(names), 2))
+    moved[names.index(group)] = error
+    zero = np.zeros_like(moved)
+    return tuple((Misalignment(m, zero) if kind == "decenter" else Misalignment(zero, m))
+                 for m in (moved, -moved))
 
 
 def calibration_response(lens: Prescription, z: float, pitch_mm: float,

@@ -31,9 +31,9 @@ import numpy as np
 
 from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM
-from ..optics.misalignment import Misalignment
 from .discrepancy import BIC_MARGIN, Diagnosis, baseline_terms, cause_variants
 from .model import Context, Term, design_matrix
+from .response import opposite_errors
 
 __all__ = ["distortion_jacobian", "distortion_evidence", "resolve_with_distortion",
            "table_distortion", "EVIDENCE_CAUSES"]
@@ -48,15 +48,10 @@ def distortion_jacobian(lens, z: float, group: str, kind: str) -> np.ndarray:
     """(2, 2) change of (p1, p2) per mm of decentre (``kind='decenter'``) or per rad of tilt
     (``'tilt'``) of ``group`` along x and y (columns), at lens state ``z``; central
     differences of the exact tracer's camera fits."""
-    names = list(lens.group_names)
     step = _STEP[kind]
     cols = []
     for axis in np.eye(2):
-        moved = np.zeros((len(names), 2))
-        moved[names.index(group)] = step * axis
-        zero = np.zeros_like(moved)
-        plus, minus = ((Misalignment(m, zero) if kind == "decenter" else Misalignment(zero, m))
-                       for m in (moved, -moved))
+        plus, minus = opposite_errors(lens, group, kind, step * axis)
         cols.append((lens_camera(lens, z, plus).camera.dist[2:4]
                      - lens_camera(lens, z, minus).camera.dist[2:4]) / (2 * step))
     return np.stack(cols, -1)
