@@ -253,3 +253,20 @@ def test_calibration_response_predicts_a_decentred_groups_principal_point(z):
     s_d, _ = _response().sensitivities(np.array([z]))["variator"]
     paraxial = -s_d[0] * decenter_mm / 0.0129  # what the renderer records as the move
     assert np.linalg.norm(actual) > 1.2 * np.linalg.norm(paraxial)
+
+
+def test_a_failed_calibration_response_is_said(monkeypatch):
+    """Where a calibration's response cannot be had (a singular normal matrix), the group terms
+    fall back to the paraxial shift and diagnosis.json says so."""
+    import zoomcalib.diagnose.model as model
+
+    rows, cals = _decentred_lens_table(np.array([100.0, -40.0]), 0.02, seed=6)
+    table = ZoomTable.from_rows(rows)
+    table.calibrations = cals
+    monkeypatch.setattr(model, "calibration_response", lambda *args, **kwargs: None)
+    doc = diagnose_table(table, _response(), Tolerances.zero()).to_dict()
+    assert "paraxial image shift for the decenter of" in doc["group_columns"]
+    assert "singular normal matrix" in doc["group_columns"]
+    table.calibrations = None
+    assert diagnose_table(table, _response(), Tolerances.zero()).to_dict()[
+        "group_columns"] == "paraxial image shift"

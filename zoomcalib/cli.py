@@ -894,6 +894,10 @@ def _print_diagnosis(d, doc: dict) -> None:
                        "model)")
     if doc["ambiguous_with"]:
         click.echo(f"not told apart from: {', '.join(doc['ambiguous_with'])}")
+    for c in doc["causes"]:
+        if c.get("evidence"):
+            click.echo(f"{c['cause']} named by {c['evidence']}")
+    click.echo(f"group terms: {doc['group_columns']}")
 
 
 if __name__ == "__main__":

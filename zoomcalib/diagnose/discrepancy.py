@@ -645,6 +645,14 @@ class Diagnosis:
         return {"cause": self.extended.cause, "variant": self.extended.variant,
                 **self.final.summary(), "params": params, "params_sd": sds}
 
+    def _group_columns(self) -> str:
+        """How the group terms were modelled, with any fallback to the paraxial shift."""
+        if self.table.calibrations is None or self.response is None:
+            return "paraxial image shift"
+        failed = self.table.response_cache.get("failed", [])
+        return ("each row's calibration response (diagnose/response.py)"
+                + (f"; paraxial image shift for the {'; '.join(failed)}" if failed else ""))
+
     def _noise_dict(self) -> dict:
         noise = self.final.noise.to_dict() if self.final.noise is not None else {}
         return {**noise, "rms_sigma_px": float(np.sqrt(np.mean(self.sigma_px ** 2))),
@@ -680,9 +688,7 @@ class Diagnosis:
                                   "model explains the table, 'unexplained' when not, else "
                                   "'none'"},
             "lens": self.response.lens.name if self.response is not None else "none",
-            "group_columns": ("each row's calibration response (diagnose/response.py)"
-                              if self.table.calibrations is not None and self.response is not None
-                              else "paraxial image shift"),
+            "group_columns": self._group_columns(),
             "moving_groups": list(self.response.groups) if self.response is not None else [],
             "pixel_pitch_mm": self.pitch_mm, "pitch_fit": self.pitch_fit,
             "noise": self._noise_dict(),

@@ -231,7 +231,12 @@ class Context:
             rows = [calibration_response(self.response.lens, float(z), self.response.pitch_mm,
                                          cal, group, kind) for z, cal in zip(self.z, cals,
                                                                              strict=True)]
-            cache[key] = None if any(r is None for r in rows) else np.array(rows)
+            failed = [step for step, r in zip(self.table.step, rows, strict=True) if r is None]
+            if failed:  # said in diagnosis.json (group_columns): the paraxial shift instead
+                cache.setdefault("failed", []).append(
+                    f"{kind} of {group}: the calibration of step {failed[0]} has a singular "
+                    f"normal matrix")
+            cache[key] = None if failed else np.array(rows)
         return cache[key]
 
     @property
