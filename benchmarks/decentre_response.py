@@ -34,6 +34,7 @@ from keystone_absorption import (  # noqa: E402
     SENSOR,
     _observations,
     calibrate_or_none,
+    milli_pair,
     set_views,
 )
 
@@ -64,9 +65,9 @@ def _calibrated_move(lens, z: float, still: Misalignment, moved: Misalignment):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--decenter", default="94,-41", help="X,Y um of the variator")
-    a = ap.parse_args()
-    d_mm = 1e-3 * np.array([float(v) for v in a.decenter.split(",")])
+    ap.add_argument("--decenter", type=milli_pair, default="94,-41",
+                    help="X,Y um of the variator")
+    d_mm = ap.parse_args().decenter
     lens = load_prescription("laikin-10x")
     response = LensResponse.of(lens, SENSOR.pixel_pitch_mm, n_grid=201)
     names = list(lens.group_names)

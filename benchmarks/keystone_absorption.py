@@ -111,11 +111,21 @@ def _cost() -> str:
             f"included), keystone_response {(t2 - t1) / 3:.3f} s")
 
 
+def milli_pair(text: str) -> np.ndarray:
+    """``"X,Y"`` in milli-units (mrad, um) -> (2,) in units (rad, mm); an argparse type."""
+    try:
+        pair = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        pair = np.zeros(0)
+    if pair.shape != (2,):
+        raise argparse.ArgumentTypeError(f"expected two numbers X,Y, got {text!r}")
+    return 1e-3 * pair
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tilt", default="0.9,-0.4", help="TX,TY mrad")
-    a = ap.parse_args()
-    theta = 1e-3 * np.array([float(v) for v in a.tilt.split(",")])
+    ap.add_argument("--tilt", type=milli_pair, default="0.9,-0.4", help="TX,TY mrad")
+    theta = ap.parse_args().tilt
     lens = load_prescription("laikin-10x")
     head = " | ".join(f"{name:^38s}" for name in FLAG_SETS)
     print(f"{'z':>5s} {'f mm':>6s} {'f/L':>5s} | {head} |")
