@@ -2,19 +2,19 @@
 its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
-[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--mc 20] [--seed 0]
-[--out DIR]``
+[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--model angle2]
+[--compare prior2] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
    board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
    principal point on the ``--pp-path``) unless ``DIR/images/truth.json`` exists.
 2. Runs the calibrate job with its defaults (model detector, per-step OpenCV beside the zoom-wide
-   adjustment, the principal point's zoom model chosen by held-out steps), and the zoom-wide
-   adjustment again with the second-difference prior alone (``prior2``, the earlier default).
-   Prints, per step and backend, the error against the rendered truth: fx in %, cx and cy in px
-   and in reported sigmas, and the sigmas; the zoom models chosen; and at the two longest steps
-   the per-step OpenCV principal-point sigma over the zoom-wide one (cx, cy, and as a point:
-   the root of the sum of the two variances) for both.
+   adjustment) and the principal point's zoom model ``--model``, and the zoom-wide adjustment
+   again with ``--compare``. Prints, per step and backend, the error against the rendered
+   truth: fx in %, cx and cy in px and in reported sigmas, and the sigmas; the zoom models and
+   their ``tau`` beside the rendered path's own roughness in the same units; and at the two
+   longest steps the per-step OpenCV principal-point sigma over the zoom-wide one (cx, cy, and
+   as a point: the root of the sum of the two variances) for both.
 3. Monte Carlo: the true image points of every detected corner (``truth.json``) plus Gaussian
    noise of the detector's measured RMS error per coordinate, ``--mc`` draws, each adjusted
    zoom-wide; printed per step: the spread of fx, cx, cy over the draws divided by the mean
@@ -38,12 +38,12 @@ sys.path.insert(0, str(ROOT))  # benchmark this checkout
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.zoommodel import prior_operator  # noqa: E402
 from zoomcalib.calibrate.zoomwide import (  # noqa: E402
     DISTORTION_SETS,
+    ZOOM_MODELS,
     _distortion_flags,
     calibrate_zoom_wide,
-    prior_strength,
-    second_difference,
 )
 from zoomcalib.render.sweep import render_zoom_sweep  # noqa: E402
 
@@ -66,7 +66,8 @@ def _truth_points(truth: dict) -> dict[str, dict[str, np.ndarray]]:
 
 
 def _errors_table(run, truth: dict) -> None:
-    print("# prior2: the zoom-wide adjustment with the second-difference prior alone")
+    print(f"# zoom-wide: the calibrate job (--model {run.model}); {run.compare}: the "
+          "adjustment compared with it")
     print(f"{'step':>9s} {'backend':>9s} {'dfx %':>8s} {'sd fx %':>8s} {'dcx':>7s} {'sd cx':>6s} "
           f"{'z cx':>5s} {'dcy':>7s} {'sd cy':>6s} {'z cy':>5s}")
     for st in truth["steps"]:
@@ -95,37 +96,36 @@ def _long_end_table(run, truth: dict) -> None:
     print(f"{'step':>9s} {'model':>9s} {'cx':>6s} {'cy':>6s} {'point':>6s}  per-step")
     for st in truth["steps"][-2:]:
         cv, label = _per_step_opencv(run, st["step"])
-        for backend in ("zoom-wide", "prior2"):
+        for backend in ("zoom-wide", run.compare):
             zw = run.results[st["step"]][backend]
             point = np.hypot(cv.sd["cx"], cv.sd["cy"]) / np.hypot(zw.sd["cx"], zw.sd["cy"])
             print(f"{st['step']:>9s} {backend:>9s} {cv.sd['cx'] / zw.sd['cx']:6.2f} "
                   f"{cv.sd['cy'] / zw.sd['cy']:6.2f} {point:6.2f}  {label}")
 
 
-def _models_table(run) -> None:
-    print("# zoom models chosen by held-out steps (log predictive density of each candidate)")
-    for q in ("cx", "cy"):
-        m = run.zoom_wide.zoom_models[q]
-        scores = " ".join(f"{k} {v:.1f}" if v is not None else f"{k} -"
-                          for k, v in (m["held_out_log_density"] or {}).items())
-        print(f"{q}: {m['model']} (tau {m['tau'] or float('inf'):.3g}); {scores}")
-
-
-def _prior_table(run, truth: dict) -> None:
-    """The smoothness prior's ``tau`` as the adjustment estimated it, as per-step OpenCV values
-    would give it, and the rendered path's own RMS second difference in ``u = log fx``."""
-    steps = [st for st in truth["steps"] if "opencv" in run.results.get(st["step"], {})]
-    u = np.log([np.asarray(st["K"])[0, 0] for st in steps])
-    D = second_difference(u)
-    print(f"# second-difference prior (px per u^2), from: {run.prior2.tau_source}")
-    print(f"{'param':>6s} {'zoom-wide':>10s} {'opencv':>10s} {'truth':>10s}")
-    for q, row in (("cx", 0), ("cy", 1)):
-        cv = [run.results[st["step"]]["opencv"] for st in steps]
-        tau_cv, _ = prior_strength(np.array([getattr(r, q) for r in cv]),
-                                   np.array([r.sd[q] for r in cv]), u)
-        path = np.array([np.asarray(st["K"])[row, 2] for st in steps])
-        print(f"{q:>6s} {run.prior2.tau[q]:10.2f} {tau_cv:10.2f} "
-              f"{np.sqrt(np.mean((D @ path) ** 2)):10.2f}")
+def _models_table(run, truth: dict) -> None:
+    """Each adjustment's zoom model of cx and cy, its ``tau``, and the rendered path's own RMS
+    difference under the same prior (px per u^2, or micro-radians per u^2 for ``angle2``);
+    for ``select``, the held-out log predictive density of each candidate."""
+    steps = [st for st in truth["steps"] if st["step"] in run.zoom_wide.results]
+    fx = np.array([np.asarray(st["K"])[0, 0] for st in steps])
+    u = np.log(fx)
+    print("# zoom models of the principal point: tau against the rendered path's roughness")
+    print(f"{'adjustment':>10s} {'param':>5s} {'model':>6s} {'tau':>9s} {'truth':>9s} units")
+    for label, zw in (("zoom-wide", run.zoom_wide), (run.compare, run.other)):
+        for q, row in (("cx", 0), ("cy", 1)):
+            m = zw.zoom_models[q]
+            angular = m["model"] == "angle2"
+            R = prior_operator(u, m["order"], 1.0 / fx if angular else None)
+            path = np.array([np.asarray(st["K"])[row, 2] for st in steps])
+            scale = 1e6 if angular else 1.0
+            tau = (m["tau"] or float("inf")) * scale
+            rough = np.sqrt(np.mean((R @ path) ** 2)) * scale
+            scores = " ".join(f"{k} {v:.1f}" if v is not None else f"{k} -"
+                              for k, v in (m["held_out_log_density"] or {}).items())
+            print(f"{label:>10s} {q:>5s} {m['model']:>6s} {tau:9.3g} {rough:9.3g} "
+                  f"{'urad' if angular else 'px'}/u^{m['order']} {scores}")
+    print(f"# tau from: {run.zoom_wide.tau_source}")
 
 
 def _detection_error(run, points: dict) -> float:
@@ -171,10 +171,12 @@ def main() -> None:
     ap.add_argument("--pp-span", type=float, default=40.0, help="traced path's span, px")
     ap.add_argument("--pp-runout", type=float, default=1.0, help="traced path's run-out scale")
     ap.add_argument("--mc", type=int, default=20, help="Monte Carlo draws (0: none)")
-    ap.add_argument("--mc-model", default="select", choices=["select", "prior2"],
+    ap.add_argument("--model", default="angle2", choices=ZOOM_MODELS,
+                    help="pp_model of the calibrate job")
+    ap.add_argument("--compare", default="prior2", choices=ZOOM_MODELS,
+                    help="pp_model of the adjustment compared with it")
+    ap.add_argument("--mc-model", default="angle2", choices=ZOOM_MODELS,
                     help="pp_model of the Monte Carlo's adjustments")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
     args.jpeg = args.jpeg or None
     out = Path(args.out)
@@ -187,16 +189,16 @@ def main() -> None:
     truth = _render(out / "images", args)
     t1 = time.perf_counter()
     run = calibrate_folder(out / "images", PATTERN, out / "calibration", ("opencv",),
-                           workers=2, log=lambda m: None, pp_model="select")
+                           workers=2, log=lambda m: None, pp_model=args.model)
     t2 = time.perf_counter()
     print(f"# render {t1 - t0:.1f} s (0 when reused); calibrate (2 workers) {t2 - t1:.1f} s")
-    run.prior2 = calibrate_zoom_wide(run.observations, pp_model="prior2")
-    for step, r in run.prior2.results.items():
-        run.results[step]["prior2"] = r
+    run.model, run.compare = args.model, args.compare
+    run.other = calibrate_zoom_wide(run.observations, pp_model=args.compare)
+    for step, r in run.other.results.items():
+        run.results[step][args.compare] = r
     _errors_table(run, truth)
-    _models_table(run)
+    _models_table(run, truth)
     _long_end_table(run, truth)
-    _prior_table(run, truth)
     points = _truth_points(truth)
     noise = _detection_error(run, points)
     print(f"# detection error against the truth: {noise:.4f} px RMS per coordinate")

@@ -337,7 +337,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
                              "skipped": zw.skipped,
-                             "held_out_mse_px2": zw.held_out}
+                             "distortion_choice": {k: v.to_dict()
+                                                   for k, v in zw.held_out.items()}}
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")

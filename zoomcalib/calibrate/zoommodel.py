@@ -16,6 +16,15 @@ second derivative). The prior ``D_k q ~ N(0, tau^2 I)`` leaves the polynomials o
 ``q = A beta + tau N (D_k N)^{-1} w``, ``w ~ N(0, I)``, ``A`` the Vandermonde of degree ``k - 1``
 in ``u`` with a flat prior on ``beta``, ``N`` an orthonormal basis of the complement of ``A``.
 
+A free offset
+-------------
+A chain may carry an ``offset`` direction ``w`` (n,): the values are then ``w q`` for a path
+``q`` whose constant offset is free. With ``w = 1 / fx`` this is the prior on the angular
+principal point (:mod:`zoomcalib.calibrate.zoomwide`): ``(cx - c) / fx`` is smooth in ``u``
+for an unknown ``c``, so ``cx = c + fx (a + b u)`` costs nothing. ``w`` joins the fixed
+effects ``A``; the rough part keeps the shape of the difference prior. In the adjustment the
+offset is integrated out with a flat prior (:func:`prior_operator`).
+
 Candidates
 ----------
 ``prior2``, ``prior3``
@@ -46,7 +55,7 @@ from math import factorial
 import numpy as np
 import scipy.linalg
 
-__all__ = ["CANDIDATES", "ZoomModel", "divided_difference", "second_difference",
+__all__ = ["CANDIDATES", "ZoomModel", "divided_difference", "second_difference", "prior_operator",
            "prior_strength", "pooled_prior_strength", "held_out_densities", "held_out_score",
            "select_zoom_model"]
 
@@ -98,12 +107,49 @@ def second_difference(u: np.ndarray) -> np.ndarray:
     return divided_difference(u, 2)
 
 
-def _null_basis(u: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
-    """``A`` (n, k): the polynomials of degree < ``order`` in ``u`` (centred, scaled), and ``N``
-    (n, n - k) an orthonormal basis of their complement."""
+def prior_operator(u: np.ndarray, order: int = 2, weight: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """Rows ``R`` (n - k, n) of the difference prior ``R q ~ N(0, tau^2 I)`` on a path ``q``
+    over increasing ``u``: ``D_k`` itself, or with a ``weight`` ``w`` (n,) the differences of
+    ``w q`` with a free constant offset of ``q`` integrated out (flat prior):
+    ``R = P D_k diag(w)``, ``P`` the projector off ``a = D_k w``.
+    """
+    D = divided_difference(u, order)
+    if weight is None or len(D) == 0:
+        return D
+    Dw = D * np.asarray(weight, float)[None, :]
+    a = Dw.sum(axis=1)
+    if not np.any(a):
+        return Dw
+    return Dw - np.outer(a, a @ Dw) / (a @ a)
+
+
+def _null_basis(u: np.ndarray, order: int, offset: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``A`` (n, k): the polynomials of degree < ``order`` in ``u`` (centred, scaled), and the
+    ``offset`` direction when given and not among them; ``N`` an orthonormal basis of the
+    complement of ``A``."""
     t = (u - u.mean()) / max(np.ptp(u), 1e-12)
     A = np.vander(t, order, increasing=True)
+    if offset is not None:
+        w = np.asarray(offset, float) / np.linalg.norm(offset)
+        if np.linalg.norm(w - A @ np.linalg.lstsq(A, w, rcond=None)[0]) > 1e-9:
+            A = np.column_stack([A, w])
     return A, scipy.linalg.null_space(A.T)
+
+
+def _rough_basis(u: np.ndarray, order: int) -> np.ndarray:
+    """``G = N (D_k N)^{-1}`` (n, n - k): the path's rough part ``q = G z`` has ``D_k q = z``."""
+    _, N = _null_basis(u, order)
+    return N @ np.linalg.inv(divided_difference(u, order) @ N)
+
+
+def _unpack(chain: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(values, sd, u[, offset])`` of a chain as arrays (``offset`` None when absent)."""
+    values, sd, u = chain[:3]
+    offset = chain[3] if len(chain) > 3 else None
+    return (np.asarray(values, float), sd, np.asarray(u, float),
+            None if offset is None else np.asarray(offset, float))
 
 
 def _as_covariance(values: np.ndarray, sd: np.ndarray) -> np.ndarray:
@@ -136,11 +182,11 @@ def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray, order: int
     return pooled_prior_strength([(values, sd, u)], order)
 
 
-def pooled_prior_strength(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                          order: int = 2) -> tuple[float, bool]:
-    """:func:`prior_strength` of one ``tau`` shared by several chains ``(values, sd, u)`` (e.g.
-    the zoom-in and the zoom-out sweep of one lens): the chains' restricted likelihoods add."""
-    terms = [_restricted_terms(*c, order) for c in chains if len(c[0]) > order]
+def pooled_prior_strength(chains: list[tuple], order: int = 2) -> tuple[float, bool]:
+    """:func:`prior_strength` of one ``tau`` shared by several chains ``(values, sd, u[,
+    offset])`` (e.g. the zoom-in and the zoom-out sweep of one lens): the chains' restricted
+    likelihoods add. ``offset``: module docstring, "A free offset"."""
+    terms = [_restricted_terms(c, order) for c in chains if len(c[0]) > order]
     if not terms:
         return float("inf"), False
     top = max(max(t[3] for t in terms), 1e-12)
@@ -161,16 +207,16 @@ def noise_roughness(sd: np.ndarray, u: np.ndarray, order: int) -> float:
     return float(np.sqrt(np.mean(np.diag(D @ S @ D.T)))) if len(D) else 0.0
 
 
-def _restricted_terms(values, sd, u, order):
-    """``y = N^T q_hat``, the prior's shape ``(D N)^-1 (D N)^-T``, the noise ``N^T S N``, the
-    scale of the values' roughness and the RMS difference of the noise alone, of one chain
-    (see :func:`prior_strength`)."""
-    values, u = np.asarray(values, float), np.asarray(u, float)
+def _restricted_terms(chain: tuple, order: int):
+    """``y = N^T q_hat``, the prior's shape ``N^T G G^T N`` (:func:`_rough_basis`), the noise
+    ``N^T S N``, the scale of the values' roughness and the RMS difference of the noise alone,
+    of one chain (see :func:`prior_strength`)."""
+    values, sd, u, offset = _unpack(chain)
     S = _as_covariance(values, sd)
-    _, N = _null_basis(u, order)
-    B = np.linalg.inv(divided_difference(u, order) @ N)
+    _, N = _null_basis(u, order, offset)
+    NG = N.T @ _rough_basis(u, order)
     scale = float(np.std(values)) / max(np.ptp(u), 1e-9) ** order
-    return N.T @ values, B @ B.T, N.T @ S @ N, scale, noise_roughness(S, u, order)
+    return N.T @ values, NG @ NG.T, N.T @ S @ N, scale, noise_roughness(S, u, order)
 
 
 def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
@@ -181,10 +227,10 @@ def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
 
 
 def _loo_density(values: np.ndarray, S: np.ndarray, u: np.ndarray, order: int, tau: float,
-                 i: int) -> float:
+                 i: int, offset: np.ndarray | None = None) -> float:
     """Log density of step ``i``'s value predicted from the others (module docstring)."""
-    A, N = _null_basis(u, order)
-    G = N @ np.linalg.inv(divided_difference(u, order) @ N) * tau if tau > 0 else 0.0 * N
+    A, _ = _null_basis(u, order, offset)
+    G = _rough_basis(u, order) * tau
     C_inv = np.linalg.inv(S + G @ G.T)
     CA = C_inv @ A
     Q = C_inv - CA @ np.linalg.solve(A.T @ CA, CA.T)
@@ -193,34 +239,34 @@ def _loo_density(values: np.ndarray, S: np.ndarray, u: np.ndarray, order: int, t
     return float(0.5 * np.log(q_ii / (2 * np.pi)) - 0.5 * resid * resid * q_ii)
 
 
-def held_out_densities(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]], order: int,
-                       reml: bool) -> np.ndarray:
+def held_out_densities(chains: list[tuple], order: int, reml: bool) -> np.ndarray | None:
     """The leave-one-step-out log predictive density of every step of every chain under a
     candidate (module docstring); None when a chain is too short to predict a step."""
     out = []
-    for values, sd, u in chains:
-        values, u = np.asarray(values, float), np.asarray(u, float)
+    for chain in chains:
+        values, sd, u, offset = _unpack(chain)
         S, n = _as_covariance(values, sd), len(values)
-        if n < order + (2 if reml else 1):
+        if n < order + (2 if reml else 1) + (offset is not None):
             return None
         for i in range(n):
             keep = np.arange(n) != i
-            tau = (prior_strength(values[keep], S[np.ix_(keep, keep)], u[keep], order)[0]
-                   if reml else 0.0)
-            out.append(_loo_density(values, S, u, order, tau, i))
+            rest = (values[keep], S[np.ix_(keep, keep)], u[keep])
+            rest += () if offset is None else (offset[keep],)
+            tau = pooled_prior_strength([rest], order)[0] if reml else 0.0
+            out.append(_loo_density(values, S, u, order, tau, i, offset))
     return np.array(out)
 
 
-def held_out_score(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]], order: int,
-                   reml: bool) -> float:
+def held_out_score(chains: list[tuple], order: int, reml: bool) -> float:
     """Sum of :func:`held_out_densities`; ``-inf`` when a chain is too short."""
     dens = held_out_densities(chains, order, reml)
     return -np.inf if dens is None else float(np.sum(dens))
 
 
-def select_zoom_model(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                      candidates: tuple[str, ...] = tuple(CANDIDATES)) -> ZoomModel:
-    """The zoom model of one parameter from its chains ``(values, sd, u)`` (module docstring).
+def select_zoom_model(chains: list[tuple], candidates: tuple[str, ...] = tuple(CANDIDATES)
+                      ) -> ZoomModel:
+    """The zoom model of one parameter from its chains ``(values, sd, u[, offset])`` (module
+    docstring).
 
     ``prior2`` unless another candidate beats it clearly: by more than ``MARGIN`` standard
     errors of the summed step-wise difference ``d_i`` of their held-out log densities
@@ -240,7 +286,7 @@ def select_zoom_model(chains: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     if reml:
         tau, at_bound = pooled_prior_strength(chains, order)
     else:
-        usable = [noise_roughness(sd, u, order) for _, sd, u in chains if len(u) > order]
+        usable = [noise_roughness(c[1], c[2], order) for c in chains if len(c[2]) > order]
         tau, at_bound = POLY_TAU_FRACTION * min(usable), False
     return ZoomModel(best, order, tau, at_bound, scores)
 

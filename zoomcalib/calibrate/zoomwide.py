@@ -60,7 +60,12 @@ predicts the left-out steps better by 2 standard errors.
 
 Which distortion terms a step supports is chosen by held-out views (:func:`select_distortion`):
 two-fold cross-validation over the step's views with OpenCV, the simplest term set whose held-out
-error is within 1 % of the best.
+error is within 1 % of the best. The choice is made twice: on the flat board, for the start,
+then on the board's shape estimated by the solve without the smoothness prior (OpenCV with
+those 3-D points, started from the step's calibration). The flat board's misfit sits in every
+set's held-out error and hides a term whose effect is a fraction of it: the choice then changes
+with the noise draw, and each draw reports the sigma of its own choice. When the second choice
+differs, the solve without the prior is repeated with it.
 
 References: Zheng, Wang & Huang, ISPRS J. Photogramm. 2015 (zoom/focus models of the intrinsics
 in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (1995)
@@ -69,6 +74,7 @@ in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -82,16 +88,16 @@ from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 from .zoommodel import (
     ZoomModel,
-    divided_difference,
     pooled_prior_strength,
+    prior_operator,
     prior_strength,
     second_difference,
     select_zoom_model,
 )
 
 __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResult",
-           "calibrate_zoom_wide", "select_distortion", "prior_strength", "pooled_prior_strength",
-           "second_difference", "board_height_modes"]
+           "TermChoice", "calibrate_zoom_wide", "select_distortion", "held_out_errors",
+           "prior_strength", "pooled_prior_strength", "second_difference", "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -99,7 +105,7 @@ PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: ``pp_model`` of :func:`calibrate_zoom_wide`: the principal point's zoom model chosen by
 #: held-out steps, or the second-difference prior alone.
-ZOOM_MODELS = ("prior2", "select")
+ZOOM_MODELS = ("angle2", "prior2", "select")
 #: Parameters whose zoom model is chosen by held-out steps (``pp_model="select"``).
 SELECTED = ("cx", "cy")
 #: Distortion term sets, simplest first.
@@ -142,45 +148,101 @@ def _distortion_flags(terms: tuple[str, ...]) -> int:
     return flags
 
 
-def held_out_error(obs: Observations, terms: tuple[str, ...]) -> float:
-    """Mean squared reprojection error (px^2 per point) of held-out views, two folds (even and
-    odd views): intrinsics from one half with ``terms`` free, each view of the other half
-    placed by ``cv2.solvePnP`` with those intrinsics."""
+def held_out_errors(obs: Observations, terms: tuple[str, ...],
+                    board_points: np.ndarray | None = None,
+                    start: CalibrationResult | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Squared reprojection errors of held-out views, two folds (even and odd views):
+    intrinsics from one half with ``terms`` free, each view of the other half placed by
+    ``cv2.solvePnP`` with those intrinsics. Returns per view the sum of squared errors (px^2)
+    and the number of points, both (V,); a view that cannot be placed counts 0 points.
+
+    ``board_points`` (n, 3), board frame: the board's estimated shape (a waving board's
+    heights), used in place of ``obs.object_points``; OpenCV then needs a start, ``start``'s
+    camera matrix and distortion (the terms not in ``terms`` set to zero).
+    """
     flags = _distortion_flags(terms)
+    if board_points is not None:
+        obs = Observations(np.asarray(board_points, float), obs.views, obs.image_size, obs.names)
+    guess = {}
+    if start is not None:
+        dist = np.array([d if p in terms else 0.0
+                         for p, d in zip(PARAMS[4:], start.dist[:5], strict=True)])
+        guess = {"K_guess": start.K, "dist_guess": dist}
+    elif board_points is not None:
+        raise ValueError("held_out_errors: a board shape needs a start calibration")
     idx = np.arange(obs.n_views)
-    total, count = 0.0, 0
+    squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
-        res = calibrate_opencv(_subset(obs, train), flags=flags)
+        with warnings.catch_warnings():  # a pose's sigma is not used here
+            warnings.simplefilter("ignore", RuntimeWarning)
+            res = calibrate_opencv(_subset(obs, train), flags=flags, **guess)
         for i in test:
             ids, pts = obs.views[i]
             obj = obs.object_points[ids].astype(np.float64)
             ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
-            if not ok:
-                continue
-            proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
-            total += float(np.sum((proj.reshape(-1, 2) - pts) ** 2))
-            count += len(pts)
-    return total / max(count, 1)
+            if ok:
+                proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
+                squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
+    return squared, count
 
 
-def select_distortion(obs: Observations, tolerance: float = 0.01
-                      ) -> tuple[tuple[str, ...], dict[str, float]]:
-    """The simplest distortion term set whose held-out error (:func:`held_out_error`) is within
-    ``tolerance`` (relative) of the best; all five terms when the step has fewer than 6 views.
+@dataclass
+class TermChoice:
+    """What :func:`select_distortion` chose, and why.
 
-    Returns the chosen terms and the held-out mean squared error of every set tried (px^2).
+    ``terms``: the chosen distortion terms. ``mse_px2``: held-out mean squared error per term
+    set (px^2 per point; ``inf`` where the set could not be fitted). ``excess_se_px2``: the
+    standard error of each set's excess over the best set, from the view-by-view differences.
+    ``board``: ``"flat"`` or ``"estimated"``, the board shape the choice was made on.
+    """
+
+    terms: tuple[str, ...]
+    mse_px2: dict[str, float] = field(default_factory=dict)
+    excess_se_px2: dict[str, float] = field(default_factory=dict)
+    board: str = "flat"
+
+    def to_dict(self) -> dict:
+        return {"terms": list(self.terms), "mse_px2": self.mse_px2,
+                "excess_se_px2": self.excess_se_px2, "board": self.board}
+
+
+def select_distortion(obs: Observations, tolerance: float = 0.01,
+                      board_points: np.ndarray | None = None,
+                      start: CalibrationResult | None = None, n_se: float = 2.0) -> TermChoice:
+    """The simplest distortion term set whose held-out error (:func:`held_out_errors`, with
+    the board's shape ``board_points`` and the ``start`` calibration if given) exceeds the
+    best set's by less than ``tolerance`` (relative), ``n_se`` standard errors included:
+    ``excess + n_se * se(excess) <= tolerance * mse_best``. All five terms when the step has
+    fewer than 6 views.
+
+    With the board's shape known, the held-out error of the right terms is the detection noise
+    alone, so ``tolerance`` leaves out a term only when the systematic error it removes is
+    below about ``sqrt(tolerance)`` (10 %) of the noise per point; the standard errors keep it
+    where the data cannot tell (a choice that would otherwise change with the noise draw, each
+    draw reporting the sigma of its own choice). With a flat board its misfit sits in every
+    set's error and hides such terms.
     """
     if obs.n_views < 6:
-        return DISTORTION_SETS["k1k2p1p2k3"], {}
-    errors = {}
+        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"])
+    per_view = {}
     for name, terms in DISTORTION_SETS.items():
         try:
-            errors[name] = held_out_error(obs, terms)
+            per_view[name] = held_out_errors(obs, terms, board_points, start)
         except (ValueError, RuntimeError):
-            errors[name] = float("inf")
-    best = min(errors.values())
-    name = next(n for n in DISTORTION_SETS if errors[n] <= best * (1.0 + tolerance))
-    return DISTORTION_SETS[name], errors
+            continue
+    board = "flat" if board_points is None else "estimated"
+    if not per_view:
+        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board)
+    n_points = {k: c.sum() for k, (_, c) in per_view.items()}
+    mse = {k: sq.sum() / max(n_points[k], 1) for k, (sq, _) in per_view.items()}
+    best = min(mse, key=mse.get)
+    se = {k: float(np.std(sq - per_view[best][0], ddof=1) * np.sqrt(len(sq))
+                   / max(n_points[best], 1)) for k, (sq, _) in per_view.items()}
+    chosen = next(k for k in per_view
+                  if mse[k] - mse[best] + n_se * se[k] <= tolerance * mse[best])
+    return TermChoice(DISTORTION_SETS[chosen],
+                      {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
+                      {k: se[k] for k in per_view}, board)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -235,10 +297,11 @@ class _ZoomProblem:
     def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
                  free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                  tau: dict[str, float],
-                 board_prior_mm: float, order: dict[str, int] | None = None):
+                 board_prior_mm: float, order: dict[str, int] | None = None,
+                 weight: dict[str, np.ndarray] | None = None):
         self.steps, self.board, self.phi = steps, board, modes_basis
         self.free, self.chains, self.u, self.tau = free, chains, u, tau
-        self.order = order or {}
+        self.order, self.weight = order or {}, weight or {}
         self.board_prior = board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
@@ -257,7 +320,8 @@ class _ZoomProblem:
                 steps = [s for s in chain if self.free[s, j]]
                 if len(steps) <= order or not np.isfinite(tau):
                     continue
-                D = divided_difference(self.u[steps], order) / tau
+                w = self.weight.get(name)
+                D = prior_operator(self.u[steps], order, None if w is None else w[steps]) / tau
                 block = np.zeros((len(D), self.n_unknowns))
                 block[:, self.cam_col[steps, j]] = D
                 rows.append(block)
@@ -433,8 +497,8 @@ class ZoomWideResult:
         the held-out log predictive density of every candidate tried.
     terms : dict of str to tuple
         Distortion terms chosen per step.
-    held_out : dict of str to dict
-        Held-out mean squared error (px^2) per step and term set.
+    held_out : dict of str to TermChoice
+        Per step: the held-out errors behind its distortion terms (:class:`TermChoice`).
     converged : bool
     stop_reason : str
     iterations : int
@@ -449,7 +513,7 @@ class ZoomWideResult:
     board_modes_sd: np.ndarray
     tau: dict[str, float]
     terms: dict[str, tuple[str, ...]]
-    held_out: dict[str, dict[str, float]] = field(default_factory=dict)
+    held_out: dict[str, TermChoice] = field(default_factory=dict)
     converged: bool = False
     stop_reason: str = ""
     iterations: int = 0
@@ -464,7 +528,8 @@ def _initial(observations: Mapping[str, Observations], select: bool):
     terms, held, init, skipped = {}, {}, {}, {}
     for name, obs in observations.items():
         if select:
-            terms[name], held[name] = select_distortion(obs)
+            held[name] = select_distortion(obs)
+            terms[name] = held[name].terms
         else:
             terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
         try:
@@ -489,12 +554,17 @@ def _opencv_start(name: str, obs: Observations, terms: dict) -> CalibrationResul
             raise ValueError(f"step {name}: no starting calibration: {exc}") from None
 
 
+def _free_mask(names: list[str], terms: Mapping[str, tuple[str, ...]]) -> np.ndarray:
+    """(S, 9) bool: the intrinsics each step estimates (fx, fy, cx, cy and its chosen terms)."""
+    return np.array([[p in ("fx", "fy", "cx", "cy") or p in terms[s] for p in PARAMS]
+                     for s in names])
+
+
 def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.ndarray, list]:
     cams = np.array([[r.fx, r.fy, r.cx, r.cy, *(list(r.dist[:5]) + [0.0] * 5)[:5]]
                      for r in init.values()])
     # PARAMS order is k1, k2, p1, p2, k3: the same as OpenCV's first five terms
-    free = np.array([[p in ("fx", "fy", "cx", "cy") or p in terms[s] for p in PARAMS]
-                     for s in init])
+    free = _free_mask(list(init), terms)
     cams[:, 4:][~free[:, 4:]] = 0.0
     rvecs = np.concatenate([r.rvecs for r in init.values()])
     tvecs = np.concatenate([r.tvecs for r in init.values()])
@@ -503,33 +573,43 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
 
 
 def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
-            j: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+            j: int, weight: np.ndarray | None = None) -> list[tuple]:
     """``(values, noise, u)`` of parameter ``j`` per chain of 3 or more free steps; ``noise``
-    from the sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance."""
+    from the sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance. With a
+    ``weight`` (S,): ``(weight * values, its noise, u, weight)``, the chain of a path whose
+    constant offset is free (:mod:`~zoomcalib.calibrate.zoommodel`)."""
     series = []
     for chain in chains:
         steps = [s for s in chain if free[s, j]]
-        if len(steps) >= 3:
-            noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
+        if len(steps) < 3:
+            continue
+        noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
+        if weight is None:
             series.append((cams[steps, j], noise, u[steps]))
+            continue
+        w = weight[steps]
+        noise = w[:, None] * noise * w[None, :] if np.ndim(noise) == 2 else w * noise
+        series.append((w * cams[steps, j], noise, u[steps], w))
     return series
 
 
 def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
-                 u: np.ndarray, selected: tuple[str, ...]) -> dict[str, ZoomModel]:
+                 u: np.ndarray, selected: tuple[str, ...],
+                 weight: Mapping[str, np.ndarray]) -> dict[str, ZoomModel]:
     """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
     held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
     ``selected`` ones, else the second-difference prior with its REML ``tau``, pooled over the
-    chains."""
+    chains; of ``weight * q`` with a free offset for the parameters in ``weight`` (``angle2``)."""
     models = {}
     for name in SMOOTHED:
-        series = _series(cams, cov, free, chains, u, PARAMS.index(name))
+        series = _series(cams, cov, free, chains, u, PARAMS.index(name), weight.get(name))
         if not series:
             continue
         if name in selected:
             models[name] = select_zoom_model(series)
         else:
-            models[name] = ZoomModel("prior2", 2, *pooled_prior_strength(series, 2))
+            models[name] = ZoomModel("angle2" if name in weight else "prior2", 2,
+                                     *pooled_prior_strength(series, 2))
     return models
 
 
@@ -651,17 +731,26 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     # first without the smoothness prior: per-step values free of the flat-board bias
     unsmoothed = _ZoomProblem(steps, board, phi, free, chain_idx, u, {}, board_prior_mm)
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
+    if select and phi.shape[1] and _select_on_board(observations, init, unsmoothed.points(
+            solve.state.modes), terms, held):
+        free = _free_mask(names, terms)
+        state = solve.state
+        state.cams[:, 4:][~free[:, 4:]] = 0.0
+        unsmoothed = _ZoomProblem(steps, board, phi, free, chain_idx, u, {}, board_prior_mm)
+        solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
+        iterations += more
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
+    weight = {q: 1.0 / np.exp(u) for q in SELECTED} if pp_model == "angle2" else {}
     if joint_cov is not None:
         state, tau_source = solve.state, "zoom-wide solve without the prior"
         models = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
-                              SELECTED if pp_model == "select" else ())
+                              SELECTED if pp_model == "select" else (), weight)
     else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        models = _zoom_models(state.cams, sds, free, chain_idx, u, ())
+        models = _zoom_models(state.cams, sds, free, chain_idx, u, (), weight)
     prob = _ZoomProblem(steps, board, phi, free, chain_idx, u,
                         {k: m.tau for k, m in models.items()}, board_prior_mm,
-                        {k: m.order for k, m in models.items()})
+                        {k: m.order for k, m in models.items()}, weight)
     solve, more = _solve_with_noise(prob, state, free, max_rounds)
     state, total_iterations = solve.state, iterations + more
     result = _finish(prob, solve, state, init, terms, held, models, total_iterations)
@@ -670,6 +759,23 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
     return result
+
+
+def _select_on_board(observations: Mapping[str, Observations],
+                     init: Mapping[str, CalibrationResult], board_points: np.ndarray,
+                     terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice]) -> bool:
+    """Choose each started step's distortion terms again, by held-out views on the board's
+    estimated shape (:func:`select_distortion`); ``terms`` and ``held`` are updated in place.
+    True when a step's terms changed."""
+    changed = False
+    for name, start in init.items():
+        choice = select_distortion(observations[name], board_points=board_points, start=start)
+        if not choice.excess_se_px2:
+            continue  # too few views, or no set could be fitted: keep the flat-board choice
+        held[name] = choice
+        changed |= choice.terms != terms[name]
+        terms[name] = choice.terms
+    return changed
 
 
 def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_rounds: int
@@ -711,7 +817,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
         results[step.name] = _step_result(prob, s, state, cov, X, init[step.name], terms, tau)
         results[step.name].info.update({
             "converged": solve.converged, "stop_reason": solve.stop_reason,
-            "held_out_mse_px2": held.get(step.name, {}),
+            "distortion_choice": held[step.name].to_dict() if step.name in held else {},
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
         })
     modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
