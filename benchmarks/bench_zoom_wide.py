@@ -177,6 +177,8 @@ def main() -> None:
                     help="pp_model of the adjustment compared with it")
     ap.add_argument("--mc-model", default="angle2", choices=ZOOM_MODELS,
                     help="pp_model of the Monte Carlo's adjustments")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
     args.jpeg = args.jpeg or None
     out = Path(args.out)

@@ -59,6 +59,6 @@ def test_cross_validation_is_reported_everywhere(rendered):
 def test_zoom_model_of_the_principal_point_is_reported(rendered):
     _, out, _ = rendered
     models = json.loads((out / "calibration.json").read_text())["meta"]["zoom_wide"]["zoom_model"]
-    for q in ("cx", "cy"):  # the default: the second-difference prior with its REML tau
-        assert models[q]["model"] == "prior2" and models[q]["order"] == 2
+    for q in ("cx", "cy"):  # the default: the angular second-difference prior, REML tau
+        assert models[q]["model"] == "angle2" and models[q]["order"] == 2
         assert models[q]["tau"] > 0

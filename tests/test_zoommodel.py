@@ -9,7 +9,12 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from zoomcalib.calibrate.zoommodel import divided_difference, select_zoom_model
+from zoomcalib.calibrate.zoommodel import (
+    divided_difference,
+    pooled_prior_strength,
+    prior_operator,
+    select_zoom_model,
+)
 from zoomcalib.render.pp_path import traced_path
 
 STEPS = 7
@@ -56,3 +61,35 @@ def test_held_out_choice_keeps_the_prior_where_a_polynomial_cannot_follow(rng):
     for path in (kink, traced):
         got = _choices(rng, path, trials=10)
         assert sum(v for k, v in got.items() if k.startswith("poly")) <= 1, got
+
+
+def test_angular_prior_leaves_an_offset_and_a_line_in_angle_free(rng):
+    u = np.sort(rng.uniform(0, 2.3, 9))
+    fx = 2300.0 * np.exp(u)
+    R = prior_operator(u, 2, 1.0 / fx)
+    c, a, b = rng.uniform(-50, 50), rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3)
+    np.testing.assert_allclose(R @ (c + fx * (a + b * u)), 0.0, atol=1e-12)
+    # on any other path it is the second difference of (q - c) / fx at the best offset c
+    q = rng.normal(0, 10, len(u))
+    D = divided_difference(u, 2)
+    best = min(np.linalg.norm(D @ ((q - k) / fx))
+               for k in np.linspace(-2000, 2000, 400001))
+    assert abs(np.linalg.norm(R @ q) - best) < 1e-6 * best
+
+
+def test_angular_prior_strength_recovers_the_roughness(rng):
+    # a path smooth in angle (integrated Wiener process in u) plus a sensor offset of 25 px;
+    # REML with the offset free must find the angle's roughness, not the offset's 1/fx curve
+    n, sd_px = 25, 0.05
+    u = np.linspace(0, 2.3, n)
+    fx = 2300.0 * np.exp(u)
+    fine = np.linspace(-0.05, 2.35, 24001)
+    dt = fine[1] - fine[0]
+    for intensity in (3e-4, 3e-3):
+        slope = np.cumsum(intensity * np.sqrt(dt) * rng.normal(size=len(fine)))
+        angle = np.interp(u, fine, np.cumsum(slope) * dt)
+        q = 25.0 + fx * angle + rng.normal(0, sd_px, n)
+        got, _ = pooled_prior_strength([(q / fx, sd_px / fx, u, 1.0 / fx)], 2)
+        implied = np.sqrt(np.mean((divided_difference(u, 2) @ angle) ** 2))
+        # 23 differences: the estimate scatters by ~15 %; 2x allows 4 sigma
+        assert 0.5 < got / implied < 2.0, (intensity, got, implied)

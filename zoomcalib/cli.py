@@ -566,10 +566,11 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--per-step", is_flag=True,
               help="Calibrate each zoom step on its own only (no zoom-wide adjustment); the "
                    "zoom table then comes from the per-step backends.")
-@click.option("--pp-model", default="prior2", show_default=True,
-              type=click.Choice(["prior2", "select"]),
-              help="Zoom-wide: how cx, cy follow the zoom. prior2: a second-difference prior in "
-                   "log fx of REML strength; select: that prior, a third-difference prior or a "
+@click.option("--pp-model", default="angle2", show_default=True,
+              type=click.Choice(["angle2", "prior2", "select"]),
+              help="Zoom-wide: how cx, cy follow the zoom. angle2: a second-difference prior "
+                   "in log fx of REML strength on the angle (c - c0) / fx, c0 free; prior2: "
+                   "that prior in px; select: the px prior, a third-difference prior or a "
                    "polynomial of degree 1-3 in log fx, chosen by held-out steps.")
 @click.option("--cross-validate", is_flag=True,
               help="Also calibrate the even and the odd images of every step apart and report "

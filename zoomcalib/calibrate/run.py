@@ -210,7 +210,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
-                     report_distance: float | None = None, pp_model: str = "prior2"
+                     report_distance: float | None = None, pp_model: str = "angle2"
                      ) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
@@ -237,7 +237,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
         and compare (:func:`zoomcalib.calibrate.checks.cross_validate`).
-    pp_model : {'prior2', 'select'}
+    pp_model : {'angle2', 'prior2', 'select'}
         How the zoom-wide adjustment ties cx, cy across zoom (``pp_model`` of
         :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
     grid_points : int
@@ -445,7 +445,7 @@ def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[s
 
 
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
-               directions: dict[str, str], pp_model: str = "prior2") -> None:
+               directions: dict[str, str], pp_model: str = "angle2") -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -481,7 +481,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     run.zoom_wide = zw
 
 
-def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "prior2"):
+def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2"):
     """Two-halves check with the backend (and mode) of the zoom table."""
     from .checks import cross_validate
 

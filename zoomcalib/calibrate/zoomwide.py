@@ -52,6 +52,16 @@ Levenberg-Marquardt on the sparse Jacobian. The covariance of every parameter is
 ``(J^T J)^{-1}`` of the whole problem (prior rows included), so a long-end step's sigma includes
 what it borrows from its neighbours.
 
+The principal point's prior reads its angle (``pp_model="angle2"``, the default): for
+``q = cx`` or ``cy`` the differences are those of ``(q - c) / fx``, with ``c`` a free px
+offset integrated out under a flat prior (:func:`~zoomcalib.calibrate.zoommodel.prior_operator`),
+so ``q = c + fx (a + b u)`` costs nothing and ``tau`` is in radians per ``u^2``. A decentred or
+tilted moving group shifts the image by an amount that grows with the focal length: on the
+ray-traced ``laikin-10x`` the principal point's second differences in px grow 5-26 times from
+the short to the long end, in angle they stay within about 2 times. A prior in px
+(``pp_model="prior2"``) learns its ``tau`` from the precise short-end steps and then holds the
+long end to a straightness that it does not have.
+
 With ``pp_model="select"`` the prior of cx and cy is instead chosen by held-out steps from the
 first solve's values and joint covariance (:mod:`zoomcalib.calibrate.zoommodel`): the prior
 above, a third-difference prior, or a polynomial of degree 1-3 in ``u`` (a difference prior of
@@ -103,8 +113,8 @@ __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResu
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Parameters tied across zoom by the smoothness prior.
 SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
-#: ``pp_model`` of :func:`calibrate_zoom_wide`: the principal point's zoom model chosen by
-#: held-out steps, or the second-difference prior alone.
+#: ``pp_model`` of :func:`calibrate_zoom_wide`: the second-difference prior of the angular
+#: principal point, that prior in px, or the zoom model chosen by held-out steps.
 ZOOM_MODELS = ("angle2", "prior2", "select")
 #: Parameters whose zoom model is chosen by held-out steps (``pp_model="select"``).
 SELECTED = ("cx", "cy")
@@ -286,6 +296,27 @@ class _State:
                                np.column_stack([self.rvecs, self.tvecs]).ravel()])
 
 
+@dataclass(frozen=True)
+class _Form:
+    """How the smoothness prior reads one parameter's path (``pp_model``): ``prior2`` its
+    second differences in px; ``angle2`` the second differences of ``q / fx`` (``weight``,
+    per step) with a free offset of ``q``."""
+
+    name: str = "prior2"
+    weight: np.ndarray | None = None
+
+    def at(self, steps) -> np.ndarray | None:
+        """``weight`` of the given steps (None for a prior in px)."""
+        return None if self.weight is None else self.weight[steps]
+
+    @classmethod
+    def of(cls, pp_model: str, fx: np.ndarray) -> dict[str, _Form]:
+        """The forms of cx and cy for ``pp_model`` (``fx`` (S,) the steps' focal lengths)."""
+        if pp_model == "angle2":
+            return {q: cls("angle2", weight=1.0 / fx) for q in SELECTED}
+        return {}
+
+
 class _ZoomProblem:
     """Residuals and sparse Jacobian of the zoom-wide cost (module docstring).
 
@@ -298,10 +329,10 @@ class _ZoomProblem:
                  free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                  tau: dict[str, float],
                  board_prior_mm: float, order: dict[str, int] | None = None,
-                 weight: dict[str, np.ndarray] | None = None):
+                 forms: dict[str, _Form] | None = None):
         self.steps, self.board, self.phi = steps, board, modes_basis
         self.free, self.chains, self.u, self.tau = free, chains, u, tau
-        self.order, self.weight = order or {}, weight or {}
+        self.order, self.forms = order or {}, forms or {}
         self.board_prior = board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
@@ -320,8 +351,8 @@ class _ZoomProblem:
                 steps = [s for s in chain if self.free[s, j]]
                 if len(steps) <= order or not np.isfinite(tau):
                     continue
-                w = self.weight.get(name)
-                D = prior_operator(self.u[steps], order, None if w is None else w[steps]) / tau
+                D = prior_operator(self.u[steps], order,
+                                   self.forms.get(name, _Form()).at(steps)) / tau
                 block = np.zeros((len(D), self.n_unknowns))
                 block[:, self.cam_col[steps, j]] = D
                 rows.append(block)
@@ -573,43 +604,43 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
 
 
 def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
-            j: int, weight: np.ndarray | None = None) -> list[tuple]:
-    """``(values, noise, u)`` of parameter ``j`` per chain of 3 or more free steps; ``noise``
-    from the sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance. With a
-    ``weight`` (S,): ``(weight * values, its noise, u, weight)``, the chain of a path whose
-    constant offset is free (:mod:`~zoomcalib.calibrate.zoommodel`)."""
+            j: int, form: _Form) -> list[tuple]:
+    """``(values, noise, u, offset)`` of parameter ``j`` per chain of 3 or more free
+    steps (:mod:`~zoomcalib.calibrate.zoommodel`); ``noise`` from the sigmas ``cov`` (S, 9) or a
+    function ``cov(steps, j)`` giving a covariance. With a ``form.weight`` ``w`` the values are
+    ``w q``, their noise scaled alike and ``w`` the free offset's direction."""
     series = []
     for chain in chains:
         steps = [s for s in chain if free[s, j]]
         if len(steps) < 3:
             continue
+        values = cams[steps, j]
         noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
-        if weight is None:
-            series.append((cams[steps, j], noise, u[steps]))
-            continue
-        w = weight[steps]
-        noise = w[:, None] * noise * w[None, :] if np.ndim(noise) == 2 else w * noise
-        series.append((w * cams[steps, j], noise, u[steps], w))
+        w = form.at(steps)
+        if w is not None:
+            values = w * values
+            noise = w[:, None] * noise * w[None, :] if np.ndim(noise) == 2 else w * noise
+        series.append((values, noise, u[steps], w))
     return series
 
 
 def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
                  u: np.ndarray, selected: tuple[str, ...],
-                 weight: Mapping[str, np.ndarray]) -> dict[str, ZoomModel]:
+                 forms: Mapping[str, _Form]) -> dict[str, ZoomModel]:
     """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
     held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
-    ``selected`` ones, else the second-difference prior with its REML ``tau``, pooled over the
-    chains; of ``weight * q`` with a free offset for the parameters in ``weight`` (``angle2``)."""
+    ``selected`` ones, else the second-difference prior of its form (``forms``, default
+    ``prior2``) with its REML ``tau``, pooled over the chains."""
     models = {}
     for name in SMOOTHED:
-        series = _series(cams, cov, free, chains, u, PARAMS.index(name), weight.get(name))
+        form = forms.get(name, _Form())
+        series = _series(cams, cov, free, chains, u, PARAMS.index(name), form)
         if not series:
             continue
         if name in selected:
             models[name] = select_zoom_model(series)
         else:
-            models[name] = ZoomModel("angle2" if name in weight else "prior2", 2,
-                                     *pooled_prior_strength(series, 2))
+            models[name] = ZoomModel(form.name, 2, *pooled_prior_strength(series, 2))
     return models
 
 
@@ -664,7 +695,7 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
-                        pp_model: str = "prior2") -> ZoomWideResult:
+                        pp_model: str = "angle2") -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -684,12 +715,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         Steps with different labels (e.g. the direction of the last zoom move, ``in`` or
         ``out``) are not tied by the smoothness prior: each label's steps form their own chain
         (with one shared ``tau``). Default: one chain.
-    pp_model : {'prior2', 'select'}
-        How cx and cy follow the zoom: the second-difference prior alone, or the model chosen
-        by held-out steps among the difference priors of order 2 and 3 and the polynomials of
-        degree 1-3 in ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). Not the default: on
-        the traced lens path it can pick a polynomial the path does not follow
-        (``docs/calibration.md``).
+    pp_model : {'angle2', 'prior2', 'select'}
+        How cx and cy follow the zoom: the second-difference prior of the angular principal
+        point (module docstring), that prior in px, or the model chosen by held-out steps among
+        the difference priors in px of order 2 and 3 and the polynomials of degree 1-3 in
+        ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). ``select`` can pick a polynomial
+        that the traced lens path does not follow (``docs/calibration.md``).
 
     Returns
     -------
@@ -740,17 +771,17 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
         iterations += more
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
-    weight = {q: 1.0 / np.exp(u) for q in SELECTED} if pp_model == "angle2" else {}
+    forms = _Form.of(pp_model, np.exp(u))
     if joint_cov is not None:
         state, tau_source = solve.state, "zoom-wide solve without the prior"
         models = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
-                              SELECTED if pp_model == "select" else (), weight)
+                              SELECTED if pp_model == "select" else (), forms)
     else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        models = _zoom_models(state.cams, sds, free, chain_idx, u, (), weight)
+        models = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms)
     prob = _ZoomProblem(steps, board, phi, free, chain_idx, u,
                         {k: m.tau for k, m in models.items()}, board_prior_mm,
-                        {k: m.order for k, m in models.items()}, weight)
+                        {k: m.order for k, m in models.items()}, forms)
     solve, more = _solve_with_noise(prob, state, free, max_rounds)
     state, total_iterations = solve.state, iterations + more
     result = _finish(prob, solve, state, init, terms, held, models, total_iterations)
