@@ -72,6 +72,18 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
     assert doc["gain"]["cv_rms_ratio"] > 1.0
     assert doc["extended"]["chi2_dof"] < doc["baseline"]["chi2_dof"]
 
+    # the table alone, in its calibrate output folder: the same calibrations are read back
+    # (calibration.json, detections/), so the same diagnosis
+    assert doc["group_columns"].startswith("each row's calibration response")
+    messages = []
+    again = diagnose_input(tmp_path / "diag" / "calibration" / "zoom_calibration.csv",
+                           tmp_path / "diag2", lens, sensor.pixel_pitch_mm, tol,
+                           log=messages.append)
+    assert read_json(tmp_path / "diag2" / "diagnosis.json")["group_columns"] == \
+        doc["group_columns"], messages
+    np.testing.assert_allclose(again.diagnosis.extended.fit.params, ext.fit.params,
+                               rtol=1e-6, atol=1e-9)
+
 
 def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     """A hidden axis tilt of 0.9-1.0 mrad in a random direction, rendered over the whole zoom

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibrate.io import read_zoom_table
+from ..calibrate.result import Observations
 from ..optics.mechanics import Tolerances
 from ..optics.prescription import Prescription
 from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
@@ -125,6 +126,40 @@ def _row_calibrations(table: ZoomTable, cal) -> list[RowCalibration] | None:
     return rows
 
 
+def _calibrations_beside(table: ZoomTable, table_path: Path
+                         ) -> tuple[list[RowCalibration] | None, str]:
+    """Each row's per-step OpenCV calibration from the calibrate output folder that holds the
+    table (its ``calibration.json`` and ``detections/``), or None and the reason why not."""
+    from ..calibrate.io import read_calibration
+    from ..calibrate.opencv_backend import observations_from_detections
+    from ..detect.opencv import read_detections
+
+    folder = table_path.parent
+    if not (folder / "calibration.json").exists() or not (folder / "detections").is_dir():
+        return None, f"no calibration.json and detections/ beside {table_path.name}"
+    try:
+        results, _ = read_calibration(folder / "calibration.json")
+        rows = []
+        for step in table.step:
+            result = results.get(step, {}).get("opencv")
+            if result is None:
+                return None, f"step {step} has no per-step OpenCV calibration"
+            spec, dets = read_detections(folder / "detections" / f"{step}.json")
+            good = [d for d in dets if d.error is None]
+            obs = observations_from_detections(good, spec, good[0].image_size if good else None)
+            index = {name: i for i, name in enumerate(obs.names)}
+            used = list(result.info.get("views", []))
+            if not used or any(name not in index for name in used):
+                return None, f"step {step}: the calibration's views are not all in its detections"
+            keep = [index[name] for name in used]
+            obs = Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
+                               used)
+            rows.append(RowCalibration(result, obs))
+    except (OSError, ValueError) as exc:
+        return None, str(exc)
+    return rows, ""
+
+
 def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | None,
                    pixel_pitch: float | str = 0.00645, tolerances: Tolerances | None = None,
                    pattern: str | None = None, backends: tuple[str, ...] = ("opencv",),
@@ -136,7 +171,11 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     ----------
     source : path
         A per-zoom table, or a folder of step subfolders (calibrated first into
-        ``OUT/calibration``; needs ``pattern``).
+        ``OUT/calibration``; needs ``pattern``). The group terms use each row's calibration
+        response (:mod:`~zoomcalib.diagnose.response`) when the calibrations are at hand: from
+        the folder's calibration, or for a table in a ``calibrate`` output folder from its
+        ``calibration.json`` and ``detections/``; else the paraxial image shift, and ``log``
+        says why.
     out : path
     lens : Prescription or None
         The lens model whose EFL curve places each row and whose sensitivities make the
@@ -182,6 +221,10 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     table = load_zoom_table(table_path)
     if source.is_dir():
         table.calibrations = _row_calibrations(table, cal)
+    elif lens is not None:
+        table.calibrations, why = _calibrations_beside(table, table_path)
+        if table.calibrations is None:
+            log(f"{table_path}: the group terms use the paraxial image shift ({why})")
     check_table_size(table.zoom, table.fx, table.source, groups)
     fit_pitch = isinstance(pixel_pitch, str)
     if fit_pitch and pixel_pitch != "auto":
