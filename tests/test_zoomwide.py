@@ -165,6 +165,21 @@ def test_prior_strength_is_not_inflated_by_the_waving_board(sweep, pp_model):
     assert zw.results["step0"].info["tau_source"] == "zoom-wide solve without the prior"
 
 
+def test_a_term_the_long_end_cannot_measure_is_carried_by_the_prior(sweep):
+    # k1 = -0.25 exp(-1.5 u): at the long end it moves the corners by 0.006 px, half the
+    # noise, and the held-out views there leave it out; the adjustment takes it from the
+    # neighbours through the smoothness prior, with the prior's uncertainty in its sigma
+    obs, truth, _, zw = sweep
+    carried = [n for n in obs if "k1" not in zw.held_out[n].terms]
+    assert carried, {n: zw.held_out[n].terms for n in obs}
+    fx0 = truth["step0"]["fx"]
+    for name in obs:
+        r = zw.results[name]
+        assert "k1" in zw.terms[name] and r.sd["k1"] > 0
+        k1_true = -0.25 * np.exp(-1.5 * np.log(truth[name]["fx"] / fx0))
+        assert abs(r.dist[0] - k1_true) < 4 * r.sd["k1"], (name, r.dist[0], k1_true, r.sd)
+
+
 def test_zoom_wide_borrows_at_the_long_end(sweep):
     obs, truth, _, zw = sweep
     last = list(obs)[-1]

@@ -75,7 +75,10 @@ then on the board's shape estimated by the solve without the smoothness prior (O
 those 3-D points, started from the step's calibration). The flat board's misfit sits in every
 set's held-out error and hides a term whose effect is a fraction of it: the choice then changes
 with the noise draw, and each draw reports the sigma of its own choice. When the second choice
-differs, the solve without the prior is repeated with it.
+differs, the solve without the prior is repeated with it. In the adjustment with the prior, a
+term that some steps of a chain estimate is free at all its steps: where a step's own views
+cannot measure it (the long end's narrow field), its neighbours carry it through the prior, and
+its sigma says how well (:func:`_tie_terms`).
 
 References: Zheng, Wang & Huang, ISPRS J. Photogramm. 2015 (zoom/focus models of the intrinsics
 in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (1995)
@@ -527,7 +530,9 @@ class ZoomWideResult:
         ``poly3``, :mod:`~zoomcalib.calibrate.zoommodel`), its difference ``order``, ``tau`` and
         the held-out log predictive density of every candidate tried.
     terms : dict of str to tuple
-        Distortion terms chosen per step.
+        Distortion terms estimated per step: those its own held-out views chose
+        (``held_out``) and, through the smoothness prior, those the other steps of its chain
+        estimate.
     held_out : dict of str to TermChoice
         Per step: the held-out errors behind its distortion terms (:class:`TermChoice`).
     converged : bool
@@ -779,6 +784,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
         models = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms)
+    free = _tie_terms(state, free, chain_idx, u, models)
+    terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
+             for s, n in enumerate(names)}
     prob = _ZoomProblem(steps, board, phi, free, chain_idx, u,
                         {k: m.tau for k, m in models.items()}, board_prior_mm,
                         {k: m.order for k, m in models.items()}, forms)
@@ -790,6 +798,31 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
     return result
+
+
+def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
+               models: Mapping[str, ZoomModel]) -> np.ndarray:
+    """``free`` (S, 9) with every distortion term that has a zoom model freed at every step of
+    each chain where one of its steps estimates it; a newly freed value starts from the
+    chain's estimates, interpolated in ``u`` (held at the ends). ``state.cams`` is updated.
+
+    A step whose own views cannot measure a term (the long end's narrow field) then takes it
+    from its neighbours through the smoothness prior, with the prior's uncertainty in its
+    sigma, instead of holding it at zero: a term near the limit of what the held-out views can
+    tell would otherwise be in or out with the noise draw."""
+    free = free.copy()
+    for name in models:
+        j = PARAMS.index(name)
+        if j < 4:
+            continue
+        for chain in chains:
+            have = [s for s in chain if free[s, j]]
+            new = [s for s in chain if not free[s, j]]
+            if not have or not new:
+                continue
+            state.cams[new, j] = np.interp(u[new], u[have], state.cams[have, j])
+            free[new, j] = True
+    return free
 
 
 def _select_on_board(observations: Mapping[str, Observations],
