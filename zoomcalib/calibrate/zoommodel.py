@@ -56,7 +56,8 @@ import numpy as np
 import scipy.linalg
 
 __all__ = ["CANDIDATES", "ZoomModel", "divided_difference", "second_difference", "prior_operator",
-           "prior_strength", "pooled_prior_strength", "held_out_densities", "held_out_score",
+           "prior_strength", "pooled_prior_strength", "tau_posterior", "path_posterior",
+           "marginal_tau", "held_out_densities", "held_out_score",
            "select_zoom_model"]
 
 #: Candidate models: name -> (difference order, REML tau (True) or a polynomial (False)).
@@ -75,20 +76,29 @@ MARGIN = 2.0
 class ZoomModel:
     """The model chosen for one parameter: ``name`` (a key of :data:`CANDIDATES`), difference
     ``order``, ``tau`` (units of the parameter per ``u^order``; ``inf``: no prior),
-    ``tau_at_bound`` and the held-out ``scores`` (log predictive density) of every candidate."""
+    ``tau_at_bound`` (REML's maximum at the grid's lower end) and the held-out ``scores`` (log
+    predictive density) of every candidate. With ``tau`` marginalised (:func:`marginal_tau`):
+    ``tau`` is its posterior median, ``tau_reml`` the REML value and ``tau_interval`` the
+    posterior's 5 % and 95 % quantiles."""
 
     name: str
     order: int
     tau: float
     tau_at_bound: bool = False
     scores: dict[str, float] | None = None
+    tau_reml: float | None = None
+    tau_interval: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready; a candidate that could not predict a step has the score None."""
         scores = {k: (float(v) if np.isfinite(v) else None) for k, v in (self.scores or {}).items()}
-        return {"model": self.name, "order": self.order,
-                "tau": float(self.tau) if np.isfinite(self.tau) else None,
-                "tau_at_lower_bound": bool(self.tau_at_bound), "held_out_log_density": scores}
+        out = {"model": self.name, "order": self.order,
+               "tau": float(self.tau) if np.isfinite(self.tau) else None,
+               "tau_at_lower_bound": bool(self.tau_at_bound), "held_out_log_density": scores}
+        if self.tau_interval is not None:
+            out.update(tau_kind="posterior median", tau_reml=self.tau_reml,
+                       tau_interval_90=list(self.tau_interval))
+        return out
 
 
 def divided_difference(u: np.ndarray, order: int = 2) -> np.ndarray:
@@ -186,18 +196,98 @@ def pooled_prior_strength(chains: list[tuple], order: int = 2) -> tuple[float, b
     """:func:`prior_strength` of one ``tau`` shared by several chains ``(values, sd, u[,
     offset])`` (e.g. the zoom-in and the zoom-out sweep of one lens): the chains' restricted
     likelihoods add. ``offset``: module docstring, "A free offset"."""
+    grid, loglik = _restricted_loglik(chains, order)
+    if grid is None:
+        return float("inf"), False
+    best = int(np.argmax(loglik))
+    return float(grid[best]), best == 0
+
+
+def _restricted_loglik(chains: list[tuple], order: int
+                       ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The log grid of ``tau`` and the pooled restricted log likelihood on it; ``(None,
+    None)`` when no chain has more than ``order`` steps."""
     terms = [_restricted_terms(c, order) for c in chains if len(c[0]) > order]
     if not terms:
-        return float("inf"), False
+        return None, None
     top = max(max(t[3] for t in terms), 1e-12)
     # below 1 % of the noise's own differences the likelihood is flat: the grid stops
     # there (a smaller tau only makes the problem ill-conditioned)
     bottom = max(min(t[4] for t in terms) * 1e-2, top * 1e-6)
     grid = np.geomspace(bottom, max(top * 1e4, bottom * 1e2), 201)
-    loglik = [sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, *_ in terms)
-              for g in grid]
-    best = int(np.argmax(loglik))
-    return float(grid[best]), best == 0
+    loglik = np.array([sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, *_ in terms)
+                       for g in grid])
+    return grid, loglik
+
+
+def tau_posterior(chains: list[tuple], order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    r"""The posterior of ``tau`` on the grid of :func:`pooled_prior_strength`: the restricted
+    likelihood times a half-Cauchy prior ``p(tau) \propto 1 / (1 + (tau / s)^2)`` whose scale
+    ``s`` is the noise's own RMS difference (:func:`noise_roughness`, the largest over the
+    chains): a path smoother than its noise can show is as plausible as one as rough as it, and
+    rougher paths must be shown by the data (Gelman, Bayesian Anal. 2006, for the scale of a
+    hierarchical variance). Returns the grid and the weights (sum 1); both empty when no chain
+    is long enough."""
+    grid, loglik = _restricted_loglik(chains, order)
+    if grid is None:
+        return np.zeros(0), np.zeros(0)
+    scale = max(noise_roughness(c[1], c[2], order) for c in chains if len(c[0]) > order)
+    # the grid is uniform in log tau: d tau = tau d log tau
+    logpost = loglik - np.log1p((grid / max(scale, 1e-300)) ** 2) + np.log(grid)
+    weight = np.exp(logpost - logpost.max())
+    return grid, weight / weight.sum()
+
+
+def path_posterior(chain: tuple, order: int, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (n,) and covariance (n, n) of the true path of a chain ``(values, sd, u[,
+    offset])`` given its estimates at a fixed ``tau``: with the restricted precision ``Q``
+    (module docstring, "Held-out choice"), ``m = q_hat - S Q q_hat`` and ``P = S - S Q S``
+    (the fixed effects integrated out under their flat prior)."""
+    values, sd, u, offset = _unpack(chain)
+    S = _as_covariance(values, sd)
+    Q = _restricted_precision(S, u, order, tau, offset)
+    SQ = S @ Q
+    return values - SQ @ values, S - SQ @ S
+
+
+def marginal_tau(model: ZoomModel, chains: list[tuple]) -> list[np.ndarray]:
+    r"""Marginalise the ``tau`` of a REML prior ``model`` (in place) over :func:`tau_posterior`
+    and return, per chain, the covariance (n, n) to add to the path's covariance at the new
+    plug-in ``tau`` so that it covers the uncertainty of ``tau`` itself.
+
+    The plug-in becomes the posterior median (``model.tau``; the REML value and the 90 %
+    interval are kept in the model). The expected squared error of the plug-in mean ``m(tau)``
+    is ``E[P(t)] + E[(m(t) - m(tau))(m(t) - m(tau))^T]`` over the posterior of ``t``
+    (:func:`path_posterior`; the law of total variance about ``m(tau)``; Kass & Steffey, JASA
+    1989, for this correction of an empirical-Bayes covariance). Its difference from
+    ``P(tau)`` is returned with negative eigenvalues set to zero. With 7 steps a second
+    difference prior has 4-5 differences to learn ``tau`` from: REML can sit at its lower bound
+    on a path that the noise cannot tell from a straight line, while the data allow paths
+    rough enough to move the long end by more than its sigma.
+    """
+    grid, weight = tau_posterior(chains, model.order)
+    if not len(grid) or not np.isfinite(model.tau):
+        return [np.zeros((len(c[0]),) * 2) for c in chains]
+    cdf = np.cumsum(weight)
+    model.tau_reml = float(model.tau)
+    model.tau_interval = tuple(float(grid[np.searchsorted(cdf, p)]) for p in (0.05, 0.95))
+    model.tau = float(grid[np.searchsorted(cdf, 0.5)])
+    keep = weight >= 1e-6 * weight.max()
+    out = []
+    for chain in chains:
+        n = len(chain[0])
+        if n <= model.order:
+            out.append(np.zeros((n, n)))
+            continue
+        m0, P0 = path_posterior(chain, model.order, model.tau)
+        second_moment = np.zeros((n, n))
+        for t, w in zip(grid[keep], weight[keep], strict=True):
+            m, P = path_posterior(chain, model.order, t)
+            second_moment += w * (P + np.outer(m - m0, m - m0))
+        extra = second_moment / weight[keep].sum() - P0
+        vals, vecs = np.linalg.eigh(0.5 * (extra + extra.T))
+        out.append((vecs * np.clip(vals, 0.0, None)) @ vecs.T)
+    return out
 
 
 def noise_roughness(sd: np.ndarray, u: np.ndarray, order: int) -> float:
@@ -226,14 +316,21 @@ def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
     return float(-np.sum(np.log(np.diag(c))) - 0.5 * z @ z)
 
 
-def _loo_density(values: np.ndarray, S: np.ndarray, u: np.ndarray, order: int, tau: float,
-                 i: int, offset: np.ndarray | None = None) -> float:
-    """Log density of step ``i``'s value predicted from the others (module docstring)."""
+def _restricted_precision(S: np.ndarray, u: np.ndarray, order: int, tau: float,
+                          offset: np.ndarray | None = None) -> np.ndarray:
+    """``Q = C^{-1} - C^{-1} A (A^T C^{-1} A)^{-1} A^T C^{-1}``, ``C = S + tau^2 G G^T``
+    (module docstring, "Held-out choice")."""
     A, _ = _null_basis(u, order, offset)
     G = _rough_basis(u, order) * tau
     C_inv = np.linalg.inv(S + G @ G.T)
     CA = C_inv @ A
-    Q = C_inv - CA @ np.linalg.solve(A.T @ CA, CA.T)
+    return C_inv - CA @ np.linalg.solve(A.T @ CA, CA.T)
+
+
+def _loo_density(values: np.ndarray, S: np.ndarray, u: np.ndarray, order: int, tau: float,
+                 i: int, offset: np.ndarray | None = None) -> float:
+    """Log density of step ``i``'s value predicted from the others (module docstring)."""
+    Q = _restricted_precision(S, u, order, tau, offset)
     q_ii = Q[i, i]
     resid = (Q @ values)[i] / q_ii
     return float(0.5 * np.log(q_ii / (2 * np.pi)) - 0.5 * resid * resid * q_ii)

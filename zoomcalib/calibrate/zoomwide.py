@@ -40,7 +40,12 @@ their covariance: those of a first zoom-wide solve without the smoothness prior 
 per-step intrinsics), which are free of the flat-board bias of per-step OpenCV values (a waving
 board moves OpenCV's principal point by many of its sigmas, and a ``tau`` estimated from such
 values lets the long end borrow little). When that first solve has no usable covariance, the
-per-step OpenCV values and sigmas are used, and ``tau_source`` says so. ``fx`` and ``fy`` are
+per-step OpenCV values and sigmas are used, and ``tau_source`` says so. For cx and cy ``tau`` is
+then marginalised (:func:`~zoomcalib.calibrate.zoommodel.marginal_tau`): the adjustment uses
+its posterior median (REML likelihood, half-Cauchy prior at the noise's own roughness), and
+the covariance of each step's cx, cy gains what the spread of ``tau``'s posterior moves them by.
+With 7 steps REML has 4-5 differences to go on and can sit at its lower bound on a path whose
+long-end bend the noise hides; the plug-in sigma then misses. ``fx`` and ``fy`` are
 free per step. Steps reached from different zoom directions (backlash) form separate chains,
 and neighbours closer than 0.1 % in focal length are not differenced: a lens state met twice
 is two measurements, not a curvature.
@@ -100,7 +105,9 @@ from .bundle import project_jacobian
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 from .zoommodel import (
+    CANDIDATES,
     ZoomModel,
+    marginal_tau,
     pooled_prior_strength,
     prior_operator,
     prior_strength,
@@ -609,11 +616,12 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
 
 
 def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
-            j: int, form: _Form) -> list[tuple]:
-    """``(values, noise, u, offset)`` of parameter ``j`` per chain of 3 or more free
-    steps (:mod:`~zoomcalib.calibrate.zoommodel`); ``noise`` from the sigmas ``cov`` (S, 9) or a
-    function ``cov(steps, j)`` giving a covariance. With a ``form.weight`` ``w`` the values are
-    ``w q``, their noise scaled alike and ``w`` the free offset's direction."""
+            j: int, form: _Form) -> list[tuple[list[int], tuple]]:
+    """Per chain of 3 or more free steps of parameter ``j``: the steps and the chain
+    ``(values, noise, u, offset)`` (:mod:`~zoomcalib.calibrate.zoommodel`); ``noise`` from the
+    sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance. With a
+    ``form.weight`` ``w`` the values are ``w q``, their noise scaled alike and ``w`` the free
+    offset's direction."""
     series = []
     for chain in chains:
         steps = [s for s in chain if free[s, j]]
@@ -625,28 +633,39 @@ def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u
         if w is not None:
             values = w * values
             noise = w[:, None] * noise * w[None, :] if np.ndim(noise) == 2 else w * noise
-        series.append((values, noise, u[steps], w))
+        series.append((steps, (values, noise, u[steps], w)))
     return series
 
 
 def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
                  u: np.ndarray, selected: tuple[str, ...],
-                 forms: Mapping[str, _Form]) -> dict[str, ZoomModel]:
+                 forms: Mapping[str, _Form]) -> tuple[dict[str, ZoomModel], list[tuple]]:
     """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
     held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
     ``selected`` ones, else the second-difference prior of its form (``forms``, default
-    ``prior2``) with its REML ``tau``, pooled over the chains."""
-    models = {}
+    ``prior2``) with its REML ``tau``, pooled over the chains. Also, for cx and cy under a
+    prior with a REML ``tau``, that ``tau`` is marginalised (its posterior median, and
+    ``(steps, j, extra)``: the px covariance ``extra`` that its uncertainty adds to those
+    steps' values, :func:`~zoomcalib.calibrate.zoommodel.marginal_tau`)."""
+    models, inflation = {}, []
     for name in SMOOTHED:
         form = forms.get(name, _Form())
-        series = _series(cams, cov, free, chains, u, PARAMS.index(name), form)
+        j = PARAMS.index(name)
+        series = _series(cams, cov, free, chains, u, j, form)
         if not series:
             continue
+        tuples = [c for _, c in series]
         if name in selected:
-            models[name] = select_zoom_model(series)
+            models[name] = select_zoom_model(tuples)
         else:
-            models[name] = ZoomModel(form.name, 2, *pooled_prior_strength(series, 2))
-    return models
+            models[name] = ZoomModel(form.name, 2, *pooled_prior_strength(tuples, 2))
+        model = models[name]
+        if name not in SELECTED or not CANDIDATES.get(model.name, (2, True))[1]:
+            continue
+        extra = marginal_tau(model, tuples)
+        for (steps, (*_, w)), e in zip(series, extra, strict=True):
+            inflation.append((steps, j, e if w is None else e / np.outer(w, w)))
+    return models, inflation
 
 
 def _joint_covariance(prob: _ZoomProblem, state: _State):
@@ -779,11 +798,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     forms = _Form.of(pp_model, np.exp(u))
     if joint_cov is not None:
         state, tau_source = solve.state, "zoom-wide solve without the prior"
-        models = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
-                              SELECTED if pp_model == "select" else (), forms)
+        models, inflation = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
+                                         SELECTED if pp_model == "select" else (), forms)
     else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        models = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms)
+        models, inflation = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms)
     free = _tie_terms(state, free, chain_idx, u, models)
     terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
              for s, n in enumerate(names)}
@@ -792,7 +811,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         {k: m.order for k, m in models.items()}, forms)
     solve, more = _solve_with_noise(prob, state, free, max_rounds)
     state, total_iterations = solve.state, iterations + more
-    result = _finish(prob, solve, state, init, terms, held, models, total_iterations)
+    result = _finish(prob, solve, state, init, terms, held, models, total_iterations,
+                     inflation)
     result.skipped, result.tau_source = skipped, tau_source
     for r in result.results.values():
         r.info["tau_source"] = tau_source
@@ -866,10 +886,13 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
     return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
 
 
-def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations
-            ) -> ZoomWideResult:
+def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
+            inflation: list[tuple] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
     cov = _posterior_covariance(prob, state)
+    for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
+        col = prob.cam_col[steps, j]
+        cov[np.ix_(col, col)] += extra
     if np.any(np.diag(cov) <= 0):
         raise RuntimeError("zoom-wide covariance is not positive definite")
     X = prob.points(state.modes)
