@@ -3,7 +3,7 @@ its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
 [--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--model angle2]
-[--compare prior2] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
+[--compare prior2] [--oracle] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
    board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
@@ -14,7 +14,9 @@ its sigmas by Monte Carlo.
    truth: fx in %, cx and cy in px and in reported sigmas, and the sigmas; the zoom models and
    their ``tau`` beside the rendered path's own roughness in the same units; and at the two
    longest steps the per-step OpenCV principal-point sigma over the zoom-wide one (cx, cy, and
-   as a point: the root of the sum of the two variances) for both.
+   as a point: the root of the sum of the two variances) for both. ``--oracle`` adds a third
+   adjustment whose prior strength is the rendered path's own roughness (what the best estimate
+   of ``tau`` could give).
 3. Monte Carlo: the true image points of every detected corner (``truth.json``) plus Gaussian
    noise of the detector's measured RMS error per coordinate, ``--mc`` draws, each adjusted
    zoom-wide; printed per step: the spread of fx, cx, cy over the draws divided by the mean
@@ -96,35 +98,44 @@ def _long_end_table(run, truth: dict) -> None:
     print(f"{'step':>9s} {'model':>9s} {'cx':>6s} {'cy':>6s} {'point':>6s}  per-step")
     for st in truth["steps"][-2:]:
         cv, label = _per_step_opencv(run, st["step"])
-        for backend in ("zoom-wide", run.compare):
+        for backend in run.adjustments:
             zw = run.results[st["step"]][backend]
             point = np.hypot(cv.sd["cx"], cv.sd["cy"]) / np.hypot(zw.sd["cx"], zw.sd["cy"])
             print(f"{st['step']:>9s} {backend:>9s} {cv.sd['cx'] / zw.sd['cx']:6.2f} "
                   f"{cv.sd['cy'] / zw.sd['cy']:6.2f} {point:6.2f}  {label}")
 
 
+def _truth_roughness(truth: dict, steps: list[str], model: str, order: int = 2
+                     ) -> dict[str, float]:
+    """The rendered path's own RMS difference of cx and cy under the prior of ``model`` over
+    ``steps``: radians per u^order for ``angle2``, else px per u^order."""
+    sts = [st for st in truth["steps"] if st["step"] in steps]
+    fx = np.array([np.asarray(st["K"])[0, 0] for st in sts])
+    R = prior_operator(np.log(fx), order, 1.0 / fx if model == "angle2" else None)
+    return {q: float(np.sqrt(np.mean((R @ [np.asarray(st["K"])[row, 2] for st in sts]) ** 2)))
+            for q, row in (("cx", 0), ("cy", 1))}
+
+
 def _models_table(run, truth: dict) -> None:
-    """Each adjustment's zoom model of cx and cy, its ``tau``, and the rendered path's own RMS
-    difference under the same prior (px per u^2, or micro-radians per u^2 for ``angle2``);
-    for ``select``, the held-out log predictive density of each candidate."""
-    steps = [st for st in truth["steps"] if st["step"] in run.zoom_wide.results]
-    fx = np.array([np.asarray(st["K"])[0, 0] for st in steps])
-    u = np.log(fx)
+    """Each adjustment's zoom model of cx and cy, its ``tau`` (and the 90 % interval of its
+    posterior), and the rendered path's own RMS difference under the same prior (px per u^2,
+    or micro-radians per u^2 for ``angle2``); for ``select``, the held-out log predictive
+    density of each candidate."""
     print("# zoom models of the principal point: tau against the rendered path's roughness")
-    print(f"{'adjustment':>10s} {'param':>5s} {'model':>6s} {'tau':>9s} {'truth':>9s} units")
-    for label, zw in (("zoom-wide", run.zoom_wide), (run.compare, run.other)):
-        for q, row in (("cx", 0), ("cy", 1)):
+    print(f"{'adjustment':>10s} {'param':>5s} {'model':>6s} {'tau':>9s} {'truth':>9s} units"
+          "  90% interval")
+    for label, zw in run.adjustments.items():
+        for q in ("cx", "cy"):
             m = zw.zoom_models[q]
             angular = m["model"] == "angle2"
-            R = prior_operator(u, m["order"], 1.0 / fx if angular else None)
-            path = np.array([np.asarray(st["K"])[row, 2] for st in steps])
             scale = 1e6 if angular else 1.0
-            tau = (m["tau"] or float("inf")) * scale
-            rough = np.sqrt(np.mean((R @ path) ** 2)) * scale
+            rough = _truth_roughness(truth, list(zw.results), m["model"], m["order"])[q]
+            interval = " ".join(f"{v * scale:.3g}" for v in m.get("tau_interval_90", []))
             scores = " ".join(f"{k} {v:.1f}" if v is not None else f"{k} -"
                               for k, v in (m["held_out_log_density"] or {}).items())
-            print(f"{label:>10s} {q:>5s} {m['model']:>6s} {tau:9.3g} {rough:9.3g} "
-                  f"{'urad' if angular else 'px'}/u^{m['order']} {scores}")
+            print(f"{label:>10s} {q:>5s} {m['model']:>6s} {(m['tau'] or np.inf) * scale:9.3g} "
+                  f"{rough * scale:9.3g} {'urad' if angular else 'px'}/u^{m['order']}  "
+                  f"{interval or m['tau_kind']} {scores}")
     print(f"# tau from: {run.zoom_wide.tau_source}")
 
 
@@ -177,6 +188,8 @@ def main() -> None:
                     help="pp_model of the adjustment compared with it")
     ap.add_argument("--mc-model", default="angle2", choices=ZOOM_MODELS,
                     help="pp_model of the Monte Carlo's adjustments")
+    ap.add_argument("--oracle", action="store_true",
+                    help="also adjust with tau at the rendered path's own roughness (--model)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
@@ -196,8 +209,14 @@ def main() -> None:
     print(f"# render {t1 - t0:.1f} s (0 when reused); calibrate (2 workers) {t2 - t1:.1f} s")
     run.model, run.compare = args.model, args.compare
     run.other = calibrate_zoom_wide(run.observations, pp_model=args.compare)
-    for step, r in run.other.results.items():
-        run.results[step][args.compare] = r
+    run.adjustments = {"zoom-wide": run.zoom_wide, args.compare: run.other}
+    if args.oracle:  # the prior at the rendered path's own roughness
+        given = _truth_roughness(truth, list(run.zoom_wide.results), args.model)
+        run.adjustments["oracle"] = calibrate_zoom_wide(run.observations, pp_model=args.model,
+                                                        prior_strength=given)
+    for label, zw in list(run.adjustments.items())[1:]:
+        for step, r in zw.results.items():
+            run.results[step][label] = r
     _errors_table(run, truth)
     _models_table(run, truth)
     _long_end_table(run, truth)

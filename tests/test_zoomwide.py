@@ -192,6 +192,24 @@ def test_zoom_wide_borrows_at_the_long_end(sweep):
     assert zw_sd < sd_per_step / 1.5
 
 
+def test_tau_is_marginalised_and_a_given_tau_is_used(sweep):
+    obs, truth, _, zw = sweep
+    last = list(obs)[-1]
+    for q in ("cx", "cy"):
+        m = zw.zoom_models[q]
+        assert m["tau_kind"] == "posterior median"
+        assert m["tau_interval_90"][0] <= m["tau"] <= m["tau_interval_90"][1]
+    # a prior 100x stronger than the estimated one for cx alone: the long end borrows more
+    strong = zw.zoom_models["cx"]["tau"] / 100
+    given = calibrate_zoom_wide(obs, prior_strength={"cx": strong})
+    assert given.zoom_models["cx"]["tau_kind"] == "given"
+    assert given.zoom_models["cx"]["tau"] == strong
+    assert given.results[last].sd["cx"] < 0.7 * zw.results[last].sd["cx"]
+    assert given.zoom_models["cy"]["tau_kind"] == "posterior median"
+    with pytest.raises(ValueError, match="prior_strength: fx"):
+        calibrate_zoom_wide(obs, prior_strength={"fx": 1.0})
+
+
 def test_zoom_wide_recovers_the_board_shape(sweep):
     obs, _, wave, zw = sweep
     board = obs["step0"].object_points

@@ -77,9 +77,9 @@ class ZoomModel:
     """The model chosen for one parameter: ``name`` (a key of :data:`CANDIDATES`), difference
     ``order``, ``tau`` (units of the parameter per ``u^order``; ``inf``: no prior),
     ``tau_at_bound`` (REML's maximum at the grid's lower end) and the held-out ``scores`` (log
-    predictive density) of every candidate. With ``tau`` marginalised (:func:`marginal_tau`):
-    ``tau`` is its posterior median, ``tau_reml`` the REML value and ``tau_interval`` the
-    posterior's 5 % and 95 % quantiles."""
+    predictive density) of every candidate; ``tau_kind`` says where ``tau`` came from. With
+    ``tau`` marginalised (:func:`marginal_tau`): ``tau`` is its posterior median, ``tau_reml``
+    the REML value and ``tau_interval`` the posterior's 5 % and 95 % quantiles."""
 
     name: str
     order: int
@@ -88,16 +88,17 @@ class ZoomModel:
     scores: dict[str, float] | None = None
     tau_reml: float | None = None
     tau_interval: tuple[float, float] | None = None
+    tau_kind: str = "restricted maximum likelihood"
 
     def to_dict(self) -> dict:
         """JSON-ready; a candidate that could not predict a step has the score None."""
         scores = {k: (float(v) if np.isfinite(v) else None) for k, v in (self.scores or {}).items()}
         out = {"model": self.name, "order": self.order,
                "tau": float(self.tau) if np.isfinite(self.tau) else None,
-               "tau_at_lower_bound": bool(self.tau_at_bound), "held_out_log_density": scores}
+               "tau_at_lower_bound": bool(self.tau_at_bound), "held_out_log_density": scores,
+               "tau_kind": self.tau_kind}
         if self.tau_interval is not None:
-            out.update(tau_kind="posterior median", tau_reml=self.tau_reml,
-                       tau_interval_90=list(self.tau_interval))
+            out.update(tau_reml=self.tau_reml, tau_interval_90=list(self.tau_interval))
         return out
 
 
@@ -272,6 +273,7 @@ def marginal_tau(model: ZoomModel, chains: list[tuple]) -> list[np.ndarray]:
     model.tau_reml = float(model.tau)
     model.tau_interval = tuple(float(grid[np.searchsorted(cdf, p)]) for p in (0.05, 0.95))
     model.tau = float(grid[np.searchsorted(cdf, 0.5)])
+    model.tau_kind = "posterior median"
     keep = weight >= 1e-6 * weight.max()
     out = []
     for chain in chains:
@@ -385,7 +387,8 @@ def select_zoom_model(chains: list[tuple], candidates: tuple[str, ...] = tuple(C
     else:
         usable = [noise_roughness(c[1], c[2], order) for c in chains if len(c[2]) > order]
         tau, at_bound = POLY_TAU_FRACTION * min(usable), False
-    return ZoomModel(best, order, tau, at_bound, scores)
+    kind = "restricted maximum likelihood" if reml else "polynomial (1e-2 of the noise)"
+    return ZoomModel(best, order, tau, at_bound, scores, tau_kind=kind)
 
 
 def _clearly_better(dens: np.ndarray | None, than: np.ndarray) -> bool:

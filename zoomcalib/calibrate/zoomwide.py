@@ -638,15 +638,16 @@ def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u
 
 
 def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
-                 u: np.ndarray, selected: tuple[str, ...],
-                 forms: Mapping[str, _Form]) -> tuple[dict[str, ZoomModel], list[tuple]]:
+                 u: np.ndarray, selected: tuple[str, ...], forms: Mapping[str, _Form],
+                 given: Mapping[str, float]) -> tuple[dict[str, ZoomModel], list[tuple]]:
     """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
     held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
     ``selected`` ones, else the second-difference prior of its form (``forms``, default
     ``prior2``) with its REML ``tau``, pooled over the chains. Also, for cx and cy under a
     prior with a REML ``tau``, that ``tau`` is marginalised (its posterior median, and
     ``(steps, j, extra)``: the px covariance ``extra`` that its uncertainty adds to those
-    steps' values, :func:`~zoomcalib.calibrate.zoommodel.marginal_tau`)."""
+    steps' values, :func:`~zoomcalib.calibrate.zoommodel.marginal_tau`). A ``given`` tau is
+    used as it is."""
     models, inflation = {}, []
     for name in SMOOTHED:
         form = forms.get(name, _Form())
@@ -655,6 +656,9 @@ def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarra
         if not series:
             continue
         tuples = [c for _, c in series]
+        if name in given:
+            models[name] = ZoomModel(form.name, 2, float(given[name]), tau_kind="given")
+            continue
         if name in selected:
             models[name] = select_zoom_model(tuples)
         else:
@@ -719,7 +723,8 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
-                        pp_model: str = "angle2") -> ZoomWideResult:
+                        pp_model: str = "angle2",
+                        prior_strength: Mapping[str, float] | None = None) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -745,6 +750,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         the difference priors in px of order 2 and 3 and the polynomials of degree 1-3 in
         ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). ``select`` can pick a polynomial
         that the traced lens path does not follow (``docs/calibration.md``).
+    prior_strength : mapping of parameter name to float, optional
+        A known ``tau`` for some of :data:`SMOOTHED` (e.g. from an earlier calibration of the
+        same lens), used as it is instead of being estimated; units of the prior: radians per
+        ``u^2`` for cx, cy under ``angle2``, else the parameter's units per ``u^2``.
 
     Returns
     -------
@@ -758,6 +767,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     """
     if pp_model not in ZOOM_MODELS:
         raise ValueError(f"pp_model must be one of {ZOOM_MODELS}, got {pp_model!r}")
+    for name, tau in (prior_strength or {}).items():
+        if name not in SMOOTHED or not tau > 0:
+            raise ValueError(f"prior_strength: {name}={tau!r}; give a positive tau for one of "
+                             f"{SMOOTHED}")
     names = list(observations)
     if len(names) < 2:
         raise ValueError(f"a zoom-wide calibration needs 2 or more steps, got {len(names)}")
@@ -799,10 +812,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     if joint_cov is not None:
         state, tau_source = solve.state, "zoom-wide solve without the prior"
         models, inflation = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
-                                         SELECTED if pp_model == "select" else (), forms)
+                                         SELECTED if pp_model == "select" else (), forms,
+                                         prior_strength or {})
     else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
         tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        models, inflation = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms)
+        models, inflation = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms,
+                                         prior_strength or {})
     free = _tie_terms(state, free, chain_idx, u, models)
     terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
              for s, n in enumerate(names)}
