@@ -765,12 +765,66 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         If the steps see different boards or have different image sizes, or fewer than 2
         steps are given.
     """
+    _check_options(pp_model, prior_strength)
+    board = _common_board(observations)
+    terms, held, init, skipped = _initial(observations, select)
+    names = [n for n in observations if n in init]
+    if len(names) < 2:
+        raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
+                         + "; ".join(skipped.values()))
+    state, free, sds = _start(init, terms)
+    u = np.log(state.cams[:, 0])
+    chain_idx = _chains(u, [str((chains or {}).get(n, "")) for n in names])
+    phi = (board_height_modes(board, board_degree) if board_degree >= 2
+           else np.zeros((len(board), 0)))
+    state.modes = np.zeros(phi.shape[1])
+    steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
+             for n in names]
+
+    def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
+        order = {k: m.order for k, m in (models or {}).items()}
+        return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
+                            order, forms)
+
+    # first without the smoothness prior: per-step values free of the flat-board bias
+    solve, state, free, joint_cov, iterations = _solve_unsmoothed(
+        problem, state, free, max_rounds,
+        observations if select and phi.shape[1] else None, init, terms, held)
+    forms = _Form.of(pp_model, np.exp(u))
+    if joint_cov is not None:
+        state, tau_source = solve.state, "zoom-wide solve without the prior"
+        noise, selected = joint_cov, SELECTED if pp_model == "select" else ()
+    else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
+        tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
+        noise, selected = sds, ()
+    models, inflation = _zoom_models(state.cams, noise, free, chain_idx, u, selected, forms,
+                                     prior_strength or {})
+    free = _tie_terms(state, free, chain_idx, u, models)
+    terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
+             for s, n in enumerate(names)}
+    prob = problem(free, {k: m.tau for k, m in models.items()}, models, forms)
+    solve, more = _solve_with_noise(prob, state, free, max_rounds)
+    result = _finish(prob, solve, solve.state, init, terms, held, models, iterations + more,
+                     inflation)
+    result.skipped, result.tau_source = skipped, tau_source
+    for r in result.results.values():
+        r.info["tau_source"] = tau_source
+        r.info["zoom_model"] = {k: m.name for k, m in models.items()}
+    return result
+
+
+def _check_options(pp_model: str, prior_strength: Mapping[str, float] | None) -> None:
     if pp_model not in ZOOM_MODELS:
         raise ValueError(f"pp_model must be one of {ZOOM_MODELS}, got {pp_model!r}")
     for name, tau in (prior_strength or {}).items():
         if name not in SMOOTHED or not tau > 0:
             raise ValueError(f"prior_strength: {name}={tau!r}; give a positive tau for one of "
                              f"{SMOOTHED}")
+
+
+def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
+    """The board points (N, 3) every step sees; ValueError when the steps see different boards
+    or images of different sizes, or fewer than 2 steps are given."""
     names = list(observations)
     if len(names) < 2:
         raise ValueError(f"a zoom-wide calibration needs 2 or more steps, got {len(names)}")
@@ -782,57 +836,30 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         if tuple(observations[n].image_size) != size:
             raise ValueError(f"step {n}: image size {observations[n].image_size} differs from "
                              f"step {names[0]}'s {size} (one camera has one sensor)")
-    terms, held, init, skipped = _initial(observations, select)
-    names = [n for n in names if n in init]
-    if len(names) < 2:
-        raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
-                         + "; ".join(skipped.values()))
-    state, free, sds = _start(init, terms)
-    u = np.log(state.cams[:, 0])
-    labels = [str((chains or {}).get(n, "")) for n in names]
-    chain_idx = _chains(u, labels)
-    phi = (board_height_modes(board, board_degree) if board_degree >= 2
-           else np.zeros((len(board), 0)))
-    state.modes = np.zeros(phi.shape[1])
-    steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
-             for n in names]
-    # first without the smoothness prior: per-step values free of the flat-board bias
-    unsmoothed = _ZoomProblem(steps, board, phi, free, chain_idx, u, {}, board_prior_mm)
+    return board
+
+
+def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
+                      observations: Mapping[str, Observations] | None,
+                      init: Mapping[str, CalibrationResult], terms: dict, held: dict):
+    """The solve without the smoothness prior (``problem(free)`` builds it). With
+    ``observations`` the distortion terms are then chosen again on the board's estimated
+    shape (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
+    repeated when a step's terms changed, from the first solve's state. Returns the solve, the
+    state it started from, the free mask, the joint covariance of its per-step values (None
+    when it did not converge or has none) and the iterations."""
+    unsmoothed = problem(free)
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
-    if select and phi.shape[1] and _select_on_board(observations, init, unsmoothed.points(
-            solve.state.modes), terms, held):
-        free = _free_mask(names, terms)
+    if observations is not None and _select_on_board(
+            observations, init, unsmoothed.points(solve.state.modes), terms, held):
+        free = _free_mask(list(init), terms)
         state = solve.state
         state.cams[:, 4:][~free[:, 4:]] = 0.0
-        unsmoothed = _ZoomProblem(steps, board, phi, free, chain_idx, u, {}, board_prior_mm)
+        unsmoothed = problem(free)
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
         iterations += more
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
-    forms = _Form.of(pp_model, np.exp(u))
-    if joint_cov is not None:
-        state, tau_source = solve.state, "zoom-wide solve without the prior"
-        models, inflation = _zoom_models(state.cams, joint_cov, free, chain_idx, u,
-                                         SELECTED if pp_model == "select" else (), forms,
-                                         prior_strength or {})
-    else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
-        tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        models, inflation = _zoom_models(state.cams, sds, free, chain_idx, u, (), forms,
-                                         prior_strength or {})
-    free = _tie_terms(state, free, chain_idx, u, models)
-    terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
-             for s, n in enumerate(names)}
-    prob = _ZoomProblem(steps, board, phi, free, chain_idx, u,
-                        {k: m.tau for k, m in models.items()}, board_prior_mm,
-                        {k: m.order for k, m in models.items()}, forms)
-    solve, more = _solve_with_noise(prob, state, free, max_rounds)
-    state, total_iterations = solve.state, iterations + more
-    result = _finish(prob, solve, state, init, terms, held, models, total_iterations,
-                     inflation)
-    result.skipped, result.tau_source = skipped, tau_source
-    for r in result.results.values():
-        r.info["tau_source"] = tau_source
-        r.info["zoom_model"] = {k: m.name for k, m in models.items()}
-    return result
+    return solve, state, free, joint_cov, iterations
 
 
 def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
