@@ -205,6 +205,10 @@ def test_tau_is_marginalised_and_a_given_tau_is_used(sweep):
     assert given.zoom_models["cx"]["tau_kind"] == "given"
     assert given.zoom_models["cx"]["tau"] == strong
     assert given.results[last].sd["cx"] < 0.7 * zw.results[last].sd["cx"]
+    # and the share of its precision that the prior gives grows accordingly
+    share = {r: res.results[last].info["prior_share"]["cx"] for r, res in (("est", zw),
+                                                                          ("given", given))}
+    assert 0.0 <= share["est"] < share["given"] - 0.3 <= 0.7, share
     assert given.zoom_models["cy"]["tau_kind"] == "posterior median"
     with pytest.raises(ValueError, match="prior_strength: fx"):
         calibrate_zoom_wide(obs, prior_strength={"fx": 1.0})

@@ -807,10 +807,23 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     result = _finish(prob, solve, solve.state, init, terms, held, models, iterations + more,
                      inflation)
     result.skipped, result.tau_source = skipped, tau_source
-    for r in result.results.values():
+    for s, r in enumerate(result.results.values()):
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
+        if joint_cov is not None:
+            r.info["prior_share"] = _prior_share(r, joint_cov, s)
     return result
+
+
+def _prior_share(result: CalibrationResult, joint_cov, s: int) -> dict[str, float]:
+    """Per cx, cy of step ``s``: the share of its precision that the smoothness prior gives,
+    ``1 - var / var_0`` (``var_0`` from the solve without the prior, ``var`` the adjustment's;
+    0: the step's own views decide it, near 1: its neighbours do)."""
+    out = {}
+    for q in SELECTED:
+        var0 = float(joint_cov([s], PARAMS.index(q))[0, 0])
+        out[q] = float(np.clip(1.0 - result.sd[q] ** 2 / var0, 0.0, 1.0))
+    return out
 
 
 def _check_options(pp_model: str, prior_strength: Mapping[str, float] | None) -> None:
