@@ -55,7 +55,7 @@ The cost is ``sum_s sum_obs |uv_obs - uv(theta_s, pose_v, X_j)|^2 / sigma_s^2 + 
 the residuals (observations beyond 5 sigma are rejected and the fit repeated). It is minimised by
 Levenberg-Marquardt on the sparse Jacobian. The covariance of every parameter is the posterior
 ``(J^T J)^{-1}`` of the whole problem (prior rows included), so a long-end step's sigma includes
-what it borrows from its neighbours.
+what it borrows from its neighbours; ``info["prior_share"]`` says how much that is for cx, cy.
 
 The principal point's prior reads its angle (``pp_model="angle2"``, the default): for
 ``q = cx`` or ``cy`` the differences are those of ``(q - c) / fx``, with ``c`` a free px
