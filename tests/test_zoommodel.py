@@ -155,3 +155,16 @@ def test_marginalised_tau_adds_little_where_the_data_pin_tau_down(rng):
     assert model.tau_interval[1] / model.tau_interval[0] < 2.5
     _, P = path_posterior(chain, 2, model.tau)
     assert np.trace(extra) < 0.1 * np.trace(P)
+
+
+def test_a_chain_the_free_terms_take_whole_has_no_prior_strength(rng):
+    # three steps under the angular prior: the offset and the line in angle take all of them,
+    # so the data say nothing of tau (not "at its lower bound")
+    fx = np.geomspace(2300.0, 9000.0, 3)
+    q = 640.0 + rng.normal(0, 1.0, 3)
+    tau, at_bound = pooled_prior_strength([(q / fx, 0.5 / fx, np.log(fx), 1.0 / fx)], 2)
+    assert tau == np.inf and not at_bound
+    # a fourth step leaves one difference: a finite tau
+    fx = np.geomspace(2300.0, 9000.0, 4)
+    q = 640.0 + rng.normal(0, 1.0, 4)
+    assert np.isfinite(pooled_prior_strength([(q / fx, 0.5 / fx, np.log(fx), 1.0 / fx)], 2)[0])

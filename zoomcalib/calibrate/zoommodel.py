@@ -186,7 +186,8 @@ def prior_strength(values: np.ndarray, sd: np.ndarray, u: np.ndarray, order: int
     Returns
     -------
     tau : float
-        In units of ``q`` per ``u^k``; ``inf`` with fewer than ``k + 1`` steps (no prior).
+        In units of ``q`` per ``u^k``; ``inf`` (no prior) when no chain has more steps than
+        its free polynomial (and offset) take.
     at_bound : bool
         The maximum lies at the grid's lower end: the data are as smooth as their noise shows.
     """
@@ -209,6 +210,7 @@ def _restricted_loglik(chains: list[tuple], order: int
     """The log grid of ``tau`` and the pooled restricted log likelihood on it; ``(None,
     None)`` when no chain has more than ``order`` steps."""
     terms = [_restricted_terms(c, order) for c in chains if len(c[0]) > order]
+    terms = [t for t in terms if len(t[0])]  # a chain whose fixed effects take every step
     if not terms:
         return None, None
     top = max(max(t[3] for t in terms), 1e-12)
