@@ -2,12 +2,13 @@
 its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
-[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--model angle2]
+[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME] [--model angle2]
 [--compare prior2] [--oracle] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
    board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
-   principal point on the ``--pp-path``) unless ``DIR/images/truth.json`` exists.
+   principal point on the ``--pp-path``, distortion fading towards the long end or a real
+   lens's with ``--lens``) unless ``DIR/images/truth.json`` exists.
 2. Runs the calibrate job with its defaults (model detector, per-step OpenCV beside the zoom-wide
    adjustment) and the principal point's zoom model ``--model``, and the zoom-wide adjustment
    again with ``--compare``. Prints, per step and backend, the error against the rendered
@@ -50,17 +51,20 @@ from zoomcalib.calibrate.zoomwide import (  # noqa: E402
     calibrate_zoom_wide,
 )
 from zoomcalib.render.sweep import render_zoom_sweep  # noqa: E402
+from zoomcalib.study.lensfun import sweep_distortion  # noqa: E402
 
 PATTERN = "chessboard:22x15:20"
 
 
 def _render(images: Path, args) -> dict:
     if not (images / "truth.json").exists():
+        lens = {} if args.lens is None else sweep_distortion(
+            args.lens, np.geomspace(2300.0, 23000.0, args.steps), (1280, 720))
         render_zoom_sweep(images, steps=args.steps, views=args.views, pattern=PATTERN,
                           board_surface=args.wave or None, psf=args.psf,
                           jpeg_quality=args.jpeg, seed=args.seed, supersample=2,
                           pp_path=args.pp_path, pp_span_px=args.pp_span,
-                          pp_runout=args.pp_runout)
+                          pp_runout=args.pp_runout, **lens)
     return json.loads((images / "truth.json").read_text())
 
 
@@ -193,6 +197,8 @@ def main() -> None:
     ap.add_argument("--pp-path", default="bow", choices=["bow", "traced"])
     ap.add_argument("--pp-span", type=float, default=40.0, help="traced path's span, px")
     ap.add_argument("--pp-runout", type=float, default=1.0, help="traced path's run-out scale")
+    ap.add_argument("--lens", help="a lensfun lens's distortion (render-sweep --lens); default: "
+                                   "a barrel fading towards the long end")
     ap.add_argument("--mc", type=int, default=20, help="Monte Carlo draws (0: none)")
     ap.add_argument("--model", default="angle2", choices=ZOOM_MODELS,
                     help="pp_model of the calibrate job")
@@ -214,6 +220,7 @@ def main() -> None:
     print(f"# machine: {platform.machine()}, Python {platform.python_version()}")
     t0 = time.perf_counter()
     truth = _render(out / "images", args)
+    print(f"# distortion: {truth.get('distortion')}")
     t1 = time.perf_counter()
     run = calibrate_folder(out / "images", PATTERN, out / "calibration", ("opencv",),
                            workers=2, log=lambda m: None, pp_model=args.model)

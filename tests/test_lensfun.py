@@ -338,3 +338,55 @@ def test_trend_tolerance():
     lens = _fake("poly3", np.array([10.0, 15, 20, 25, 30]), k)
     assert not lens_trend(lens).monotone_decreasing
     assert lens_trend(lens, tol=1e-4).monotone_decreasing
+
+
+# ---------------------------------------------------------------------------------------------
+# A real lens's distortion for rendered zoom sweeps
+
+
+def _corner(terms: np.ndarray, fx: np.ndarray, size) -> np.ndarray:
+    """OpenCV's radial displacement at the image corner, fraction of the half-diagonal."""
+    r2 = (0.5 * math.hypot(*size) / fx) ** 2
+    return terms[:, 0] * r2 + terms[:, 1] * r2 ** 2 + terms[:, 4] * r2 ** 3
+
+
+def test_opencv_distortion_renders_the_measured_corner(lenses):
+    # poly3 is even in r, so OpenCV's terms hold it exactly: on steps that land on the lens's
+    # calibrated focal lengths the corner is lensfun's own measure (another code path), and
+    # half way (in log f) between two of them it is their mean (linear interpolation)
+    lens = by_model(lenses, "Nikon AF Zoom-Nikkor 80-400mm f/4.5-5.6D ED VR 183")
+    size = (1280, 720)
+    fx = 29.0 * lens.focal_mm
+    terms, residual = lens.opencv_distortion(fx, size)
+    assert residual < 1e-9 and np.all(terms[:, 2:4] == 0)
+    np.testing.assert_allclose(_corner(terms, fx, size), lens.measure().corner, atol=1e-12)
+    mid = np.sqrt(fx[1] * fx[2])
+    steps = np.array([fx[0], mid, fx[-1]])
+    terms, _ = lens.opencv_distortion(steps, size)
+    assert _corner(terms, steps, size)[1] == pytest.approx(lens.measure().corner[1:3].mean())
+
+
+def test_opencv_distortion_of_ptlens_within_its_residual(lenses):
+    # ptlens has odd powers of r: the fit's largest error over the frame is reported, and the
+    # corner it renders is within it of the measured corner
+    lens = by_model(lenses, G3)
+    size = (1280, 720)
+    fx = 100.0 * lens.focal_mm
+    terms, residual = lens.opencv_distortion(fx, size)
+    d = 0.5 * math.hypot(*size)
+    corner = lens.measure().corner
+    assert np.all(np.abs(_corner(terms, fx, size) - corner) * d <= residual + 1e-9)
+    assert residual < 0.1 * np.abs(corner).max() * d
+
+
+def test_find_lens_names_one_lens_or_says_which():
+    from zoomcalib.study.lensfun import find_lens, sweep_distortion
+
+    assert find_lens("zoom-nikkor 80-400", DATA).model.startswith("Nikon AF Zoom-Nikkor 80-400")
+    with pytest.raises(ValueError, match=r"match 'Canon' .*name one lens"):
+        find_lens("Canon", DATA)
+    with pytest.raises(ValueError, match="0 zoom lenses"):
+        find_lens("no such lens", DATA)
+    options = sweep_distortion("80-400", np.geomspace(2300, 23000, 4), (1280, 720), DATA)
+    assert options["dist"].shape == (4, 5)
+    assert options["distortion_source"]["lens"].endswith("80-400mm f/4.5-5.6D ED VR 183")

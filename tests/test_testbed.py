@@ -5,6 +5,7 @@ functions for the Airy pattern), never taken from the renderer.
 """
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -478,3 +479,18 @@ def test_cli_render_sweep_traced_path_in_truth(tmp_path):
     assert doc["pp_path"]["kind"] == "traced" and doc["pp_path"]["lens"] == "laikin-10x"
     c = np.array([np.asarray(st["K"])[:2, 2] for st in doc["steps"]])
     assert 5.0 < np.linalg.norm(c - c[0], axis=1).max() < 40.0
+
+
+def test_cli_render_sweep_through_a_real_lens(tmp_path):
+    data = Path(__file__).parent / "data" / "lensfun"
+    res = CliRunner().invoke(main, ["render-sweep", "--fx", "1150,11500", "--steps", "3",
+                                    "--views", "1", "--size", "320x180", "--lens", "80-400",
+                                    "--lensfun", str(data), "--out", str(tmp_path / "s")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "s" / "truth.json").read_text())
+    assert doc["distortion"]["kind"] == "lensfun" and "80-400" in doc["distortion"]["lens"]
+    k1 = [st["dist"][0] for st in doc["steps"]]
+    assert k1[0] < 0 < k1[-1]  # barrel at the short end, pincushion at the long end
+    res = CliRunner().invoke(main, ["render-sweep", "--lens", "Canon", "--lensfun", str(data),
+                                    "--out", str(tmp_path / "bad")])
+    assert res.exit_code == 2 and "name one lens" in res.output

@@ -437,16 +437,23 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
               help="traced: largest distance of the path from its short-end point, px.")
 @click.option("--pp-runout", default=1.0, show_default=True, type=click.FloatRange(min=0),
               help="traced: cam-track run-out, times the default tolerance file's (0: none).")
+@click.option("--lens", default=None,
+              help="Distortion of a real zoom lens from lensfun (part of its maker and model, "
+                   "e.g. 'Nikkor 80-400'), its focal range stretched over --fx; default: a "
+                   "barrel fading towards the long end.")
+@click.option("--lensfun", type=click.Path(exists=True),
+              help="lensfun database (folder or XML) for --lens; default: the packaged extract.")
 @_testbed_options
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
-                 pp_span, pp_runout, wave, psf, airy_radius, halo, ellipse, jpeg_quality, seed,
-                 out):
+                 pp_span, pp_runout, lens, lensfun, wave, psf, airy_radius, halo, ellipse,
+                 jpeg_quality, seed, out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
     fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
-    distortion fading towards the long end, tilts up to 40 degrees at the short end and
+    distortion fading towards the long end (or a real lens's: --lens), tilts up to 40 degrees
+    at the short end and
     near-fronto-parallel views at the long end. Writes OUT/fx_NNNNN/view_YY.png (or .jpg),
     OUT/steps.csv (zoom = fx) and OUT/truth.json (K, dist, board surface, principal-point
     path, poses and true points per step).
@@ -464,6 +471,12 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
         raise click.BadParameter("must be WIDTHxHEIGHT, e.g. 1280x720", param_hint="--size") \
             from None
     optics = _make_optics(blur, 2.8, 0.0, psf, airy_radius, halo, ellipse)
+    lens_options = {}
+    if lens is not None:
+        lens_options = _lens_distortion(lens, lensfun, np.geomspace(fx[0], fx[1], steps),
+                                        (width, height))
+    elif lensfun is not None:
+        raise click.BadParameter("only with --lens", param_hint="--lensfun")
     _check_out_folder(out)
     with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
         try:
@@ -471,7 +484,8 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                                     wave or None, jpeg_quality=jpeg_quality, seed=seed,
                                     optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
                                     supersample=supersample, progress=bar.update,
-                                    pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout)
+                                    pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout,
+                                    **lens_options)
         except RuntimeError as exc:
             raise click.ClickException(str(exc)) from None
     for st in doc["steps"]:
@@ -481,6 +495,17 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                    f"{len(st['views'])} views")
     click.echo(f"wrote {out}/steps.csv, {out}/truth.json and {steps * views} images in "
                f"{doc['render_s']:.1f} s")
+
+
+def _lens_distortion(name: str, database: str | None, fx: np.ndarray,
+                     size: tuple[int, int]) -> dict:
+    """:func:`~zoomcalib.study.lensfun.sweep_distortion` with its errors as BadParameter."""
+    from .study.lensfun import sweep_distortion
+
+    try:
+        return sweep_distortion(name, fx, size, database)
+    except (ValueError, OSError) as exc:
+        raise click.BadParameter(str(exc), param_hint="--lens") from None
 
 
 @main.command(epilog=EXIT_CODES)

@@ -11,7 +11,9 @@ With ``s = log(fx / fx_0) / log(fx_1 / fx_0)`` (0 at the short end, 1 at the lon
   ``traced``, the principal point of the ray-traced zoom lens with drawn mechanical errors,
   ``pp_span_px`` from its short-end point at most, not a polynomial in ``log fx``;
 * distortion ``(k1, 0, 0, 0, 0)`` with ``k1 = k1_short * fx_0 / fx``: barrel at the short end,
-  nearly none at the long end.
+  nearly none at the long end; or given terms per step (``dist``), e.g. a real lens's measured
+  distortion, which at the long end of most zoom lenses is a pincushion of 1-3 % of the
+  half-diagonal (lensfun).
 
 Poses
 -----
@@ -73,21 +75,26 @@ def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int 
                   pp_offset_px: tuple[float, float] = (6.0, -4.0),
                   pp_drift_px: tuple[float, float] = (30.0, -18.0),
                   k1_short: float = -0.12, pp_path: str = "bow", pp_span_px: float = 40.0,
-                  pp_runout: float = 1.0, pp_seed: int | np.random.SeedSequence = 0
-                  ) -> list[CameraModel]:
+                  pp_runout: float = 1.0, pp_seed: int | np.random.SeedSequence = 0,
+                  dist: np.ndarray | None = None) -> list[CameraModel]:
     """The cameras of the sweep, short end first (module docstring, section Camera per step).
 
     ``pp_path`` 'bow' uses ``pp_drift_px``; 'traced' uses ``pp_span_px``, ``pp_runout`` and
-    ``pp_seed`` (:func:`zoomcalib.render.pp_path.traced_path`).
+    ``pp_seed`` (:func:`zoomcalib.render.pp_path.traced_path`). ``dist`` (steps, 5): OpenCV
+    terms per step instead of the fading barrel of ``k1_short`` (e.g. a real lens's,
+    :meth:`zoomcalib.study.lensfun.ZoomLensDistortion.opencv_distortion`).
     """
+    if dist is not None and np.shape(dist) != (steps, 5):
+        raise ValueError(f"dist must be (steps, 5) = ({steps}, 5), got {np.shape(dist)}")
     fx, path, _ = principal_point_path(fx_range, steps, pp_path, pp_drift_px, pp_span_px,
                                        pp_runout, pp_seed)
     centre = np.array([(sensor.width_px - 1) / 2, (sensor.height_px - 1) / 2])
     cams = []
-    for f, p in zip(fx, path, strict=True):
+    for i, (f, p) in enumerate(zip(fx, path, strict=True)):
         cx, cy = centre + np.asarray(pp_offset_px) + p
-        dist = np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0])
-        cams.append(CameraModel(float(f), float(f), float(cx), float(cy), dist, sensor))
+        terms = (np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0]) if dist is None
+                 else np.asarray(dist[i], float))
+        cams.append(CameraModel(float(f), float(f), float(cx), float(cy), terms, sensor))
     return cams
 
 
@@ -163,7 +170,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
                       optics: Optics | None = None, radiometry: Radiometry | None = None,
                       fill: float = 0.7, tilt_deg: tuple[float, float] = (40.0, 3.0),
                       supersample: int = 3, pixel_pitch_mm: float = 0.003,
-                      progress: Callable[[int], None] | None = None, **camera_options) -> dict:
+                      progress: Callable[[int], None] | None = None,
+                      distortion_source: dict | None = None, **camera_options) -> dict:
     """Render a zoom sweep (layout and conventions in the module docstring).
 
     Parameters
@@ -185,9 +193,12 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         Default: ``Optics(blur_px=0.8, f_number=2.8)`` and ``Radiometry()`` (2 DN read noise).
     tilt_deg : (float, float)
         Largest tilt at the short and at the long end, degrees.
+    distortion_source : dict, optional
+        Where a ``dist`` given in ``camera_options`` comes from (e.g. a lensfun lens), written
+        to ``truth.json`` as ``distortion``.
     **camera_options
         ``pp_offset_px``, ``pp_drift_px``, ``k1_short``, ``pp_path``, ``pp_span_px``,
-        ``pp_runout`` of :func:`sweep_cameras`; a traced path is drawn from ``seed``.
+        ``pp_runout``, ``dist`` of :func:`sweep_cameras`; a traced path is drawn from ``seed``.
 
     Returns
     -------
@@ -246,6 +257,9 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         "supersample": supersample, "jpeg_quality": jpeg_quality,
         "board_surface": None if surface is None else surface.to_dict(),
         "pp_path": path_record,
+        "distortion": distortion_source or (
+            {"kind": "fading", "k1_short": camera_options.get("k1_short", -0.12)}
+            if camera_options.get("dist") is None else {"kind": "given"}),
         "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
                       "rvec/tvec: board -> camera, mm; points_px: true image position of every "
                       "object point on the (waving) board",

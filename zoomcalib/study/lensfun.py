@@ -154,6 +154,44 @@ class ZoomLensDistortion:
         """The distortion measure at every calibrated focal length (:func:`distortion_measure`)."""
         return distortion_measure(self.dist_models, self.coeffs, self.aspect_ratio, reference)
 
+    def opencv_distortion(self, fx: np.ndarray, image_size: tuple[int, int]
+                          ) -> tuple[np.ndarray, float]:
+        """OpenCV terms ``(k1, k2, 0, 0, k3)`` (n, 5) that render this lens's distortion at the
+        steps ``fx`` (n,) px of a zoom sweep on an image of ``image_size`` (width, height) px.
+
+        * Zoom: the sweep's position ``log(fx / fx_0) / log(fx_-1 / fx_0)`` is the lens's
+          ``log(f / f_0) / log(f_-1 / f_0)`` over its calibrated focal lengths; the polynomial
+          ``r_d = sum_j p_j r_u^j`` (:func:`lensfun_poly`) is interpolated linearly in
+          ``log f`` between its entries and scaled to ``p_1 = 1`` (the paraxial scale is the
+          focal length).
+        * Field: the image's corner is the calibration frame's corner (lensfun's own rule for
+          other sensors): ``r_u = r_c rho / d``, ``rho`` the radius in px, ``d`` the image's
+          half-diagonal in px.
+        * ``r_d / r_u = 1 + k1 x^2 + k2 x^4 + k3 x^6`` with ``x = rho / fx``, fitted by least
+          squares on the displacement in px over ``rho in [0, d]`` (exact for ``poly3`` and
+          ``poly5``; ``ptlens``'s odd powers are approximated).
+
+        Returns the terms and the largest fit residual over the frame, px.
+        """
+        fx = np.asarray(fx, float)
+        zoom = np.log(fx / fx[0]) / np.log(fx[-1] / fx[0]) if fx[-1] != fx[0] else 0 * fx
+        log_f = np.log(self.focal_mm)
+        at = log_f[0] + zoom * (log_f[-1] - log_f[0])
+        poly = lensfun_poly(self.dist_models, self.coeffs)
+        poly = poly / poly[:, :1]
+        poly = np.column_stack([np.interp(at, log_f, poly[:, j]) for j in range(5)])
+        d = 0.5 * math.hypot(*image_size)
+        rho = np.linspace(0.0, d, 200)
+        ratio = (poly[:, 1:] @ (self.r_corner * rho / d)[None, :] ** np.arange(1, 5)[:, None])
+        terms, worst = np.zeros((len(fx), 5)), 0.0
+        for i, f in enumerate(fx):
+            x = rho / f
+            basis = rho[:, None] * x[:, None] ** np.array([2, 4, 6])[None, :]  # px per term
+            k, *_ = np.linalg.lstsq(basis, rho * ratio[i], rcond=None)
+            terms[i, [0, 1, 4]] = k
+            worst = max(worst, float(np.abs(basis @ k - rho * ratio[i]).max()))
+        return terms, worst
+
 
 @dataclass(frozen=True, eq=False)
 class DistortionMeasure:
@@ -794,6 +832,36 @@ def packaged_extract() -> Path:
     from importlib import resources
 
     return Path(str(resources.files("zoomcalib.study") / "data" / "lensfun-zoom-extract.xml"))
+
+
+def find_lens(name: str, source: str | Path | None = None) -> ZoomLensDistortion:
+    """The one zoom lens of a lensfun database (``source``, default :func:`packaged_extract`)
+    whose ``"maker model"`` equals ``name`` or, failing that, contains it (case-insensitive).
+    ValueError naming the candidates when none or several match."""
+    source = source or packaged_extract()
+    lenses = read_lensfun(source, min_focals=2)
+    key = name.lower()
+    hits = [x for x in lenses if key in f"{x.maker} {x.model}".lower()]
+    exact = [x for x in hits if key == f"{x.maker} {x.model}".lower()]
+    hits = exact if len(exact) == 1 else hits
+    if len(hits) != 1:
+        found = "; ".join(f"{x.maker} {x.model}" for x in hits[:5]) or "none"
+        raise ValueError(f"{len(hits)} zoom lenses in {source} match {name!r} ({found}); "
+                         "name one lens")
+    return hits[0]
+
+
+def sweep_distortion(name: str, fx: np.ndarray, image_size: tuple[int, int],
+                     source: str | Path | None = None) -> dict:
+    """Options ``dist`` and ``distortion_source`` of
+    :func:`zoomcalib.render.sweep.render_zoom_sweep` that render a sweep (steps ``fx`` px)
+    through the distortion of the lens :func:`find_lens` finds
+    (:meth:`ZoomLensDistortion.opencv_distortion`)."""
+    lens = find_lens(name, source)
+    dist, residual = lens.opencv_distortion(fx, image_size)
+    return {"dist": dist, "distortion_source": {
+        "kind": "lensfun", "lens": f"{lens.maker} {lens.model}", "source": lens.source,
+        "focal_mm": lens.focal_mm.tolist(), "fit_residual_px": residual}}
 
 
 def study_summary(csv_path: str | Path, source: str | Path | None = None) -> dict:
