@@ -1,5 +1,6 @@
 """The second-difference prior in log focal length on real zoom lenses: how well it predicts a
-zoom step it has no data for, with ``tau`` from REML and with ``tau`` marginalised.
+zoom step it has no data for, with ``tau`` from REML and marginalised, on the corner's
+displacement and on k1.
 
 ``python benchmarks/bench_prior_lensfun.py [--data DIR] [--noise 0.001] [--seed 0]``
 
@@ -12,9 +13,12 @@ focal length gets Gaussian noise of sd ``--noise``, and one step is hidden (no d
 end, where a zoom-wide calibration's views cannot measure distortion and the prior carries it,
 or the middle step). The prior of :mod:`zoomcalib.calibrate.zoommodel` predicts the hidden
 value: with REML's ``tau`` (:func:`~zoomcalib.calibrate.zoommodel.pooled_prior_strength`) and
-with ``tau`` marginalised (:func:`~zoomcalib.calibrate.zoommodel.marginal_tau`). Printed per
-hidden step: the number of lenses, the RMS and median of ``|error| / sigma`` (0.67 for honest
-Gaussian sigmas) and how often it exceeds 2 and 3 (0.046 and 0.0027).
+with ``tau`` marginalised (:func:`~zoomcalib.calibrate.zoommodel.marginal_tau`), each for the
+prior on the corner's displacement (the zoom-wide adjustment's ``corner2``) and on OpenCV's
+k1 (the path ``D (f / d)^2``, ``d`` the half-diagonal: the corner's displacement over the
+squared normalised radius there), the same noise scaled alike. Printed per hidden step: the
+number of lenses, the RMS and median of ``|z| = |error| / sigma`` (0.67 for honest Gaussian
+sigmas) and how often it exceeds 2 and 3 (0.046 and 0.0027).
 
 The paths are measured lenses, not draws from the prior: a lens whose distortion turns sharply
 at one end of its range is what a single ``tau`` per path does not describe.
@@ -41,16 +45,21 @@ from zoomcalib.study.lensfun import read_lensfun  # noqa: E402
 
 REAL = ROOT.parent / "shared" / "realdata" / "lensfun"
 EXTRACT = ROOT / "tests" / "data" / "lensfun"
+HALF_DIAGONAL_MM = 0.5 * np.hypot(36.0, 24.0)  # of the 35 mm frame (crop factor 1)
 
 
-def held_out_z(lens, hide: int, noise: float, rng) -> tuple[float, float, bool]:
+def held_out_z(lens, hide: int, noise: float, rng, form: str) -> tuple[float, float, bool]:
     """``error / sigma`` of the hidden step's prediction with REML's and the marginalised
-    ``tau``, and whether REML sat at its lower bound."""
-    truth = lens.measure().corner
+    ``tau`` of the prior on the path ``form`` ('corner' or 'k1'), and whether REML sat at its
+    lower bound."""
+    scale = np.ones(lens.n_focal)
+    if form == "k1":
+        scale = (lens.focal_mm * lens.crop_factor / HALF_DIAGONAL_MM) ** 2
+    truth = lens.measure().corner * scale
     u = np.log(lens.focal_mm)
-    sd = np.full(len(u), noise)
-    sd[hide] = 1.0  # a fraction of the half-diagonal: far beyond any distortion, no data
-    values = truth + rng.normal(0.0, noise, len(u))
+    sd = noise * scale
+    sd[hide] = scale[hide]  # the whole half-diagonal: far beyond any distortion, no data
+    values = truth + rng.normal(0.0, 1.0, len(u)) * noise * scale
     values[hide] = 0.0
     chain = (values, sd, u)
     tau, at_bound = pooled_prior_strength([chain], 2)
@@ -81,14 +90,16 @@ def main() -> None:
               if np.log(lens.focal_mm[-1] / lens.focal_mm[0]) >= 0.3]
     print(f"# {len(lenses)} zoom lenses from {args.data}; noise {args.noise:g} of the "
           f"half-diagonal; seed {args.seed}")
-    for where in ("long end", "middle"):
-        rows = [held_out_z(lens, lens.n_focal - 1 if where == "long end" else lens.n_focal // 2,
-                           args.noise, rng) for lens in lenses]
-        z = np.array(rows)
-        print(f"hidden step at the {where} ({len(rows)} lenses; REML at its lower bound in "
-              f"{int(z[:, 2].sum())}):")
-        print(_summary("REML", z[:, 0]))
-        print(_summary("marginal", z[:, 1]))
+    for form in ("corner", "k1"):
+        for where in ("long end", "middle"):
+            hide = [lens.n_focal - 1 if where == "long end" else lens.n_focal // 2
+                    for lens in lenses]
+            z = np.array([held_out_z(lens, h, args.noise, rng, form)
+                          for lens, h in zip(lenses, hide, strict=True)])
+            print(f"prior on the {form}, hidden step at the {where} ({len(z)} lenses; REML at "
+                  f"its lower bound in {int(z[:, 2].sum())}):")
+            print(_summary("REML", z[:, 0]))
+            print(_summary("marginal", z[:, 1]))
 
 
 if __name__ == "__main__":

@@ -118,17 +118,19 @@ def second_difference(u: np.ndarray) -> np.ndarray:
     return divided_difference(u, 2)
 
 
-def prior_operator(u: np.ndarray, order: int = 2, weight: np.ndarray | None = None
-                   ) -> np.ndarray:
+def prior_operator(u: np.ndarray, order: int = 2, weight: np.ndarray | None = None,
+                   offset: bool = True) -> np.ndarray:
     """Rows ``R`` (n - k, n) of the difference prior ``R q ~ N(0, tau^2 I)`` on a path ``q``
     over increasing ``u``: ``D_k`` itself, or with a ``weight`` ``w`` (n,) the differences of
-    ``w q`` with a free constant offset of ``q`` integrated out (flat prior):
-    ``R = P D_k diag(w)``, ``P`` the projector off ``a = D_k w``.
+    ``w q``: ``D_k diag(w)``, or with ``offset`` a free constant offset of ``q`` integrated out
+    (flat prior): ``R = P D_k diag(w)``, ``P`` the projector off ``a = D_k w``.
     """
     D = divided_difference(u, order)
     if weight is None or len(D) == 0:
         return D
     Dw = D * np.asarray(weight, float)[None, :]
+    if not offset:
+        return Dw
     a = Dw.sum(axis=1)
     if not np.any(a):
         return Dw
