@@ -2,7 +2,7 @@
 its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
-[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME] [--model angle2]
+[--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME] [--dist-centre DX DY] [--model angle2]
 [--compare prior2] [--oracle] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
@@ -64,7 +64,7 @@ def _render(images: Path, args) -> dict:
                           board_surface=args.wave or None, psf=args.psf,
                           jpeg_quality=args.jpeg, seed=args.seed, supersample=2,
                           pp_path=args.pp_path, pp_span_px=args.pp_span,
-                          pp_runout=args.pp_runout, **lens)
+                          pp_runout=args.pp_runout, dist_centre_px=args.dist_centre, **lens)
     return json.loads((images / "truth.json").read_text())
 
 
@@ -197,6 +197,9 @@ def main() -> None:
     ap.add_argument("--pp-path", default="bow", choices=["bow", "traced"])
     ap.add_argument("--pp-span", type=float, default=40.0, help="traced path's span, px")
     ap.add_argument("--pp-runout", type=float, default=1.0, help="traced path's run-out scale")
+    ap.add_argument("--dist-centre", type=float, nargs=2, default=(0.0, 0.0),
+                    metavar=("DX", "DY"), help="distortion centre relative to the principal "
+                                               "point, px (render-sweep --dist-centre)")
     ap.add_argument("--lens", help="a lensfun lens's distortion (render-sweep --lens); default: "
                                    "a barrel fading towards the long end")
     ap.add_argument("--mc", type=int, default=20, help="Monte Carlo draws (0: none)")

@@ -485,12 +485,37 @@ def test_cli_render_sweep_through_a_real_lens(tmp_path):
     data = Path(__file__).parent / "data" / "lensfun"
     res = CliRunner().invoke(main, ["render-sweep", "--fx", "1150,11500", "--steps", "3",
                                     "--views", "1", "--size", "320x180", "--lens", "80-400",
-                                    "--lensfun", str(data), "--out", str(tmp_path / "s")])
+                                    "--lensfun", str(data), "--dist-centre", "3,-2",
+                                    "--out", str(tmp_path / "s")])
     assert res.exit_code == 0, res.output
     doc = json.loads((tmp_path / "s" / "truth.json").read_text())
     assert doc["distortion"]["kind"] == "lensfun" and "80-400" in doc["distortion"]["lens"]
+    assert doc["distortion"]["centre_px"] == [3.0, -2.0]
+    assert doc["steps"][-1]["camera"]["dist_centre_px"] == [3.0, -2.0]
     k1 = [st["dist"][0] for st in doc["steps"]]
     assert k1[0] < 0 < k1[-1]  # barrel at the short end, pincushion at the long end
     res = CliRunner().invoke(main, ["render-sweep", "--lens", "Canon", "--lensfun", str(data),
                                     "--out", str(tmp_path / "bad")])
     assert res.exit_code == 2 and "name one lens" in res.output
+
+
+def test_distortion_centred_off_the_principal_point():
+    # a distortion about pp + delta is OpenCV's model about a principal point moved by delta,
+    # seen along rays shifted by -delta / f: cv2.projectPoints checks it independently
+    from zoomcalib.camera import CameraModel
+
+    rng = np.random.default_rng(11)
+    delta = rng.uniform(-8, 8, 2)
+    dist = np.array([0.3, -0.5, 0.0, 0.0, 0.0])
+    cam = CameraModel(4000.0, 4000.0, 650.0, 350.0, dist, dist_centre_px=delta)
+    P = np.column_stack([rng.uniform(-15, 15, (50, 2)), rng.uniform(500, 600, 50)])
+    e = delta / 4000.0
+    K = np.array([[4000.0, 0, 650.0 + delta[0]], [0, 4000.0, 350.0 + delta[1]], [0, 0, 1]])
+    shifted = P - np.column_stack([e[0] * P[:, 2], e[1] * P[:, 2], 0 * P[:, 2]])
+    ref = cv2.projectPoints(shifted.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    np.testing.assert_allclose(cam.project(P), ref.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(cam.unproject_normalized(cam.project(P)), P[:, :2] / P[:, 2:],
+                               atol=1e-10)
+    # the axis still images at the principal point, to -k1 |e|^2 e
+    axis = cam.project(np.array([[0.0, 0.0, 1.0]]))[0]
+    assert np.abs(axis - [650.0, 350.0]).max() < 1e-3

@@ -140,6 +140,11 @@ class CameraModel:
     dist : (5,) or (8,) ndarray
         Distortion coefficients, OpenCV order.
     sensor : Sensor
+    dist_centre_px : (2,) ndarray
+        Where the distortion is centred, relative to the principal point, px (OpenCV's model:
+        0). Non-zero, the distortion acts about ``e = dist_centre_px / (fx, fy)`` in normalised
+        coordinates: ``x_d = e + distort(x - e)``; the image of the axis stays near ``(cx,
+        cy)`` (off by ``-k1 |e|^2 e``).
     """
 
     fx: float
@@ -148,6 +153,7 @@ class CameraModel:
     cy: float
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
     sensor: Sensor = DEFAULT_SENSOR
+    dist_centre_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     @property
     def K(self) -> np.ndarray:
@@ -156,7 +162,12 @@ class CameraModel:
 
     def project_normalized(self, xy: np.ndarray) -> np.ndarray:
         """(..., 2) normalised undistorted coordinates -> (..., 2) pixels."""
-        xd = distort(np.asarray(xy, dtype=float), self.dist)
+        xy = np.asarray(xy, dtype=float)
+        if np.any(self.dist_centre_px):
+            e = np.asarray(self.dist_centre_px, float) / [self.fx, self.fy]
+            xd = e + distort(xy - e, self.dist)
+        else:
+            xd = distort(xy, self.dist)
         return np.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
 
     def unproject_normalized(self, uv: np.ndarray) -> np.ndarray:
@@ -174,5 +185,6 @@ class CameraModel:
     def to_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
                 "dist": [float(v) for v in self.dist],
+                "dist_centre_px": [float(v) for v in self.dist_centre_px],
                 "sensor": {"width_px": self.sensor.width_px, "height_px": self.sensor.height_px,
                            "pixel_pitch_mm": self.sensor.pixel_pitch_mm}}

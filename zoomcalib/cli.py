@@ -443,12 +443,15 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
                    "barrel fading towards the long end.")
 @click.option("--lensfun", type=click.Path(exists=True),
               help="lensfun database (folder or XML) for --lens; default: the packaged extract.")
+@click.option("--dist-centre", default="0,0", show_default=True,
+              help="Centre of the distortion relative to the principal point, DX,DY px (OpenCV's "
+                   "model, which calibration fits: 0,0).")
 @_testbed_options
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
-                 pp_span, pp_runout, lens, lensfun, wave, psf, airy_radius, halo, ellipse,
-                 jpeg_quality, seed, out):
+                 pp_span, pp_runout, lens, lensfun, dist_centre, wave, psf, airy_radius, halo,
+                 ellipse, jpeg_quality, seed, out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
     fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
@@ -477,6 +480,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                                         (width, height))
     elif lensfun is not None:
         raise click.BadParameter("only with --lens", param_hint="--lensfun")
+    lens_options["dist_centre_px"] = _two_numbers(dist_centre, "--dist-centre")
     _check_out_folder(out)
     with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
         try:

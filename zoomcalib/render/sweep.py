@@ -76,13 +76,16 @@ def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int 
                   pp_drift_px: tuple[float, float] = (30.0, -18.0),
                   k1_short: float = -0.12, pp_path: str = "bow", pp_span_px: float = 40.0,
                   pp_runout: float = 1.0, pp_seed: int | np.random.SeedSequence = 0,
-                  dist: np.ndarray | None = None) -> list[CameraModel]:
+                  dist: np.ndarray | None = None,
+                  dist_centre_px: tuple[float, float] = (0.0, 0.0)) -> list[CameraModel]:
     """The cameras of the sweep, short end first (module docstring, section Camera per step).
 
     ``pp_path`` 'bow' uses ``pp_drift_px``; 'traced' uses ``pp_span_px``, ``pp_runout`` and
     ``pp_seed`` (:func:`zoomcalib.render.pp_path.traced_path`). ``dist`` (steps, 5): OpenCV
     terms per step instead of the fading barrel of ``k1_short`` (e.g. a real lens's,
     :meth:`zoomcalib.study.lensfun.ZoomLensDistortion.opencv_distortion`).
+    ``dist_centre_px``: the distortion's centre relative to the principal point at every step
+    (:class:`~zoomcalib.camera.CameraModel`; OpenCV's model, which the calibration fits, has 0).
     """
     if dist is not None and np.shape(dist) != (steps, 5):
         raise ValueError(f"dist must be (steps, 5) = ({steps}, 5), got {np.shape(dist)}")
@@ -94,7 +97,8 @@ def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int 
         cx, cy = centre + np.asarray(pp_offset_px) + p
         terms = (np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0]) if dist is None
                  else np.asarray(dist[i], float))
-        cams.append(CameraModel(float(f), float(f), float(cx), float(cy), terms, sensor))
+        cams.append(CameraModel(float(f), float(f), float(cx), float(cy), terms, sensor,
+                                np.asarray(dist_centre_px, float)))
     return cams
 
 
@@ -198,7 +202,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         to ``truth.json`` as ``distortion``.
     **camera_options
         ``pp_offset_px``, ``pp_drift_px``, ``k1_short``, ``pp_path``, ``pp_span_px``,
-        ``pp_runout``, ``dist`` of :func:`sweep_cameras`; a traced path is drawn from ``seed``.
+        ``pp_runout``, ``dist``, ``dist_centre_px`` of :func:`sweep_cameras`; a traced path is
+        drawn from ``seed``.
 
     Returns
     -------
@@ -257,9 +262,10 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         "supersample": supersample, "jpeg_quality": jpeg_quality,
         "board_surface": None if surface is None else surface.to_dict(),
         "pp_path": path_record,
-        "distortion": distortion_source or (
+        "distortion": {**(distortion_source or (
             {"kind": "fading", "k1_short": camera_options.get("k1_short", -0.12)}
-            if camera_options.get("dist") is None else {"kind": "given"}),
+            if camera_options.get("dist") is None else {"kind": "given"})),
+            "centre_px": [float(v) for v in camera_options.get("dist_centre_px", (0.0, 0.0))]},
         "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
                       "rvec/tvec: board -> camera, mm; points_px: true image position of every "
                       "object point on the (waving) board",
