@@ -3,7 +3,8 @@ its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
 [--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME]
-[--dist-centre DX DY] [--model angle2] [--compare prior2] [--oracle] [--mc 20] [--mc-model angle2] [--seed 0] [--out DIR]``
+[--dist-centre DX DY] [--model angle2] [--compare prior2] [--oracle] [--mc 20]
+[--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
    board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
