@@ -338,3 +338,49 @@ def test_angular_prior_stays_honest_where_the_traced_path_bends(seed):
     zw = calibrate_zoom_wide(obs, select=False, pp_model="angle2")
     assert {zw.zoom_models[q]["model"] for q in ("cx", "cy")} == {"angle2"}
     _recovered_within(zw, truth)
+
+
+def _long_end_step(seed: int, k1: float = 14.4) -> tuple[Observations, float]:
+    """10 near-fronto-parallel views (at most 3 degrees of tilt) at fx 23000 px through a real
+    lens's long-end pincushion (k1 14.4: 1.5 % of the half-diagonal at the corner, the
+    Zoom-Nikkor 80-400 at 400 mm in lensfun), 0.01 px of noise."""
+    from zoomcalib.camera import CameraModel
+    from zoomcalib.render.image import camera_mapping, project_points
+    from zoomcalib.render.sweep import SWEEP_SENSOR, sweep_poses
+
+    target = parse_pattern("chessboard:22x15:20")
+    cam = CameraModel(23000.0, 23000.0, 652.0, 334.0, np.array([k1, 0, 0, 0, 0]), SWEEP_SENSOR)
+    rng = np.random.default_rng(seed)
+    views = []
+    for R, t in sweep_poses(target, cam, 10, 3.0, rng):
+        uv = project_points(target.object_points, camera_mapping(cam), R, t)
+        views.append((np.arange(len(uv)), uv + rng.normal(0, 0.01, uv.shape)))
+    return Observations(target.object_points, views, SIZE, [f"v{i}" for i in range(10)]), cam.fx
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_start_survives_where_opencvs_own_start_fails(seed):
+    from zoomcalib.calibrate.zoomwide import _distortion_flags, _opencv_start, _robust_start
+
+    obs, fx = _long_end_step(seed)
+    # OpenCV from its own (homography) start ends at about twice the focal length with k1, and
+    # at no camera without distortion: what the robust start is there for
+    assert calibrate_opencv(obs, flags=_distortion_flags(("k1",))).fx > 1.5 * fx
+    assert calibrate_opencv(obs, flags=_distortion_flags(())).fx < 0.1 * fx
+    robust = _robust_start(obs)
+    # 1 % is several of the step's own fx sigmas (0.3 % zoom-wide at this step)
+    assert abs(robust.fx / fx - 1) < 0.01, robust.fx
+    for chosen in (("k1",), ("k1", "k2", "p1", "p2")):
+        terms = {"s": chosen}
+        start = _opencv_start("s", obs, terms, robust)
+        assert abs(start.fx / fx - 1) < 0.01, (chosen, start.fx)
+        assert terms["s"] == chosen
+
+
+def test_a_mirrored_solution_is_flagged(sweep):
+    import copy
+
+    _, _, _, zw = sweep
+    res = copy.deepcopy(zw.results["step0"])
+    res.K[0, 0] = -res.K[0, 0]
+    assert any("not positive" in f for f in conditioning_flags(res, SIZE))

@@ -1,6 +1,7 @@
 """Honesty checks of a calibration: ill-conditioning flags and the two-halves cross-validation.
 
-*Ill-conditioning.* A step is flagged, with a one-line reason each, when its principal point
+*Ill-conditioning.* A step is flagged, with a one-line reason each, when its focal length is
+not positive (a mirrored or failed solution), when its principal point
 lies outside the central region of the image (more than a quarter of the width or height from
 the centre ``((W-1)/2, (H-1)/2)``), when the 1-sigma of ``cx`` or ``cy`` exceeds 1 % of the
 image diagonal, when two intrinsics are correlated beyond ``|r| = 0.999`` (where the backend
@@ -40,6 +41,9 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
     """One-line reasons why ``res`` is ill-conditioned (empty when none; module docstring)."""
     w, h = image_size
     flags = []
+    if not (res.fx > 0 and res.fy > 0):
+        flags.append(f"focal length ({res.fx:.1f}, {res.fy:.1f}) px not positive: a mirrored "
+                     "or failed solution")
     dx, dy = res.cx - (w - 1) / 2.0, res.cy - (h - 1) / 2.0
     if abs(dx) > w / 4.0 or abs(dy) > h / 4.0:
         flags.append(f"principal point ({res.cx:.0f}, {res.cy:.0f}) outside the central region")
