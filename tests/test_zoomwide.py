@@ -384,3 +384,16 @@ def test_a_mirrored_solution_is_flagged(sweep):
     res = copy.deepcopy(zw.results["step0"])
     res.K[0, 0] = -res.K[0, 0]
     assert any("not positive" in f for f in conditioning_flags(res, SIZE))
+
+
+def test_per_step_opencv_tries_more_starts_only_on_fronto_parallel_views(rng):
+    from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust
+    from zoomcalib.calibrate.run import FRONTO_PARALLEL_DEG
+
+    obs, fx = _long_end_step(0)
+    res = calibrate_opencv_robust(obs, fronto_parallel_deg=FRONTO_PARALLEL_DEG)
+    assert res.info["start"] == "multi-start" and abs(res.fx / fx - 1) < 0.01, res.fx
+    # the short end's views are tilted by up to 35 degrees: OpenCV's own start serves
+    short, truth, _ = sweep_observations(rng, steps=2, views=8, fx_range=(2300, 3000))
+    res = calibrate_opencv_robust(short["step0"], fronto_parallel_deg=FRONTO_PARALLEL_DEG)
+    assert res.info["start"] == "opencv" and abs(res.fx / truth["step0"]["fx"] - 1) < 0.003

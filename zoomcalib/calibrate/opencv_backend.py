@@ -58,6 +58,9 @@ from zoomcalib.targets import Target, parse_pattern
 __all__ = [
     "MODELS",
     "calibrate_opencv",
+    "calibrate_opencv_multistart",
+    "calibrate_opencv_robust",
+    "not_a_camera",
     "calibrate_opencv_ro",
     "default_fixed_point",
     "flag_names",
@@ -633,6 +636,83 @@ def default_fixed_point(object_points: np.ndarray) -> int:
     dist = np.linalg.norm(rel - np.outer(rel @ u, u), axis=1)
     best = np.flatnonzero(dist >= dist.max() * (1 - 1e-9))[0]
     return int(best + 1)
+
+
+def not_a_camera(result: CalibrationResult, image_size: tuple[int, int]) -> str | None:
+    """Why a calibration is no camera (None when it is one): intrinsics that are not finite,
+    a focal length below a tenth of the image's larger side (a field of view over 157 degrees,
+    or a mirrored solution), pixels more than 2:1 from square, or a principal point outside the
+    image."""
+    w, h = image_size
+    if not np.all(np.isfinite([result.fx, result.fy, result.cx, result.cy])):
+        return "intrinsics not finite"
+    if min(result.fx, result.fy) < 0.1 * max(w, h):
+        return f"fx, fy ({result.fx:.1f}, {result.fy:.1f}) px below a tenth of the image"
+    if not 0.5 < result.fx / result.fy < 2.0:
+        return f"fx / fy = {result.fx / result.fy:.2f}"
+    if not (0 <= result.cx <= w - 1 and 0 <= result.cy <= h - 1):
+        return f"principal point ({result.cx:.0f}, {result.cy:.0f}) outside the image"
+    return None
+
+
+def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flags: int = 0,
+                                focal_range: tuple[float, float] = (0.5, 32.0), starts: int = 4
+                                ) -> CalibrationResult | None:
+    """:func:`calibrate_opencv` from ``starts`` focal lengths log-spaced over ``focal_range``
+    times the image's larger side (principal point at the centre and square pixels held for a
+    first solve, then freed); the result with the smallest RMS that is a camera
+    (:func:`not_a_camera`), or None.
+
+    OpenCV's own start comes from the views' homographies (Zhang's closed form), which is
+    ill-posed when the views are nearly fronto-parallel, as at the long end of a zoom: through
+    a long-end pincushion of 1.5 % its solve ends at 2-4 times the focal length (k1 taking the
+    difference), without distortion at no camera at all (``tests/test_zoomwide.py``).
+    """
+    w, h = obs.image_size
+    best = None
+    for focal in max(w, h) * np.geomspace(*focal_range, starts):
+        K = np.array([[focal, 0.0, (w - 1) / 2.0], [0.0, focal, (h - 1) / 2.0], [0, 0, 1]])
+        try:
+            held = calibrate_opencv(obs, model, flags | cv2.CALIB_FIX_PRINCIPAL_POINT,
+                                    fix_aspect=True, K_guess=K)
+            result = calibrate_opencv(obs, model, flags, K_guess=held.K, dist_guess=held.dist)
+        except (ValueError, RuntimeError):
+            continue
+        if not_a_camera(result, obs.image_size) is None and (
+                best is None or result.rms_px < best.rms_px):
+            best = result
+    if best is not None:
+        best.info["start"] = "multi-start"
+    return best
+
+
+def calibrate_opencv_robust(obs: Observations, model: str = "standard", flags: int = 0,
+                            fronto_parallel_deg: float | None = None) -> CalibrationResult:
+    """:func:`calibrate_opencv` from OpenCV's own start and also from
+    :func:`calibrate_opencv_multistart`: always, or with ``fronto_parallel_deg`` only when the
+    first is no camera (:func:`not_a_camera`) or all its views are tilted less than that
+    (degrees) from fronto-parallel, where OpenCV's own start is ill-posed. Returns the camera
+    with the smallest RMS (``info["start"]``: ``"opencv"`` or ``"multi-start"``); raises what
+    OpenCV raised, or ValueError naming why its result is no camera, when no start gives one.
+    """
+    from .quality import view_geometry
+
+    try:
+        own = calibrate_opencv(obs, model, flags)
+        failure = not_a_camera(own, obs.image_size)
+    except (ValueError, RuntimeError) as exc:
+        own, failure, error = None, str(exc), exc
+    candidates = [] if failure else [own]
+    if (fronto_parallel_deg is None or failure
+            or view_geometry(own, obs).tilt_deg.max() < fronto_parallel_deg):
+        candidates += [r for r in [calibrate_opencv_multistart(obs, model, flags)] if r]
+    if not candidates:
+        if own is None:
+            raise error
+        raise ValueError(f"opencv: no camera from any start ({failure})")
+    best = min(candidates, key=lambda r: r.rms_px)
+    best.info.setdefault("start", "opencv")
+    return best
 
 
 def calibrate_opencv_ro(obs: Observations, model: str = "standard", flags: int = 0,

@@ -57,12 +57,19 @@ from .io import (
     write_zoom_table,
     zoom_steps,
 )
-from .opencv_backend import calibrate_opencv, observations_from_detections
+from .opencv_backend import (
+    calibrate_opencv_robust,
+    observations_from_detections,
+)
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "step_file_stems", "BACKENDS"]
 
 BACKENDS = ("opencv", "bundle")
+
+#: Per-step OpenCV also tries several starts when every view is tilted less than this from
+#: fronto-parallel, degrees (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`).
+FRONTO_PARALLEL_DEG = 15.0
 
 
 @dataclass
@@ -127,8 +134,8 @@ def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.nd
 
 
 def _calibrate_once(backend: str, obs: Observations, model: str) -> CalibrationResult:
-    if backend == "opencv":
-        return calibrate_opencv(obs, model=model)
+    if backend == "opencv":  # near-fronto-parallel views (a zoom's long end): several starts
+        return calibrate_opencv_robust(obs, model=model, fronto_parallel_deg=FRONTO_PARALLEL_DEG)
     if backend == "bundle":
         from .bundle import calibrate_bundle
 

@@ -111,7 +111,12 @@ import scipy.linalg
 import scipy.sparse
 
 from .bundle import project_jacobian
-from .opencv_backend import calibrate_opencv
+from .opencv_backend import (
+    calibrate_opencv,
+    calibrate_opencv_multistart,
+    calibrate_opencv_robust,
+    not_a_camera,
+)
 from .result import CalibrationResult, Observations
 from .zoommodel import (
     CANDIDATES,
@@ -604,23 +609,13 @@ def _initial(observations: Mapping[str, Observations], select: bool):
 
 
 def _robust_start(obs: Observations) -> CalibrationResult | None:
-    """A calibration with k1 that does not depend on OpenCV's own start: the one with the
-    smallest RMS among OpenCV from its own start and from a range of focal lengths
-    (:func:`_multi_start`); None when none is a camera (:func:`_not_a_camera`).
-
-    OpenCV's own start comes from the views' homographies, which are ill-posed when the views
-    are nearly fronto-parallel (the long end): through a long-end pincushion of 1.5 % its solve
-    ends at 2-4 times the focal length (k1 taking the difference), without distortion at no
-    camera at all (fx 0.2 px)."""
-    flags = _distortion_flags(("k1",))
-    candidates = [_multi_start(obs, flags)]
+    """A calibration with k1 that does not depend on OpenCV's own start
+    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried),
+    or None when no start gives a camera."""
     try:
-        candidates.append(calibrate_opencv(obs, flags=flags))
+        return calibrate_opencv_robust(obs, flags=_distortion_flags(("k1",)))
     except (ValueError, RuntimeError):
-        pass
-    candidates = [r for r in candidates
-                  if r is not None and _not_a_camera(r, obs.image_size) is None]
-    return min(candidates, key=lambda r: r.rms_px, default=None)
+        return None
 
 
 def _opencv_start(name: str, obs: Observations, terms: dict,
@@ -628,9 +623,11 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
     """OpenCV with the step's chosen terms, then with k1 alone, then with no distortion (a
     long-end step whose distortion OpenCV cannot separate): the start the adjustment then
     improves. Each from OpenCV's own start and from ``seed`` (:func:`_robust_start`), the
-    result with the smallest RMS that is a camera (:func:`_not_a_camera`) kept; with neither,
-    from a range of focal lengths (:func:`_multi_start`). ``terms[name]`` is set to the set
-    used; ValueError when no set gives a camera."""
+    result with the smallest RMS that is a camera
+    (:func:`~zoomcalib.calibrate.opencv_backend.not_a_camera`) kept; with neither, from a
+    range of focal lengths
+    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_multistart`).
+    ``terms[name]`` is set to the set used; ValueError when no set gives a camera."""
     reasons = []
     for attempt in dict.fromkeys((terms[name], ("k1",), ())):
         flags = _distortion_flags(attempt)
@@ -640,57 +637,17 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
         for guess in guesses:
             try:
                 result = calibrate_opencv(obs, flags=flags, **guess)
-                reason = _not_a_camera(result, obs.image_size)
+                reason = not_a_camera(result, obs.image_size)
             except (ValueError, RuntimeError) as exc:
                 result, reason = None, str(exc)
             candidates += [result] if reason is None else []
         if not candidates:
-            candidates = [r for r in [_multi_start(obs, flags)] if r is not None]
+            candidates = [r for r in [calibrate_opencv_multistart(obs, flags=flags)] if r]
         if candidates:
             terms[name] = attempt
             return min(candidates, key=lambda r: r.rms_px)
         reasons.append(f"{'+'.join(attempt) or 'no distortion'}: {reason}")
     raise ValueError(f"step {name}: no starting calibration ({'; '.join(reasons)})")
-
-
-def _not_a_camera(result: CalibrationResult, image_size: tuple[int, int]) -> str | None:
-    """Why an OpenCV result cannot start the adjustment (None when it can): a focal length
-    below a tenth of the image's larger side (a field of view over 157 degrees, or a mirrored
-    solution), pixels more than 2:1 from square, or a principal point outside the image.
-    Near-fronto-parallel views at a long focal length leave OpenCV's own start (from the
-    views' homographies) ill-posed, and its solve can end anywhere (fx 0.2 px on a rendered
-    long-end step)."""
-    w, h = image_size
-    values = np.array([result.fx, result.fy, result.cx, result.cy])
-    if not np.all(np.isfinite(values)):
-        return "intrinsics not finite"
-    if min(result.fx, result.fy) < 0.1 * max(w, h):
-        return f"fx, fy ({result.fx:.1f}, {result.fy:.1f}) px below a tenth of the image"
-    if not 0.5 < result.fx / result.fy < 2.0:
-        return f"fx / fy = {result.fx / result.fy:.2f}"
-    if not (0 <= result.cx <= w - 1 and 0 <= result.cy <= h - 1):
-        return f"principal point ({result.cx:.0f}, {result.cy:.0f}) outside the image"
-    return None
-
-
-def _multi_start(obs: Observations, flags: int) -> CalibrationResult | None:
-    """OpenCV started from focal lengths 0.5-32 times the image's larger side (4, log-spaced;
-    principal point at the centre and square pixels held for a first solve, then freed); the
-    start with the smallest RMS that is a camera, or None."""
-    w, h = obs.image_size
-    best = None
-    for focal in max(w, h) * np.geomspace(0.5, 32.0, 4):
-        K = np.array([[focal, 0.0, (w - 1) / 2.0], [0.0, focal, (h - 1) / 2.0], [0, 0, 1]])
-        try:
-            held = calibrate_opencv(obs, flags=flags | cv2.CALIB_FIX_PRINCIPAL_POINT,
-                                    fix_aspect=True, K_guess=K)
-            result = calibrate_opencv(obs, flags=flags, K_guess=held.K, dist_guess=held.dist)
-        except (ValueError, RuntimeError):
-            continue
-        if _not_a_camera(result, obs.image_size) is None and (
-                best is None or result.rms_px < best.rms_px):
-            best = result
-    return best
 
 
 def _free_mask(names: list[str], terms: Mapping[str, tuple[str, ...]]) -> np.ndarray:
