@@ -3,7 +3,7 @@ its sigmas by Monte Carlo.
 
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
 [--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME]
-[--dist-centre DX DY] [--model angle2] [--compare prior2] [--oracle] [--mc 20]
+[--dist-centre DX DY] [--model angle2] [--compare prior2] [--oracle] [--centred] [--mc 20]
 [--mc-model angle2] [--seed 0] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
@@ -18,7 +18,8 @@ its sigmas by Monte Carlo.
    longest steps the per-step OpenCV principal-point sigma over the zoom-wide one (cx, cy, and
    as a point: the root of the sum of the two variances) for both. ``--oracle`` adds a third
    adjustment whose prior strength is the rendered path's own roughness (what the best estimate
-   of ``tau`` could give).
+   of ``tau`` could give); ``--centred`` one with p1, p2 held at zero where the held-out views
+   did not choose them (the distortion taken to be centred on the principal point).
 3. Monte Carlo: the true image points of every detected corner (``truth.json``) plus Gaussian
    noise of the detector's measured RMS error per coordinate, ``--mc`` draws, each adjusted
    zoom-wide; printed per step: the spread of fx, cx, cy over the draws and their RMS error
@@ -212,6 +213,9 @@ def main() -> None:
                     help="pp_model of the Monte Carlo's adjustments")
     ap.add_argument("--oracle", action="store_true",
                     help="also adjust with tau at the rendered path's own roughness (--model)")
+    ap.add_argument("--centred", action="store_true",
+                    help="also adjust with the distortion centred on the principal point "
+                         "(calibrate_zoom_wide(decentring=False))")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
@@ -237,6 +241,9 @@ def main() -> None:
         given = _truth_roughness(truth, list(run.zoom_wide.results), args.model)
         run.adjustments["oracle"] = calibrate_zoom_wide(run.observations, pp_model=args.model,
                                                         prior_strength=given)
+    if args.centred:
+        run.adjustments["centred"] = calibrate_zoom_wide(run.observations, pp_model=args.model,
+                                                         decentring=False)
     for label, zw in list(run.adjustments.items())[1:]:
         for step, r in zw.results.items():
             run.results[step][label] = r

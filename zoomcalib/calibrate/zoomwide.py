@@ -131,6 +131,7 @@ from .zoommodel import (
 
 __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResult",
            "TermChoice", "calibrate_zoom_wide", "select_distortion", "held_out_errors",
+           "with_decentring",
            "prior_strength", "pooled_prior_strength", "second_difference", "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
@@ -184,6 +185,24 @@ def _distortion_flags(terms: tuple[str, ...]) -> int:
         if k not in terms:
             flags |= bit
     return flags
+
+
+def with_decentring(terms: tuple[str, ...], decentring: bool = True) -> tuple[str, ...]:
+    """``terms`` with p1, p2 added when a radial term is among them (in :data:`PARAMS` order;
+    ``decentring`` False: ``terms`` as they are).
+
+    OpenCV's model centres the radial distortion on the principal point; a real lens's centre
+    of distortion lies elsewhere by some px (Willson & Shafer, CMU-CS-93-122, 1993: the image
+    centres of a zoom lens). To first order in the offset ``e`` (normalised), radial
+    distortion about ``e`` is radial distortion about the principal point plus the tangential
+    terms ``p1 = -k1 e_y``, ``p2 = -k1 e_x``. Held at zero, they make the distortion's centre
+    pin the principal point: at the long end, where the views' perspective barely does, the
+    principal point then lands on the centre of distortion with a sigma of hundredths of a
+    px, however far that is from it. The held-out choice does not ask for them (their effect
+    on the image points is what a pose and a principal-point shift take up)."""
+    if not decentring or not {"k1", "k2", "k3"} & set(terms):
+        return tuple(terms)
+    return tuple(q for q in PARAMS[4:] if q in terms or q in ("p1", "p2"))
 
 
 def held_out_errors(obs: Observations, terms: tuple[str, ...],
@@ -589,7 +608,7 @@ class ZoomWideResult:
     zoom_models: dict[str, dict] = field(default_factory=dict)
 
 
-def _initial(observations: Mapping[str, Observations], select: bool):
+def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool):
     """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
     step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
     start from :func:`_robust_start`, not from OpenCV's own start."""
@@ -598,7 +617,7 @@ def _initial(observations: Mapping[str, Observations], select: bool):
         seed = _robust_start(obs)
         if select:
             held[name] = select_distortion(obs, start=seed)
-            terms[name] = held[name].terms
+            terms[name] = with_decentring(held[name].terms, decentring)
         else:
             terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
         try:
@@ -777,7 +796,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         board_degree: int = 4, board_prior_mm: float = 1.0,
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
                         pp_model: str = "angle2",
-                        prior_strength: Mapping[str, float] | None = None) -> ZoomWideResult:
+                        prior_strength: Mapping[str, float] | None = None,
+                        decentring: bool = True) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -787,6 +807,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         views per step (6 for the choice of distortion terms).
     select : bool
         Choose each step's distortion terms by held-out views; else all five are free.
+    decentring : bool
+        Free p1, p2 wherever a radial term is chosen (:func:`with_decentring`): the centre of
+        distortion is not taken to be the principal point. False holds them at zero unless
+        the held-out views chose them, which pins the long end's principal point to the centre
+        of distortion: right only for a lens whose distortion is centred on it.
     board_degree : int
         Highest total degree of the board's height modes (< 2: a flat board).
     board_prior_mm : float
@@ -821,7 +846,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     """
     _check_options(pp_model, prior_strength)
     board = _common_board(observations)
-    terms, held, init, skipped = _initial(observations, select)
+    terms, held, init, skipped = _initial(observations, select, decentring)
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
@@ -843,7 +868,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations = _solve_unsmoothed(
         problem, state, free, max_rounds,
-        observations if select and phi.shape[1] else None, init, terms, held)
+        observations if select and phi.shape[1] else None, init, terms, held, decentring)
     forms = _Form.of(pp_model, np.exp(u),
                      0.5 * np.hypot(*observations[names[0]].image_size))
     if joint_cov is not None:
@@ -909,7 +934,8 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
 
 def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
                       observations: Mapping[str, Observations] | None,
-                      init: Mapping[str, CalibrationResult], terms: dict, held: dict):
+                      init: Mapping[str, CalibrationResult], terms: dict, held: dict,
+                      decentring: bool = True):
     """The solve without the smoothness prior (``problem(free)`` builds it). With
     ``observations`` the distortion terms are then chosen again on the board's estimated
     shape (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
@@ -919,7 +945,8 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
     unsmoothed = problem(free)
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
     if observations is not None and _select_on_board(
-            observations, init, unsmoothed.points(solve.state.modes), terms, held):
+            observations, init, unsmoothed.points(solve.state.modes), terms, held,
+            decentring):
         free = _free_mask(list(init), terms)
         state = solve.state
         state.cams[:, 4:][~free[:, 4:]] = 0.0
@@ -957,7 +984,8 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
 
 def _select_on_board(observations: Mapping[str, Observations],
                      init: Mapping[str, CalibrationResult], board_points: np.ndarray,
-                     terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice]) -> bool:
+                     terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice],
+                     decentring: bool = True) -> bool:
     """Choose each started step's distortion terms again, by held-out views on the board's
     estimated shape (:func:`select_distortion`); ``terms`` and ``held`` are updated in place.
     True when a step's terms changed."""
@@ -967,8 +995,8 @@ def _select_on_board(observations: Mapping[str, Observations],
         if not choice.excess_se_px2:
             continue  # too few views, or no set could be fitted: keep the flat-board choice
         held[name] = choice
-        changed |= choice.terms != terms[name]
-        terms[name] = choice.terms
+        changed |= with_decentring(choice.terms, decentring) != terms[name]
+        terms[name] = with_decentring(choice.terms, decentring)
     return changed
 
 
