@@ -311,7 +311,7 @@ def test_calibrate_warns_of_a_solve_that_did_not_converge(tmp_path, monkeypatch)
         kw["criteria"] = (3, 2, 1e-12)
         return real(obs, *a, **kw)
 
-    monkeypatch.setattr(zoomcalib.calibrate.run, "calibrate_opencv", capped)
+    monkeypatch.setattr(opencv_backend, "calibrate_opencv", capped)  # under calibrate_opencv_robust
     res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", "chessboard:9x6:25",
                                     "--backend", "both", "--workers", "1",
                                     "--out", str(tmp_path / "out")])
