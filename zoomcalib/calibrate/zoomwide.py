@@ -966,15 +966,19 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
     A step whose own views cannot measure a term (the long end's narrow field) then takes it
     from its neighbours through the smoothness prior, with the prior's uncertainty in its
     sigma, instead of holding it at zero: a term near the limit of what the held-out views can
-    tell would otherwise be in or out with the noise draw."""
+    tell would otherwise be in or out with the noise draw. p1 and p2 go only to steps that
+    estimate a radial term of their own: the decentring they carry is first order in the radial
+    distortion (:func:`with_decentring`), and where that is too small to measure so is it."""
     free = free.copy()
+    radial = free[:, [PARAMS.index(k) for k in ("k1", "k2", "k3")]].any(axis=1)
     for name in models:
         j = PARAMS.index(name)
         if j < 4:
             continue
+        takes = radial if name in ("p1", "p2") else np.ones(len(free), bool)
         for chain in chains:
             have = [s for s in chain if free[s, j]]
-            new = [s for s in chain if not free[s, j]]
+            new = [s for s in chain if not free[s, j] and takes[s]]
             if not have or not new:
                 continue
             state.cams[new, j] = np.interp(u[new], u[have], state.cams[have, j])
