@@ -5,8 +5,10 @@ not positive (a mirrored or failed solution), when its principal point
 lies outside the central region of the image (more than a quarter of the width or height from
 the centre ``((W-1)/2, (H-1)/2)``), when the 1-sigma of ``cx`` or ``cy`` exceeds 1 % of the
 image diagonal, when two intrinsics are correlated beyond ``|r| = 0.999`` (where the backend
-reports the correlation; fx with fy is not counted, being one focal length), or when its
-solve did not converge.
+reports the correlation; fx with fy is not counted, being one focal length), when OpenCV's
+own 1-sigmas were truncated by its pseudo-inverse or its normal matrix is singular
+(``info['sd_check']``, :func:`zoomcalib.calibrate.opencv_backend._checked_camera_sd`), or
+when its solve did not converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
 two halves (even and odd images), each half is calibrated on its own as the full set was, and
@@ -61,6 +63,16 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
         i, j = np.unravel_index(np.argmax(c), c.shape)
         if c[i, j] > _CORRELATION_LIMIT:
             flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")
+    check = res.info.get("sd_check")
+    if check and check["reason"] == "singular":
+        flags.append("normal matrix singular at the solution: the data do not determine the "
+                     "intrinsics (sd infinite)")
+    elif check:
+        name, ratio = min(check["ratio"].items(), key=lambda item: item[1] or 0.0)
+        said = ("not a number" if ratio is None
+                else f"{check['opencv_sd'][name]:.3g}, 1/{1 / ratio:.0f} of")
+        flags.append(f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
+                     f"inverse's {check['sd'][name]:.3g} (used)")
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags

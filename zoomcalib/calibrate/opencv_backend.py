@@ -18,8 +18,15 @@ the Gauss-Newton step is re-evaluated at its solution (:func:`_stationarity`): `
 ``converged`` (the step is at most :data:`STATIONARY_SIGMA` sigma long), ``stop_reason``
 (``'tolerance'`` or ``'not stationary'``) and ``convergence_check`` (the step, the criteria).
 OpenCV's 1-sigmas come from ``s^2 (J^T J)^-1`` with no prior, which is both the posterior and the
-repeatability (``info['sd_kind'] = 'repeatability'``, as the bundle's). A 1-sigma that is not a
-number (a negative variance) stops the calibration for a camera parameter and is listed in
+repeatability (``info['sd_kind'] = 'repeatability'``, as the bundle's). OpenCV inverts ``J^T J``
+with an unscaled SVD pseudo-inverse, which drops the weak directions of a near-singular matrix
+and reports them with a variance of zero (or a negative one): at the long end of a zoom, fx
+sigmas 1000x too small. The camera's 1-sigmas of :func:`calibrate_opencv` are therefore checked
+against the full inverse of the same matrix, scaled to unit diagonal
+(:func:`_checked_camera_sd`); where OpenCV's is below half of it or not a number, the full
+inverse's is reported and ``info['sd_check']`` records both (a conditioning flag,
+:mod:`zoomcalib.calibrate.checks`). The poses' 1-sigmas stay OpenCV's. A 1-sigma that is not a
+number stops the object-releasing calibration for a camera parameter and is listed in
 ``info['sd_invalid']``, with a ``RuntimeWarning``, for a pose or target coordinate.
 
 Flag quirks of OpenCV 5.0 handled here
@@ -337,6 +344,19 @@ def _problem_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.nda
     return prob, state
 
 
+def _normal_matrix_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
+                               dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray,
+                               flags: int, n_dist: int):
+    """The undamped normal equations of :func:`_problem_at_solution` (``U, W, V, g, g_p, r``),
+    its residual variance ``s^2`` and the map of its camera columns (12, nc)."""
+    prob, state = _problem_at_solution(obj, img, K, dist, rvecs, tvecs, flags, n_dist)
+    blocks = prob.normal_equations(state)
+    r = blocks[-1]
+    dof = 2 * prob.N - prob.n_unknowns
+    s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else float("nan")
+    return blocks, s2, prob.cam_map
+
+
 def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
                   dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, flags: int,
                   n_dist: int) -> float:
@@ -350,14 +370,76 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
     (``s^2 = |r|^2 / (2 N_obs - n_unknowns)``): the largest distance, in 1-sigma, of any
     parameter or combination of them from the stationary point. ``inf`` if ``N`` is singular.
     """
-    prob, state = _problem_at_solution(obj, img, K, dist, rvecs, tvecs, flags, n_dist)
-    U, W, V, g, gp, r = prob.normal_equations(state)
+    return _step_sigma(_normal_matrix_at_solution(obj, img, K, dist, rvecs, tvecs, flags, n_dist))
+
+
+def _step_sigma(at_solution) -> float:
+    """:func:`_stationarity` from the normal equations at the solution."""
+    (U, W, V, g, gp, _), s2, _ = at_solution
     sol = _schur_solve(U, W, V, g, gp, 0.0)
-    dof = 2 * prob.N - prob.n_unknowns
-    s2 = float(np.einsum("ij,ij->", r, r)) / dof
     if sol is None or not s2 > 0:
         return float("inf")
     return float(np.sqrt(max(sol[2], 0.0) / s2))
+
+
+def _camera_covariance(at_solution) -> np.ndarray | None:
+    r"""Covariance ``s^2 N^-1`` of the camera parameters, (12, 12) over the bundle's ``fx, fy,
+    cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), from the normal
+    equations at OpenCV's solution; None when ``N`` is singular.
+
+    The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted after
+    scaling it to unit diagonal, ``S^-1 = D^-1 (D^-1 S D^-1)^-1 D^-1`` with ``D = diag(S)^1/2``:
+    the columns of fx (px) and of a k3 seen through a 2-degree field differ by 10^10, which the
+    scaling removes and a pseudo-inverse of the unscaled matrix does not survive.
+    """
+    (U, W, V, *_), s2, cam_map = at_solution
+    try:
+        iL = np.linalg.inv(np.linalg.cholesky(V))
+    except np.linalg.LinAlgError:
+        return None
+    G = (iL @ W.transpose(0, 2, 1)).reshape(-1, U.shape[0])
+    nc = cam_map.shape[1]
+    S = (U - G.T @ G)[:nc, :nc]
+    d = np.sqrt(np.diag(S))
+    if not (np.all(d > 0) and np.isfinite(s2)):
+        return None
+    eig, vec = np.linalg.eigh(S / np.outer(d, d))
+    if eig[0] <= 1e-13 * eig[-1]:
+        return None
+    S_inv = (vec / eig) @ vec.T / np.outer(d, d)
+    return s2 * cam_map @ S_inv @ cam_map.T
+
+
+#: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken
+#: as truncated (see :func:`_checked_camera_sd`); where the normal matrix is well conditioned
+#: the two agree to a fraction of a percent.
+SD_TRUNCATED_BELOW = 0.5
+
+
+def _checked_camera_sd(sd: dict, cov: np.ndarray | None, free: Sequence[str]) -> dict | None:
+    r"""Check OpenCV's camera 1-sigmas against the full inverse ``cov``
+    (:func:`_camera_covariance`); returns None when they agree, else what to record.
+
+    OpenCV inverts its normal matrix with an SVD pseudo-inverse, unscaled: directions whose
+    singular value falls below the machine precision times the largest are dropped, and their
+    variance is reported as zero. At the long end of a zoom (views within a few degrees of
+    fronto-parallel) that is the focal length's: fx sigmas of 0.05 px where the full inverse,
+    and the scatter over repeated noise draws, give 80 px. A parameter whose OpenCV sigma is
+    below :data:`SD_TRUNCATED_BELOW` of the full inverse's takes the full one; with ``cov``
+    None (a singular normal matrix) every free camera parameter's sigma is infinite.
+    """
+    index = {nm: i for i, nm in enumerate(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2",
+                                           "k3", "k4", "k5", "k6"))}
+    if cov is None:
+        return {"reason": "singular", "opencv_sd": dict(sd),
+                "sd": {nm: float("inf") for nm in free}}
+    full = {nm: float(np.sqrt(max(cov[index[nm], index[nm]], 0.0))) for nm in free}
+    truncated = [nm for nm in free if not sd[nm] >= SD_TRUNCATED_BELOW * full[nm]]
+    if not truncated:
+        return None
+    return {"reason": "truncated", "opencv_sd": dict(sd), "sd": full,
+            "ratio": {nm: (float(sd[nm] / full[nm]) if np.isfinite(sd[nm]) and full[nm] > 0
+                           else None) for nm in truncated}}
 
 
 def solution_points(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
@@ -442,9 +524,10 @@ def keystone_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
     return {"absorption": -response[2:4] / f[:, None], "tangential": response[6:8]}
 
 
-def _convergence(obj, img, K, dist, rv, tv, flags: int, n_dist: int, criteria) -> dict:
-    """``converged``, ``stop_reason`` and how they were found (``convergence_check``)."""
-    step = _stationarity(obj, img, K, dist, rv, tv, flags, n_dist)
+def _convergence(at_solution, criteria) -> dict:
+    """``converged``, ``stop_reason`` and how they were found (``convergence_check``), from the
+    normal equations at OpenCV's solution (:func:`_normal_matrix_at_solution`)."""
+    step = _step_sigma(at_solution)
     ok = step <= STATIONARY_SIGMA
     kind, count, eps = criteria
     return {"converged": bool(ok),
@@ -475,10 +558,11 @@ def _run(fn, what: str, *args, **kwargs):
 
 
 def _invalid_sd(sd: np.ndarray, names: list[str]) -> list[str]:
-    """Names of the 1-sigmas that are not finite, non-negative numbers (OpenCV takes the square
-    root of its covariance's diagonal: NaN means a negative variance there)."""
+    """Names of the 1-sigmas that are not non-negative numbers (OpenCV takes the square root of
+    its covariance's diagonal: NaN means a negative variance there; ``inf`` is a parameter the
+    data do not determine, see :func:`_checked_camera_sd`)."""
     sd = np.asarray(sd, np.float64).ravel()
-    return [names[i] for i in np.flatnonzero(~(np.isfinite(sd) & (sd >= 0)))]
+    return [names[i] for i in np.flatnonzero(~(sd >= 0))]
 
 
 def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None:
@@ -510,6 +594,14 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     tv = np.asarray(tvecs, np.float64).reshape(-1, 3)
     rms, per_view = _residuals(obj, img, rv, tv, K, dist)
     sd, notes = _sd_by_name(sdi, K, flags, n_dist)
+    at_solution = _normal_matrix_at_solution(obj, img, K, dist, rv, tv, flags, n_dist)
+    sd_check = None
+    if backend == "opencv":  # the object-releasing fit's covariance includes its target's
+        fixed = _fixed_names(flags, n_dist)
+        free = [nm for nm in ("fx", "fy", "cx", "cy", *DIST_NAMES[:n_dist]) if nm not in fixed]
+        sd_check = _checked_camera_sd(sd, _camera_covariance(at_solution), free)
+        if sd_check is not None:
+            sd.update(sd_check["sd"])
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
     invalid = (_invalid_sd(list(sd.values()), list(sd))
                + _invalid_sd(sde, [f"{nm}.{p}" for nm in names
@@ -524,8 +616,10 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
         "engine": "bouguet" if flags & _DISABLE_SCHUR else "schur",
         # no prior: OpenCV's s^2 (J^T J)^-1 is both the posterior and the repeatability
         "sd_kind": "repeatability",
-        **_convergence(obj, img, K, dist, rv, tv, flags, n_dist, criteria),
+        **_convergence(at_solution, criteria),
     }
+    if sd_check is not None:
+        info["sd_check"] = sd_check
     if notes:
         info["notes"] = notes
     if backend == "opencv":  # the object-releasing fit moves the target too: not modelled
