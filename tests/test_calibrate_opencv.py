@@ -440,3 +440,24 @@ def test_write_calibration_flat_folder_opencv_names(tmp_path, zc_result):
         assert fs.getNode("distortion_coefficients").mat().shape == (5, 1)
     finally:
         fs.release()
+
+
+def test_scaled_inverse_survives_units_that_a_pseudo_inverse_does_not():
+    """A well-conditioned matrix seen in units 10^14 apart: the scaled inverse is exact, the
+    unscaled pseudo-inverse loses it; a singular matrix is reported as not of full rank."""
+    from zoomcalib.calibrate.bundle import scaled_inverse
+
+    rng = np.random.default_rng(7)
+    X = rng.normal(size=(40, 6))
+    B = X.T @ X                                         # condition of order 10
+    D = np.geomspace(1e-7, 1e7, 6)
+    A = B * np.outer(D, D)
+    exact = np.linalg.inv(B) / np.outer(D, D)
+    inv, full = scaled_inverse(A)
+    assert full
+    np.testing.assert_allclose(np.diag(inv), np.diag(exact), rtol=1e-8)
+    pinv = np.linalg.pinv(A, hermitian=True)
+    assert np.max(np.abs(np.diag(pinv) / np.diag(exact) - 1)) > 0.5
+    X[:, 5] = X[:, 0] - 2 * X[:, 1]                  # a column that the others make
+    _, full = scaled_inverse((X.T @ X) * np.outer(D, D))
+    assert not full

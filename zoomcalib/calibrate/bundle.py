@@ -816,6 +816,24 @@ def _inverse_from_cholesky(c: np.ndarray) -> np.ndarray:
     return np.triu(inv) + np.triu(inv, 1).T
 
 
+def scaled_inverse(A: np.ndarray, rcond: float = 1e-13) -> tuple[np.ndarray, bool]:
+    r"""Inverse of a symmetric positive semi-definite ``A`` (k, k) whose columns differ in
+    scale, and whether it has full rank.
+
+    ``A^-1 = D^-1 (D^-1 A D^-1)^-1 D^-1`` with ``D = diag(A)^1/2``: the scaled matrix has a unit
+    diagonal, so its condition is that of the problem, not of its units (fx in px beside a k3
+    seen through a 2-degree field: 10^10 apart). Eigenvalues of the scaled matrix at or below
+    ``rcond`` times the largest are dropped (a pseudo-inverse), and the rank is then not full.
+    A zero diagonal entry leaves its row and column zero.
+    """
+    d = np.sqrt(np.clip(np.diag(A), 0.0, None))
+    scale = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
+    eig, vec = np.linalg.eigh(A * np.outer(scale, scale))
+    keep = eig > rcond * max(eig[-1], 0.0)
+    inv = (vec[:, keep] / eig[keep]) @ vec[:, keep].T
+    return inv * np.outer(scale, scale), bool(keep.all() and np.all(d > 0))
+
+
 def _schur_solve(U, W, V, g, gp, lam):
     """Solve the damped normal equations by eliminating the poses.
 

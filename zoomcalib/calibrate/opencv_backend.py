@@ -52,7 +52,7 @@ from collections.abc import Iterable, Sequence
 import cv2
 import numpy as np
 
-from zoomcalib.calibrate.bundle import _Problem, _schur_solve, _State
+from zoomcalib.calibrate.bundle import _Problem, _schur_solve, _State, scaled_inverse
 from zoomcalib.calibrate.result import (
     DIST_NAMES,
     CalibrationResult,
@@ -387,10 +387,10 @@ def _camera_covariance(at_solution) -> np.ndarray | None:
     cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), from the normal
     equations at OpenCV's solution; None when ``N`` is singular.
 
-    The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted after
-    scaling it to unit diagonal, ``S^-1 = D^-1 (D^-1 S D^-1)^-1 D^-1`` with ``D = diag(S)^1/2``:
-    the columns of fx (px) and of a k3 seen through a 2-degree field differ by 10^10, which the
-    scaling removes and a pseudo-inverse of the unscaled matrix does not survive.
+    The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted scaled to
+    unit diagonal (:func:`~zoomcalib.calibrate.bundle.scaled_inverse`): the columns of fx (px)
+    and of a k3 seen through a 2-degree field differ by 10^10, which the scaling removes and a
+    pseudo-inverse of the unscaled matrix does not survive.
     """
     (U, W, V, *_), s2, cam_map = at_solution
     try:
@@ -399,14 +399,9 @@ def _camera_covariance(at_solution) -> np.ndarray | None:
         return None
     G = (iL @ W.transpose(0, 2, 1)).reshape(-1, U.shape[0])
     nc = cam_map.shape[1]
-    S = (U - G.T @ G)[:nc, :nc]
-    d = np.sqrt(np.diag(S))
-    if not (np.all(d > 0) and np.isfinite(s2)):
+    S_inv, full_rank = scaled_inverse((U - G.T @ G)[:nc, :nc])
+    if not (full_rank and np.isfinite(s2)):
         return None
-    eig, vec = np.linalg.eigh(S / np.outer(d, d))
-    if eig[0] <= 1e-13 * eig[-1]:
-        return None
-    S_inv = (vec / eig) @ vec.T / np.outer(d, d)
     return s2 * cam_map @ S_inv @ cam_map.T
 
 

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .bundle import scaled_inverse
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",
@@ -219,7 +220,7 @@ def intrinsics_covariance(result: CalibrationResult, obs: Observations,
     corr = _reported_correlation(result, names)
     if corr is None:
         blocks = blocks or _fit_blocks(result, obs, free)
-        cov = np.linalg.pinv(blocks.S, hermitian=True)
+        cov, _ = scaled_inverse(blocks.S)
         d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
         corr = cov / np.outer(d, d)
     return names, corr * np.outer(sd, sd)
