@@ -461,3 +461,16 @@ def test_scaled_inverse_survives_units_that_a_pseudo_inverse_does_not():
     X[:, 5] = X[:, 0] - 2 * X[:, 1]                  # a column that the others make
     _, full = scaled_inverse((X.T @ X) * np.outer(D, D))
     assert not full
+
+
+def test_only_a_truncated_pinhole_sigma_flags_the_step(zc_result):
+    """A truncated k3 alone (a narrow field's collinear radial terms) is recorded, not flagged;
+    a truncated fx is flagged by name, whatever the distortion terms' ratios."""
+    res = dataclasses.replace(zc_result, info=dict(zc_result.info))
+    sd = dict(res.sd)
+    res.info["sd_check"] = {"reason": "truncated", "opencv_sd": sd, "sd": sd,
+                            "ratio": {"k3": 1e-4}}
+    assert not any("near-singular" in f for f in conditioning_flags(res, (640, 480)))
+    res.info["sd_check"]["ratio"] = {"fx": 1e-3, "k3": 1e-5}
+    (flag,) = [f for f in conditioning_flags(res, (640, 480)) if "near-singular" in f]
+    assert "OpenCV's sd fx" in flag and "1/1000 of" in flag

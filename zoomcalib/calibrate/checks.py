@@ -6,8 +6,10 @@ lies outside the central region of the image (more than a quarter of the width o
 the centre ``((W-1)/2, (H-1)/2)``), when the 1-sigma of ``cx`` or ``cy`` exceeds 1 % of the
 image diagonal, when two intrinsics are correlated beyond ``|r| = 0.999`` (where the backend
 reports the correlation; fx with fy is not counted, being one focal length), when OpenCV's
-own 1-sigmas were truncated by its pseudo-inverse or its normal matrix is singular
-(``info['sd_check']``, :func:`zoomcalib.calibrate.opencv_backend._checked_camera_sd`), or
+own 1-sigma of fx, fy, cx or cy was truncated by its pseudo-inverse or its normal matrix is
+singular (``info['sd_check']``, :func:`zoomcalib.calibrate.opencv_backend._checked_camera_sd`;
+a truncated distortion term alone is replaced there but not flagged: the radial terms of a
+narrow field are nearly collinear, and their sum is what the views determine), or
 when its solve did not converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
@@ -67,8 +69,9 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
     if check and check["reason"] == "singular":
         flags.append("normal matrix singular at the solution: the data do not determine the "
                      "intrinsics (sd infinite)")
-    elif check:
-        name, ratio = min(check["ratio"].items(), key=lambda item: item[1] or 0.0)
+    elif check and (pinhole := {nm: r for nm, r in check["ratio"].items()
+                                if nm in ("fx", "fy", "cx", "cy")}):
+        name, ratio = min(pinhole.items(), key=lambda item: item[1] or 0.0)
         said = ("not a number" if ratio is None
                 else f"{check['opencv_sd'][name]:.3g}, 1/{1 / ratio:.0f} of")
         flags.append(f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
