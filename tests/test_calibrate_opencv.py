@@ -240,6 +240,9 @@ def test_invalid_opencv_sd_is_flagged_or_replaced(zc_obs, zc_result, monkeypatch
     assert np.isnan(check["opencv_sd"]["cx"])
     # well conditioned here: the full inverse is OpenCV's own 1-sigma of the unbroken run
     assert res.sd["cx"] == pytest.approx(zc_result.sd["cx"], rel=1e-3)
+    # the poses' sigmas come from the full inverse too: OpenCV's own, where it is sound
+    for key in ("sd_rvecs", "sd_tvecs"):
+        np.testing.assert_allclose(res.info[key], zc_result.info[key], rtol=0.01)
     assert any("OpenCV's sd cx not a number" in f for f in conditioning_flags(res, (640, 480)))
     json.dumps(res.to_dict())
 
@@ -251,11 +254,13 @@ def test_full_inverse_matches_opencv_where_well_conditioned(zc_obs, zc_result):
     r = zc_result
     obj = [np.asarray(zc_obs.object_points[ids], np.float32) for ids, _ in zc_obs.views]
     img = [np.asarray(p, np.float32) for _, p in zc_obs.views]
-    cov = _camera_covariance(_normal_matrix_at_solution(obj, img, r.K, r.dist, r.rvecs,
-                                                        r.tvecs, 0, 5))
+    cov, pose_sd = _camera_covariance(_normal_matrix_at_solution(obj, img, r.K, r.dist,
+                                                                 r.rvecs, r.tvecs, 0, 5))
     names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
     full = np.sqrt(np.diag(cov))[:9]
     np.testing.assert_allclose(full, [r.sd[n] for n in names], rtol=0.01)
+    np.testing.assert_allclose(pose_sd, np.hstack([r.info["sd_rvecs"], r.info["sd_tvecs"]]),
+                               rtol=0.01)
     assert "sd_check" not in r.info
     assert not any("near-singular" in f for f in conditioning_flags(r, (640, 480)))
 
@@ -295,6 +300,10 @@ def test_truncated_opencv_sd_at_the_long_end_is_found_and_replaced():
     # 12 draws: the sample deviation scatters by 21 % (1 sigma); the linearised sigma of this
     # ill-conditioned step is measured 1.1x below the scatter over 25 draws
     assert 0.5 < spread / reported < 2.0, (spread, reported)
+    # the board's distance trades against fx the same way: its sigma is replaced too
+    tz = np.array([r.tvecs[0, 2] for r in results])
+    tz_sd = np.median([r.info["sd_tvecs"][0][2] for r in results])
+    assert 0.5 < tz.std(ddof=1) / tz_sd < 2.0, (tz.std(ddof=1), tz_sd)
     for r in results:
         assert r.info["sd_check"]["reason"] == "truncated" and "fx" in r.info["sd_check"]["ratio"]
         assert any("near-singular normal matrix: OpenCV's sd" in f

@@ -25,8 +25,9 @@ sigmas 1000x too small. The camera's 1-sigmas of :func:`calibrate_opencv` are th
 against the full inverse of the same matrix, scaled to unit diagonal
 (:func:`_checked_camera_sd`); where OpenCV's is below half of it or not a number, the full
 inverse's is reported and ``info['sd_check']`` records both (a conditioning flag,
-:mod:`zoomcalib.calibrate.checks`). The poses' 1-sigmas stay OpenCV's. A 1-sigma that is not a
-number stops the object-releasing calibration for a camera parameter and is listed in
+:mod:`zoomcalib.calibrate.checks`); the poses' 1-sigmas are then the full inverse's too. A
+1-sigma that is not a number stops the object-releasing calibration for a camera parameter
+and is listed in
 ``info['sd_invalid']``, with a ``RuntimeWarning``, for a pose or target coordinate.
 
 Flag quirks of OpenCV 5.0 handled here
@@ -382,27 +383,33 @@ def _step_sigma(at_solution) -> float:
     return float(np.sqrt(max(sol[2], 0.0) / s2))
 
 
-def _camera_covariance(at_solution) -> np.ndarray | None:
+def _camera_covariance(at_solution) -> tuple[np.ndarray, np.ndarray] | None:
     r"""Covariance ``s^2 N^-1`` of the camera parameters, (12, 12) over the bundle's ``fx, fy,
-    cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), from the normal
-    equations at OpenCV's solution; None when ``N`` is singular.
+    cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), and the poses' 1-sigmas
+    (m, 6) ``rvec, tvec``, from the normal equations at OpenCV's solution; None when ``N`` is
+    singular.
 
     The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted scaled to
     unit diagonal (:func:`~zoomcalib.calibrate.bundle.scaled_inverse`): the columns of fx (px)
     and of a k3 seen through a 2-degree field differ by 10^10, which the scaling removes and a
-    pseudo-inverse of the unscaled matrix does not survive.
+    pseudo-inverse of the unscaled matrix does not survive. A pose's covariance is
+    ``s^2 (V^-1 + H S^-1 H^T)`` with ``H = V^-1 W^T``.
     """
     (U, W, V, *_), s2, cam_map = at_solution
     try:
         iL = np.linalg.inv(np.linalg.cholesky(V))
     except np.linalg.LinAlgError:
         return None
-    G = (iL @ W.transpose(0, 2, 1)).reshape(-1, U.shape[0])
+    G = iL @ W.transpose(0, 2, 1)                           # (m, 6, nc) = L^-1 W^T
     nc = cam_map.shape[1]
-    S_inv, full_rank = scaled_inverse((U - G.T @ G)[:nc, :nc])
+    Gf = G.reshape(-1, U.shape[0])
+    S_inv, full_rank = scaled_inverse((U - Gf.T @ Gf)[:nc, :nc])
     if not (full_rank and np.isfinite(s2)):
         return None
-    return s2 * cam_map @ S_inv @ cam_map.T
+    H = iL.transpose(0, 2, 1) @ G                           # (m, 6, nc) = V^-1 W^T
+    pose_var = (np.einsum("vij,vij->vj", iL, iL)            # diag(V^-1) = column norms of L^-1
+                + np.einsum("vik,kl,vil->vi", H, S_inv, H))
+    return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var)
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken
@@ -594,9 +601,12 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     if backend == "opencv":  # the object-releasing fit's covariance includes its target's
         fixed = _fixed_names(flags, n_dist)
         free = [nm for nm in ("fx", "fy", "cx", "cy", *DIST_NAMES[:n_dist]) if nm not in fixed]
-        sd_check = _checked_camera_sd(sd, _camera_covariance(at_solution), free)
+        covariance = _camera_covariance(at_solution)
+        sd_check = _checked_camera_sd(sd, None if covariance is None else covariance[0], free)
         if sd_check is not None:
             sd.update(sd_check["sd"])
+            # the poses' sigmas come from the same truncated inverse: the full one's replace them
+            sde = np.full((len(obj), 6), np.inf) if covariance is None else covariance[1]
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
     invalid = (_invalid_sd(list(sd.values()), list(sd))
                + _invalid_sd(sde, [f"{nm}.{p}" for nm in names
