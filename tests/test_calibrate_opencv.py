@@ -254,11 +254,11 @@ def test_full_inverse_matches_opencv_where_well_conditioned(zc_obs, zc_result):
     r = zc_result
     obj = [np.asarray(zc_obs.object_points[ids], np.float32) for ids, _ in zc_obs.views]
     img = [np.asarray(p, np.float32) for _, p in zc_obs.views]
-    cov, pose_sd = _camera_covariance(_normal_matrix_at_solution(obj, img, r.K, r.dist,
+    cov, pose_sd, _ = _camera_covariance(_normal_matrix_at_solution(obj, img, r.K, r.dist,
                                                                  r.rvecs, r.tvecs, 0, 5))
     names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
     full = np.sqrt(np.diag(cov))[:9]
-    np.testing.assert_allclose(full, [r.sd[n] for n in names], rtol=0.01)
+    np.testing.assert_allclose(full, [r.info["sd_noise_model"][n] for n in names], rtol=0.01)
     np.testing.assert_allclose(pose_sd, np.hstack([r.info["sd_rvecs"], r.info["sd_tvecs"]]),
                                rtol=0.01)
     assert "sd_check" not in r.info

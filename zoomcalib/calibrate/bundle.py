@@ -173,6 +173,7 @@ from zoomcalib.calibrate.result import (
     Observations,
     one_opencv_thread,
 )
+from zoomcalib.calibrate.scatter import view_scatter
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -709,10 +710,12 @@ class _Problem:
             F += self.sig2 * float(d @ self.Lam.matvec(d))
         return F
 
-    def normal_equations(self, s: _State):
-        """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
-        # rotation columns w.r.t. a small rotation of the camera frame; the Rodrigues ones
-        # are these times the view's left Jacobian, applied per view below (T_v)
+    def jacobians(self, s: _State):
+        """Per observation, weighted: residuals ``r`` (N, 2), px, and the Jacobians of ``r``
+        over the free camera parameters ``J_c`` (N, 2, nc), the pose ``J_p`` (N, 2, 6; rotation
+        columns w.r.t. a small rotation of the camera frame, to be multiplied by the view's
+        :func:`left_jacobian` for the Rodrigues vector) and the point ``J_x`` (N, 2, 3; None
+        when no target coordinate is free)."""
         uv, Jc, Jp, Jx = project_jacobian(s.cam, s.rvecs, s.tvecs, s.X, self.vi, self.pi,
                                           point_jacobian=self.nx > 0, local_rotation=True)
         w = self.w[:, None, None]
@@ -721,6 +724,34 @@ class _Problem:
         Jp *= w
         if self.nx:
             Jx *= w
+        return r, Jc, Jp, Jx
+
+    def camera_influence(self, s: _State, W: np.ndarray, V: np.ndarray,
+                         camera_rows: np.ndarray) -> np.ndarray:
+        """Each corner's share of the camera's move, ``a_i = S^-1[cam, :] Jt_i^T r_i`` (N, 12)
+        over ``CAMERA_NAMES`` (observation order; zero columns for fixed parameters), with
+        ``Jt_i = J_y,i - J_p,i V_v^-1 W_v^T`` the corner's Jacobian with its view's pose projected
+        out (:mod:`zoomcalib.calibrate.scatter`). ``W`` (m, ny, 6), ``V`` (m, 6, 6): blocks of
+        :meth:`normal_equations` at ``s``; ``camera_rows``: ``S^-1[:nc, :]`` (nc, ny)."""
+        r, Jc, Jp, Jx = self.jacobians(s)
+        nc = self.nc
+        influence = np.einsum("nkc,nk->nc", Jc, r) @ camera_rows[:, :nc].T
+        if self.nx:
+            o, a, row = self.wx_obs, self.wx_a, self.wx_row
+            point_score = np.einsum("nka,nk->na", Jx, r)[o, a]
+            np.add.at(influence, o, point_score[:, None] * camera_rows[:, row].T)
+        # the pose's share S^-1[cam, :] W_v V_v^-1 T_v^T J_p,i^T r_i, in Rodrigues columns
+        pose_score = np.einsum("nka,nk->na", Jp, r)
+        T = left_jacobian(s.rvecs)[self.vi]
+        pose_score[:, :3] = np.einsum("nba,nb->na", T, pose_score[:, :3])
+        through_pose = (camera_rows @ W) @ np.linalg.inv(V)                 # (m, nc, 6)
+        influence -= np.einsum("nca,na->nc", through_pose[self.vi], pose_score)
+        return influence @ self.cam_map.T
+
+    def normal_equations(self, s: _State):
+        """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
+        # the Rodrigues columns are the local rotation's times T_v, applied per view below
+        r, Jc, Jp, Jx = self.jacobians(s)
         nc, m, n, nx = self.nc, self.m, self.n, self.nx
         sums = self._sums_dense if self.dense else self._sums_sparse
         Ucc, gc, Wc, V, gp, Uxx, Ucx, gx = sums(Jc, Jp, Jx, r)
@@ -1401,7 +1432,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                      gauge_points: tuple[int, int, int] | None = None,
                      reject_sigma: float = 5.0, min_tilt_deg: float = 3.0,
                      guard_warn_ratio: float = 3.0, max_iterations: int = 100,
-                     tol: float = 1e-7, return_covariance: bool = False) -> CalibrationResult:
+                     tol: float = 1e-7, return_covariance: bool = False,
+                     scatter_check: bool = True) -> CalibrationResult:
     r"""Calibrate a camera by bundle adjustment, refining the 3D target points too.
 
     See the module docstring for the model, the gauge, the shape prior and the solver.
@@ -1472,6 +1504,12 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         use the normal equations of the last linearisation, at most one converged step (see
         ``tol``) from the solution: relative differences of about 1e-5 from a fresh
         linearisation at ``tol=1e-7``.
+    scatter_check : bool
+        Check the camera's sigmas against the scatter between views
+        (:mod:`zoomcalib.calibrate.scatter`) and, where the views disagree beyond what the corner
+        noise explains, report the view-clustered sigma (``sd`` and ``info['sd_posterior']``;
+        the noise model's in ``info['sd_noise_model']``, the check in
+        ``info['view_scatter']``). False reports the noise model's sigmas, still checked.
 
     Returns
     -------
@@ -1559,13 +1597,20 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Lam, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations, tol)
 
     # ---- stage 5: covariance ------------------------------------------------------------
+    if ne is None:
+        ne = prob.normal_equations(state)
     cov = _covariances(prob, state, ne, cam_names, m)
+    scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
+                           prob.vi, m, CAMERA_NAMES)
     nd = 5 if model == "standard" else 8
     sd_names = CAMERA_NAMES[:4 + nd]
     sd = dict(zip(sd_names, cov.camera_sd(cam_map, "repeatability")[:4 + nd].tolist(),
                   strict=True))
     post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
                        strict=True))
+    sd_noise_model = sd
+    if scatter_check:
+        sd, post_sd = scatter.scaled(sd), scatter.scaled(post_sd)
     pose_sd = cov.pose_sd("repeatability")
     pose_sd_post = cov.pose_sd("posterior")
     stage_info, converged, stop_reason = _convergence_summary(stages, K0 is None)
@@ -1590,7 +1635,9 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                   "points_held": [int(i) for i in held],
                   "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm,
                   "sd_posterior": post_sd, "rvecs_sd_posterior": pose_sd_post[:, :3],
-                  "tvecs_sd_posterior": pose_sd_post[:, 3:]}
+                  "tvecs_sd_posterior": pose_sd_post[:, 3:],
+                  "view_scatter": scatter.to_dict() | {"applied": scatter_check},
+                  "sd_noise_model": sd_noise_model}
     obj_pts = obj_sd = None
     if refine_target:
         obj_pts = state.X.copy()
@@ -1599,7 +1646,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         var[f] = cov.point_variances()
         obj_sd = np.sqrt(var).reshape(n, 3)
         info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_pts, f)
-        info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam, sd)
+        info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam,
+                               sd_noise_model)
         _warn_guard(info["guard"], guard_warn_ratio)
     if return_covariance:
         info["parameter_names"] = cov.names

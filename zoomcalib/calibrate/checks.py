@@ -9,8 +9,11 @@ reports the correlation; fx with fy is not counted, being one focal length), whe
 own 1-sigma of fx, fy, cx or cy was truncated by its pseudo-inverse or its normal matrix is
 singular (``info['sd_check']``, :func:`zoomcalib.calibrate.opencv_backend._checked_camera_sd`;
 a truncated distortion term alone is replaced there but not flagged: the radial terms of a
-narrow field are nearly collinear, and their sum is what the views determine), or
-when its solve did not converge.
+narrow field are nearly collinear, and their sum is what the views determine), when its views
+disagree beyond what the corner noise explains so that the sigma of fx, fy, cx or cy was
+scaled up (``info['view_scatter']``, :mod:`zoomcalib.calibrate.scatter`: a lens the model does
+not fit, a board that moves, correlated errors within a view), or when its solve did not
+converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
 two halves (even and odd images), each half is calibrated on its own as the full set was, and
@@ -76,6 +79,13 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
                 else f"{check['opencv_sd'][name]:.3g}, 1/{1 / ratio:.0f} of")
         flags.append(f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
                      f"inverse's {check['sd'][name]:.3g} (used)")
+    scatter = res.info.get("view_scatter")
+    if scatter and scatter.get("applied", True) and (
+            scaled := [nm for nm in ("fx", "fy", "cx", "cy") if nm in scatter["scaled"]]):
+        name = max(scaled, key=lambda nm: scatter["factor"][nm])
+        flags.append(f"views disagree beyond the corner noise: sd {name} x"
+                     f"{scatter['factor'][name]:.1f} from their scatter (used; lens model "
+                     "misfit or a moving board)")
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags

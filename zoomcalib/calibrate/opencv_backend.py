@@ -49,17 +49,25 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Iterable, Sequence
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from zoomcalib.calibrate.bundle import _Problem, _schur_solve, _State, scaled_inverse
+from zoomcalib.calibrate.bundle import (
+    CAMERA_NAMES,
+    _Problem,
+    _schur_solve,
+    _State,
+    scaled_inverse,
+)
 from zoomcalib.calibrate.result import (
     DIST_NAMES,
     CalibrationResult,
     Observations,
     one_opencv_thread,
 )
+from zoomcalib.calibrate.scatter import ViewScatter, view_scatter
 from zoomcalib.detect.opencv import Detection
 from zoomcalib.targets import Target, parse_pattern
 
@@ -345,17 +353,28 @@ def _problem_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.nda
     return prob, state
 
 
+class _AtSolution(NamedTuple):
+    """The undamped normal equations at OpenCV's solution and what they came from."""
+
+    blocks: tuple            # U, W, V, g, g_p, r (Problem.normal_equations)
+    s2: float                # residual variance
+    cam_map: np.ndarray      # (12, nc) camera columns
+    prob: _Problem
+    state: _State
+
+
 def _normal_matrix_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
                                dist: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray,
                                flags: int, n_dist: int):
     """The undamped normal equations of :func:`_problem_at_solution` (``U, W, V, g, g_p, r``),
-    its residual variance ``s^2`` and the map of its camera columns (12, nc)."""
+    its residual variance ``s^2``, the map of its camera columns (12, nc), the problem and its
+    state."""
     prob, state = _problem_at_solution(obj, img, K, dist, rvecs, tvecs, flags, n_dist)
     blocks = prob.normal_equations(state)
     r = blocks[-1]
     dof = 2 * prob.N - prob.n_unknowns
     s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else float("nan")
-    return blocks, s2, prob.cam_map
+    return _AtSolution(blocks, s2, prob.cam_map, prob, state)
 
 
 def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
@@ -376,18 +395,19 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
 
 def _step_sigma(at_solution) -> float:
     """:func:`_stationarity` from the normal equations at the solution."""
-    (U, W, V, g, gp, _), s2, _ = at_solution
+    (U, W, V, g, gp, _), s2 = at_solution.blocks, at_solution.s2
     sol = _schur_solve(U, W, V, g, gp, 0.0)
     if sol is None or not s2 > 0:
         return float("inf")
     return float(np.sqrt(max(sol[2], 0.0) / s2))
 
 
-def _camera_covariance(at_solution) -> tuple[np.ndarray, np.ndarray] | None:
+def _camera_covariance(at_solution: _AtSolution
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     r"""Covariance ``s^2 N^-1`` of the camera parameters, (12, 12) over the bundle's ``fx, fy,
-    cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), and the poses' 1-sigmas
-    (m, 6) ``rvec, tvec``, from the normal equations at OpenCV's solution; None when ``N`` is
-    singular.
+    cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`` (zero rows for fixed ones), the poses' 1-sigmas
+    (m, 6) ``rvec, tvec`` and ``S^-1`` (nc, nc), from the normal equations at OpenCV's solution;
+    None when ``N`` is singular.
 
     The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted scaled to
     unit diagonal (:func:`~zoomcalib.calibrate.bundle.scaled_inverse`): the columns of fx (px)
@@ -395,7 +415,7 @@ def _camera_covariance(at_solution) -> tuple[np.ndarray, np.ndarray] | None:
     pseudo-inverse of the unscaled matrix does not survive. A pose's covariance is
     ``s^2 (V^-1 + H S^-1 H^T)`` with ``H = V^-1 W^T``.
     """
-    (U, W, V, *_), s2, cam_map = at_solution
+    (U, W, V, *_), s2, cam_map = at_solution.blocks, at_solution.s2, at_solution.cam_map
     try:
         iL = np.linalg.inv(np.linalg.cholesky(V))
     except np.linalg.LinAlgError:
@@ -409,7 +429,14 @@ def _camera_covariance(at_solution) -> tuple[np.ndarray, np.ndarray] | None:
     H = iL.transpose(0, 2, 1) @ G                           # (m, 6, nc) = V^-1 W^T
     pose_var = (np.einsum("vij,vij->vj", iL, iL)            # diag(V^-1) = column norms of L^-1
                 + np.einsum("vik,kl,vil->vi", H, S_inv, H))
-    return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var)
+    return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var), S_inv
+
+
+def _view_scatter(at_solution: _AtSolution, S_inv: np.ndarray) -> ViewScatter:
+    """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) at OpenCV's solution."""
+    prob, (_, W, V, *_) = at_solution.prob, at_solution.blocks
+    influence = prob.camera_influence(at_solution.state, W, V, S_inv)
+    return view_scatter(influence, prob.vi, prob.m, CAMERA_NAMES)
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken
@@ -597,7 +624,7 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     rms, per_view = _residuals(obj, img, rv, tv, K, dist)
     sd, notes = _sd_by_name(sdi, K, flags, n_dist)
     at_solution = _normal_matrix_at_solution(obj, img, K, dist, rv, tv, flags, n_dist)
-    sd_check = None
+    sd_check = scatter = None
     if backend == "opencv":  # the object-releasing fit's covariance includes its target's
         fixed = _fixed_names(flags, n_dist)
         free = [nm for nm in ("fx", "fy", "cx", "cy", *DIST_NAMES[:n_dist]) if nm not in fixed]
@@ -607,6 +634,10 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
             sd.update(sd_check["sd"])
             # the poses' sigmas come from the same truncated inverse: the full one's replace them
             sde = np.full((len(obj), 6), np.inf) if covariance is None else covariance[1]
+        if covariance is not None:
+            sd_noise_model = dict(sd)
+            scatter = _view_scatter(at_solution, covariance[2])
+            sd = scatter.scaled(sd)
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
     invalid = (_invalid_sd(list(sd.values()), list(sd))
                + _invalid_sd(sde, [f"{nm}.{p}" for nm in names
@@ -625,6 +656,9 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
     }
     if sd_check is not None:
         info["sd_check"] = sd_check
+    if scatter is not None:
+        info["view_scatter"] = scatter.to_dict() | {"applied": True}
+        info["sd_noise_model"] = sd_noise_model
     if notes:
         info["notes"] = notes
     if backend == "opencv":  # the object-releasing fit moves the target too: not modelled

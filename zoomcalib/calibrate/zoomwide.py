@@ -118,6 +118,7 @@ from .opencv_backend import (
     not_a_camera,
 )
 from .result import CalibrationResult, Observations
+from .scatter import ViewScatter, view_scatter
 from .zoommodel import (
     CANDIDATES,
     ZoomModel,
@@ -748,7 +749,7 @@ def _joint_covariance(prob: _ZoomProblem, state: _State):
     """``cov(steps, j)`` of the per-step intrinsics of a solved problem, or None when its
     posterior covariance is not positive definite."""
     try:
-        cov = _posterior_covariance(prob, state)
+        cov = _posterior_covariance(prob, state)[0]
     except (np.linalg.LinAlgError, ValueError):
         return None
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
@@ -1018,20 +1019,50 @@ def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_r
     return solve, iterations + solve.iterations
 
 
-def _posterior_covariance(prob: _ZoomProblem, state: _State) -> np.ndarray:
+def _posterior_covariance(prob: _ZoomProblem, state: _State
+                          ) -> tuple[np.ndarray, ViewScatter]:
     """Posterior covariance ``[(J^T J)^{-1}]`` of the intrinsics and board modes (the poses
-    marginalised: the inverse of the Schur complement), weighted problem with its prior rows."""
+    marginalised: the inverse of the Schur complement), weighted problem with its prior rows;
+    and the view-scatter check of the intrinsics (:func:`_view_scatter`)."""
     r, J = prob.evaluate(state)
     U, W, V, _, _ = _normal_blocks(prob, J, r)
     W3 = W.reshape(len(U), len(V), 6)
-    S = U - np.einsum("gvj,hvj->gh", np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V)), W3)
-    return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
+    through_pose = np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V))        # W_v V_v^-1
+    S = U - np.einsum("gvj,hvj->gh", through_pose, W3)
+    cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
+    camera_rows = cov[:prob.n_cam]
+    return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
+                              camera_rows)
+
+
+def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
+                  camera_rows: np.ndarray) -> ViewScatter:
+    """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) of every step's free
+    intrinsics: corner ``i``'s share of their move is ``S^-1[cam, :] (J_g,i^T r_i - W_v V_v^-1
+    J_p,i^T r_i)``; ``camera_rows`` is ``S^-1[cam, :]`` (n_cam, n_glob), ``camera_pose`` the
+    same times ``W V^-1`` (n_cam, 6 views), ``r``, ``J`` the weighted residuals and Jacobian."""
+    n_glob = prob.n_cam + prob.n_modes
+    n_rows = sum(2 * int(step.inlier.sum()) for step in prob.steps)
+    corner = scipy.sparse.csr_matrix((np.ones(n_rows), (np.arange(n_rows) // 2,
+                                                         np.arange(n_rows))))
+    scores = corner @ scipy.sparse.diags(r[:n_rows]) @ J[:n_rows]       # (corners, unknowns)
+    influence = (scores[:, :n_glob] @ camera_rows.T
+                 - scores[:, n_glob:] @ camera_pose.T)                   # (corners, n_cam)
+    view = np.concatenate([prob.view_start[s] + step.view[step.inlier]
+                           for s, step in enumerate(prob.steps)])
+    names = [f"{prob.steps[s].name}:{PARAMS[j]}" for s, j in zip(*np.nonzero(prob.free),
+                                                                  strict=True)]
+    return view_scatter(np.asarray(influence), view, int(prob.view_start[-1]), tuple(names))
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
             inflation: list[tuple] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
-    cov = _posterior_covariance(prob, state)
+    cov, scatter = _posterior_covariance(prob, state)
+    # where a step's views disagree beyond its corner noise, its sigmas are the views' scatter
+    scale = np.ones(len(cov))
+    scale[:prob.n_cam] = np.where(scatter.significant, scatter.factor, 1.0)
+    cov *= np.outer(scale, scale)
     for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
         col = prob.cam_col[steps, j]
         cov[np.ix_(col, col)] += extra
@@ -1042,9 +1073,13 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
     columns = [(prob.steps[s].name, PARAMS[j]) for s, j in zip(*np.nonzero(prob.free),
                                                                strict=True)]
     results = {}
+    step_scatter = scatter.by_group()
     for s, step in enumerate(prob.steps):
         results[step.name] = _step_result(prob, s, state, cov, X, init[step.name], terms, tau)
         results[step.name].info.update({
+            "view_scatter": step_scatter[step.name].to_dict() | {"applied": True},
+            "sd_noise_model": {p: float(v / f) for (p, v), f in zip(
+                results[step.name].sd.items(), _step_scale(prob, s, scale), strict=True)},
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "distortion_choice": held[step.name].to_dict() if step.name in held else {},
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
@@ -1053,6 +1088,12 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
     return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
                           tau, terms, held, solve.converged, solve.stop_reason, iterations,
                           zoom_models={k: m.to_dict() for k, m in models.items()})
+
+
+def _step_scale(prob: _ZoomProblem, s: int, scale: np.ndarray) -> np.ndarray:
+    """(9,) the view-scatter factor applied to each of step ``s``'s ``PARAMS`` (1 if fixed)."""
+    cols = prob.cam_col[s]
+    return np.where(cols >= 0, scale[np.maximum(cols, 0)], 1.0)
 
 
 def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: np.ndarray,
