@@ -1600,12 +1600,12 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     if ne is None:
         ne = prob.normal_equations(state)
     cov = _covariances(prob, state, ne, cam_names, m)
-    scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
-                           prob.vi, m, CAMERA_NAMES)
     nd = 5 if model == "standard" else 8
     sd_names = CAMERA_NAMES[:4 + nd]
-    sd = dict(zip(sd_names, cov.camera_sd(cam_map, "repeatability")[:4 + nd].tolist(),
-                  strict=True))
+    camera_sd = cov.camera_sd(cam_map, "repeatability")
+    scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
+                           prob.vi, m, CAMERA_NAMES, camera_sd)
+    sd = dict(zip(sd_names, camera_sd[:4 + nd].tolist(), strict=True))
     post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
                        strict=True))
     sd_noise_model = sd

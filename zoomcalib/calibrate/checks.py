@@ -80,12 +80,15 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
         flags.append(f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
                      f"inverse's {check['sd'][name]:.3g} (used)")
     scatter = res.info.get("view_scatter")
-    if scatter and scatter.get("applied", True) and (
-            scaled := [nm for nm in ("fx", "fy", "cx", "cy") if nm in scatter["scaled"]]):
-        name = max(scaled, key=lambda nm: scatter["factor"][nm])
-        flags.append(f"views disagree beyond the corner noise: sd {name} x"
-                     f"{scatter['factor'][name]:.1f} from their scatter (used; lens model "
-                     "misfit or a moving board)")
+    if scatter and scatter.get("applied", True):
+        factors = {nm: scatter["factor"][nm] for nm in scatter["scaled"]} | scatter.get(
+            "pooled", {})
+        pinhole = {nm: f for nm, f in factors.items() if nm in ("fx", "fy", "cx", "cy")}
+        if pinhole:
+            name = max(pinhole, key=pinhole.get)
+            flags.append(f"views disagree beyond the corner noise: sd {name} x"
+                         f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
+                         "a moving board)")
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags

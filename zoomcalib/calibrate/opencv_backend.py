@@ -432,11 +432,13 @@ def _camera_covariance(at_solution: _AtSolution
     return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var), S_inv
 
 
-def _view_scatter(at_solution: _AtSolution, S_inv: np.ndarray) -> ViewScatter:
-    """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) at OpenCV's solution."""
+def _view_scatter(at_solution: _AtSolution, covariance) -> ViewScatter:
+    """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) at OpenCV's solution, from
+    its :func:`_camera_covariance`."""
     prob, (_, W, V, *_) = at_solution.prob, at_solution.blocks
+    cov, _, S_inv = covariance
     influence = prob.camera_influence(at_solution.state, W, V, S_inv)
-    return view_scatter(influence, prob.vi, prob.m, CAMERA_NAMES)
+    return view_scatter(influence, prob.vi, prob.m, CAMERA_NAMES, np.sqrt(np.diag(cov)))
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken
@@ -636,7 +638,7 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
             sde = np.full((len(obj), 6), np.inf) if covariance is None else covariance[1]
         if covariance is not None:
             sd_noise_model = dict(sd)
-            scatter = _view_scatter(at_solution, covariance[2])
+            scatter = _view_scatter(at_solution, covariance)
             sd = scatter.scaled(sd)
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
     invalid = (_invalid_sd(list(sd.values()), list(sd))

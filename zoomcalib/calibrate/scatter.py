@@ -3,30 +3,33 @@ r"""Do the views agree as closely as the corner noise says? The view-scatter che
 A calibration's 1-sigma assumes independent corner errors of one variance. Real sets break that
 inside each view: a lens the model does not fit leaves a smooth residual field, a paper board
 waves, a compressed frame blurs a whole region. The errors of one view's corners are then
-correlated, and two halves of the same set disagree by many of their sigmas (mrcal's
-figueroa observations: 3-6x in fx, cx, cy; ``python benchmarks/bench_real_halves.py``).
+correlated, and two halves of the same set disagree by many of their sigmas
+(``python benchmarks/bench_real_halves.py`` on real sets).
 
-The check compares two estimates of the same variance, from the solution's own residuals.
-Eliminating the poses, the unknowns ``y`` (camera, free target coordinates) move by
+The check compares the noise model's variance with one that assumes only that views are
+independent. Eliminating the poses, the unknowns ``y`` (camera, free target coordinates) move by
 ``dy = S^-1 sum_i Jt_i^T e_i`` under corner errors ``e_i``, with ``S`` the Schur complement and
 ``Jt_i = J_y,i - J_p,i V_v^-1 W_v^T`` corner ``i``'s Jacobian with its view's pose projected
 out. For a camera parameter ``q`` let ``a_iq = (S^-1 Jt_i^T r_i)_q`` (``r_i`` the residual, 2
 components per corner) and ``b_vq = sum_{i in v} a_iq``. Then
 
-- ``sum_i a_iq^2`` estimates the variance if corners are independent (the sandwich over corners),
-- ``sum_v b_vq^2`` estimates it if only views are (clustered by view; Liang & Zeger 1986),
+    var_views(q) = d / (d - 1) sum_v b_vq^2
 
-and their ratio ``F_q`` (the design effect) is 1 under the noise model, whatever the noise's
-size, and the number of independent corners per view's worth of information when the errors of
-a view move together. The two estimates share the residuals, so the fit's leverage shrinks both
-alike and largely cancels in the ratio. ``F_q`` is multiplied by ``d / (d - 1)`` for the one
-degree of freedom the fit takes (the ``b_vq`` sum to the prior's gradient, zero without one),
-with ``d = (sum_v c_vq)^2 / sum_v c_vq^2``, ``c_vq = sum_{i in v} a_iq^2``, the effective number
-of views (Satterthwaite: ``d`` views of equal weight, fewer when some dominate).
+is the variance clustered by view (Liang & Zeger 1986): it holds whatever the errors inside a
+view do, as long as views are independent. ``d / (d - 1)`` restores the degree of freedom the
+fit takes (the ``b_vq`` sum to the prior's gradient, zero without one), with
+``d = (sum_v c_vq)^2 / sum_v c_vq^2``, ``c_vq = sum_{i in v} a_iq^2``, the effective number of
+views (Satterthwaite: ``d`` views of equal weight, fewer when some dominate). The factor is
+``sqrt(var_views / var_model)``; under the noise model ``var_views / var_model`` is spread about
+1 like ``chi^2_d / d`` (a little below 1 with few views, where the fit's leverage shrinks the
+residuals).
 
-``F_q`` is significant when it exceeds the 99.9 % point of ``chi^2_d / d``, its spread under the
-noise model. Where it is, the sigma the calibration reports is ``sqrt(F_q)`` times the noise
-model's; elsewhere it is kept. Below :data:`MIN_VIEWS` effective views the check is not made.
+The factor is significant when its square exceeds the 99.9 % point of ``chi^2_d / d``. Where it
+is, the sigma the calibration reports is the factor times the noise model's; elsewhere it is
+kept. Below :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten
+carry) a parameter cannot be checked; when another parameter of the same fit is found
+disagreeing, it takes the median factor of the fit's checked parameters, since the errors the
+views share act on all of them.
 """
 from __future__ import annotations
 
@@ -50,19 +53,23 @@ class ViewScatter:
     Attributes
     ----------
     factor : (k,) ndarray
-        ``sqrt(F)``: the view-clustered 1-sigma over the corner-wise one; NaN for a fixed
-        parameter or below :data:`MIN_VIEWS` effective views.
+        The view-clustered 1-sigma over the noise model's; NaN for a fixed parameter or below
+        :data:`MIN_VIEWS` effective views.
     views : (k,) ndarray
         Effective number of views ``d``.
     threshold : (k,) ndarray
         The factor above which the scatter is significant, ``sqrt(chi2_{0.999, d} / d)``.
-    names : the parameters, k of them.
+    names : the parameters, k of them; ``'group:name'`` for several fits in one (a zoom-wide
+        adjustment's steps).
+    free : (k,) bool ndarray
+        Estimated (not fixed); a free parameter with a NaN factor had too few effective views.
     """
 
     factor: np.ndarray
     views: np.ndarray
     threshold: np.ndarray
     names: tuple[str, ...]
+    free: np.ndarray
 
     @property
     def significant(self) -> np.ndarray:
@@ -70,64 +77,91 @@ class ViewScatter:
         with np.errstate(invalid="ignore"):
             return np.nan_to_num(self.factor) > self.threshold
 
-    def scaled(self, sd: dict[str, float]) -> dict[str, float]:
-        """``sd`` with each significant parameter's sigma multiplied by its factor."""
-        out = dict(sd)
-        for q, name in enumerate(self.names):
-            if name in out and self.significant[q]:
-                out[name] = float(out[name] * self.factor[q])
-        return out
-
-    def by_group(self, sep: str = ":") -> dict[str, ViewScatter]:
-        """The check split by the names' prefix before ``sep`` (``'step:cx'`` -> step ``'step'``,
-        parameter ``'cx'``)."""
+    def _groups(self) -> dict[str, list[int]]:
         groups: dict[str, list[int]] = {}
         for q, name in enumerate(self.names):
-            groups.setdefault(name.rsplit(sep, 1)[0], []).append(q)
+            groups.setdefault(name.rsplit(":", 1)[0] if ":" in name else "", []).append(q)
+        return groups
+
+    def applied(self) -> np.ndarray:
+        """(k,) the factor each sigma is multiplied by: its own where significant; for a free
+        parameter with too few effective views to be checked, the median factor of the checked
+        parameters of its fit when one of them is significant (the views' errors are shared by
+        all of a fit's parameters); else 1."""
+        out = np.where(self.significant, self.factor, 1.0)
+        for members in self._groups().values():
+            q = np.array(members)
+            checked = q[np.isfinite(self.factor[q])]
+            if not self.significant[q].any():
+                continue
+            pooled = max(float(np.median(self.factor[checked])), 1.0)
+            unchecked = q[self.free[q] & ~np.isfinite(self.factor[q])]
+            out[unchecked] = pooled
+        return out
+
+    def scaled(self, sd: dict[str, float]) -> dict[str, float]:
+        """``sd`` with each sigma multiplied by its :meth:`applied` factor."""
+        out = dict(sd)
+        for name, f in zip(self.names, self.applied(), strict=True):
+            if name in out:
+                out[name] = float(out[name] * f)
+        return out
+
+    def by_group(self) -> dict[str, ViewScatter]:
+        """The check split by fit (``'step:cx'`` -> fit ``'step'``, parameter ``'cx'``)."""
         return {g: ViewScatter(self.factor[q], self.views[q], self.threshold[q],
-                               tuple(self.names[i].rsplit(sep, 1)[1] for i in q))
-                for g, q in groups.items()}
+                               tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q])
+                for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     def to_dict(self) -> dict:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
-        ``views`` and ``threshold``, and the names whose sigma was ``scaled``."""
+        ``views`` and ``threshold``; the names whose sigma was ``scaled`` by its own factor, and
+        those scaled by the fit's median factor (``pooled``, too few views to check)."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
+        applied = self.applied()
         return {key: {self.names[q]: float(arr[q]) for q in checked}
                 for key, arr in (("factor", self.factor), ("views", self.views),
                                  ("threshold", self.threshold))} | {
-            "scaled": [self.names[q] for q in checked if self.significant[q]]}
+            "scaled": [self.names[q] for q in checked if self.significant[q]],
+            "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
+                       if q not in checked and applied[q] != 1.0}}
 
 
 def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
-                 names: tuple[str, ...]) -> ViewScatter:
+                 names: tuple[str, ...], model_sd: np.ndarray) -> ViewScatter:
     """The view-scatter check (module docstring) from each corner's influence.
 
     Parameters
     ----------
     influence : (N, k) ndarray
         ``a_i``: corner ``i``'s share of the solution's move, ``(S^-1 Jt_i^T r_i)``, per
-        parameter (``names``; a fixed parameter's column is zero).
+        parameter (``names``; a fixed parameter's column is zero), in the parameters' units.
         :meth:`zoomcalib.calibrate.bundle._Problem.camera_influence` computes it.
     view_idx : (N,) int ndarray
         The view of each corner, ``0 <= view_idx < n_views``.
     names : the parameters' names, k of them.
+    model_sd : (k,) ndarray
+        The noise model's 1-sigma of each parameter (0 or NaN: not checked).
     """
     a = np.asarray(influence, dtype=float)
-    if a.ndim != 2 or a.shape[1] != len(names) or len(view_idx) != len(a):
-        raise ValueError(f"influence of shape {a.shape} for {len(view_idx)} corners and "
-                         f"{len(names)} parameters")
+    model_sd = np.asarray(model_sd, dtype=float)
+    if (a.ndim != 2 or a.shape[1] != len(names) or len(view_idx) != len(a)
+            or model_sd.shape != (len(names),)):
+        raise ValueError(f"influence of shape {a.shape} for {len(view_idx)} corners, "
+                         f"{len(names)} parameters and {model_sd.shape} sigmas")
     per_view = np.zeros((n_views, a.shape[1]))
     np.add.at(per_view, view_idx, a)
     corner_sq = np.zeros_like(per_view)
     np.add.at(corner_sq, view_idx, a * a)
-    by_corner = corner_sq.sum(axis=0)
-    used = by_corner > 0
+    total = corner_sq.sum(axis=0)
+    used = (total > 0) & (model_sd > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        views = np.where(used, by_corner**2 / np.sum(corner_sq**2, axis=0), 0.0)
-        ratio = np.sum(per_view**2, axis=0) / by_corner * views / (views - 1.0)
+        views = np.where(used, total**2 / np.sum(corner_sq**2, axis=0), 0.0)
+        var_views = np.sum(per_view**2, axis=0) * views / (views - 1.0)
+        factor = np.sqrt(np.clip(var_views, 0.0, None)) / model_sd
     ok = used & (views >= MIN_VIEWS)
-    factor = np.where(ok, np.sqrt(np.clip(ratio, 0.0, None)), np.nan)
     dof = np.where(ok, views, 1.0)
     threshold = np.where(ok, np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof),
                          np.nan)
-    return ViewScatter(factor=factor, views=views, threshold=threshold, names=tuple(names))
+    return ViewScatter(factor=np.where(ok, factor, np.nan), views=views, threshold=threshold,
+                       names=tuple(names), free=used)

@@ -1052,7 +1052,9 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
                            for s, step in enumerate(prob.steps)])
     names = [f"{prob.steps[s].name}:{PARAMS[j]}" for s, j in zip(*np.nonzero(prob.free),
                                                                   strict=True)]
-    return view_scatter(np.asarray(influence), view, int(prob.view_start[-1]), tuple(names))
+    model_sd = np.sqrt(np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
+    return view_scatter(np.asarray(influence), view, int(prob.view_start[-1]), tuple(names),
+                        model_sd)
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
@@ -1061,7 +1063,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
     cov, scatter = _posterior_covariance(prob, state)
     # where a step's views disagree beyond its corner noise, its sigmas are the views' scatter
     scale = np.ones(len(cov))
-    scale[:prob.n_cam] = np.where(scatter.significant, scatter.factor, 1.0)
+    scale[:prob.n_cam] = scatter.applied()
     cov *= np.outer(scale, scale)
     for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
         col = prob.cam_col[steps, j]
