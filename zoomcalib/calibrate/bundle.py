@@ -748,6 +748,29 @@ class _Problem:
         influence -= np.einsum("nca,na->nc", through_pose[self.vi], pose_score)
         return influence @ self.cam_map.T
 
+    def camera_deletions(self, s: _State, U: np.ndarray, W: np.ndarray, V: np.ndarray
+                         ) -> np.ndarray | None:
+        """Per view, the camera's move when that view is left out, ``(S - A_v)^-1 g_v`` (m, 12)
+        over ``CAMERA_NAMES``, with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
+        Jt_i^T Jt_i`` view ``v``'s share of the gradient and of the Schur complement
+        ``S = U - sum_v W_v V_v^-1 W_v^T`` (one Gauss-Newton step: the delete-one-view jackknife
+        of :mod:`zoomcalib.calibrate.scatter`; ``U, W, V`` blocks of :meth:`normal_equations`).
+        Only for a target held fixed (None otherwise: with free target coordinates ``S`` is too
+        large to solve once per view); NaN rows where a view carries a parameter alone."""
+        if self.nx:
+            return None
+        r, Jc, Jp, _ = self.jacobians(s)
+        T = left_jacobian(s.rvecs)[self.vi]
+        Jp[:, :, :3] = Jp[:, :, :3] @ T                                     # Rodrigues columns
+        H = np.linalg.solve(V, W.transpose(0, 2, 1))                        # (m, 6, nc)
+        S = U - np.einsum("vci,vid->cd", W, H)
+        Jt = Jc - Jp @ H[self.vi]                                           # (N, 2, nc)
+        g = np.zeros((self.m, self.nc))
+        np.add.at(g, self.vi, np.einsum("nkc,nk->nc", Jt, r))
+        A = np.zeros((self.m, self.nc, self.nc))
+        np.add.at(A, self.vi, Jt.transpose(0, 2, 1) @ Jt)
+        return _deletion_steps(S, A, g) @ self.cam_map.T
+
     def normal_equations(self, s: _State):
         """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
         # the Rodrigues columns are the local rotation's times T_v, applied per view below
@@ -836,6 +859,20 @@ class _Problem:
         t.rvecs += dp[:, :3]
         t.tvecs += dp[:, 3:]
         return t
+
+
+def _deletion_steps(S: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``(S - A_v)^-1 g_v`` for each ``v`` (``S`` (k, k), ``A`` (m, k, k), ``g`` (m, k)), solved
+    scaled to ``S``'s unit diagonal; NaN rows where ``S - A_v`` is not positive definite."""
+    d = np.sqrt(np.clip(np.diag(S), 0.0, None))
+    scale = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
+    M = (S - A) * np.outer(scale, scale)
+    M[:, d == 0, d == 0] = 1.0
+    out = np.full(g.shape, np.nan)
+    eig = np.linalg.eigvalsh(M)
+    ok = eig[:, 0] > 1e-10 * eig[:, -1]
+    out[ok] = np.linalg.solve(M[ok], (g[ok] * scale)[:, :, None])[:, :, 0] * scale
+    return out
 
 
 def _inverse_from_cholesky(c: np.ndarray) -> np.ndarray:
@@ -1604,7 +1641,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     sd_names = CAMERA_NAMES[:4 + nd]
     camera_sd = cov.camera_sd(cam_map, "repeatability")
     scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
-                           prob.vi, m, CAMERA_NAMES, camera_sd)
+                           prob.vi, m, CAMERA_NAMES, camera_sd,
+                           prob.camera_deletions(state, *ne[:3]))
     sd = dict(zip(sd_names, camera_sd[:4 + nd].tolist(), strict=True))
     post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
                        strict=True))

@@ -435,10 +435,10 @@ def _camera_covariance(at_solution: _AtSolution
 def _view_scatter(at_solution: _AtSolution, covariance) -> ViewScatter:
     """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) at OpenCV's solution, from
     its :func:`_camera_covariance`."""
-    prob, (_, W, V, *_) = at_solution.prob, at_solution.blocks
+    prob, state, (U, W, V, *_) = at_solution.prob, at_solution.state, at_solution.blocks
     cov, _, S_inv = covariance
-    influence = prob.camera_influence(at_solution.state, W, V, S_inv)
-    return view_scatter(influence, prob.vi, prob.m, CAMERA_NAMES, np.sqrt(np.diag(cov)))
+    return view_scatter(prob.camera_influence(state, W, V, S_inv), prob.vi, prob.m, CAMERA_NAMES,
+                        np.sqrt(np.diag(cov)), prob.camera_deletions(state, U, W, V))
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken

@@ -110,7 +110,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from .bundle import project_jacobian
+from .bundle import _deletion_steps, project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
     calibrate_opencv_multistart,
@@ -749,7 +749,7 @@ def _joint_covariance(prob: _ZoomProblem, state: _State):
     """``cov(steps, j)`` of the per-step intrinsics of a solved problem, or None when its
     posterior covariance is not positive definite."""
     try:
-        cov = _posterior_covariance(prob, state)[0]
+        cov = _posterior_covariance(prob, state, check=False)[0]
     except (np.linalg.LinAlgError, ValueError):
         return None
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
@@ -1019,28 +1019,61 @@ def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_r
     return solve, iterations + solve.iterations
 
 
-def _posterior_covariance(prob: _ZoomProblem, state: _State
-                          ) -> tuple[np.ndarray, ViewScatter]:
+def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
+                          ) -> tuple[np.ndarray, ViewScatter | None]:
     """Posterior covariance ``[(J^T J)^{-1}]`` of the intrinsics and board modes (the poses
     marginalised: the inverse of the Schur complement), weighted problem with its prior rows;
-    and the view-scatter check of the intrinsics (:func:`_view_scatter`)."""
+    and, if ``check``, the view-scatter check of the intrinsics (:func:`_view_scatter`)."""
     r, J = prob.evaluate(state)
     U, W, V, _, _ = _normal_blocks(prob, J, r)
     W3 = W.reshape(len(U), len(V), 6)
     through_pose = np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V))        # W_v V_v^-1
     S = U - np.einsum("gvj,hvj->gh", through_pose, W3)
     cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
+    if not check:
+        return cov, None
     camera_rows = cov[:prob.n_cam]
+    deletions = _view_deletions(prob, r, J, W3, V, S)
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
-                              camera_rows)
+                              camera_rows, deletions)
+
+
+def _view_rows(prob: _ZoomProblem) -> tuple[np.ndarray, np.ndarray]:
+    """The view of each inlier corner (residual rows ``2 i, 2 i + 1``), in row order."""
+    return np.concatenate([prob.view_start[s] + step.view[step.inlier]
+                           for s, step in enumerate(prob.steps)])
+
+
+def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.ndarray,
+                    S: np.ndarray) -> np.ndarray:
+    """Per view, the intrinsics' move when that view is left out, ``(S - A_v)^-1 g_v``
+    (views, n_cam): ``A_v = Jt_v^T Jt_v`` and ``g_v = Jt_v^T r_v`` with ``Jt_v = J_g,v - J_p,v
+    V_v^-1 W_v^T`` the view's rows over the intrinsics and board modes, its pose projected out
+    (:mod:`zoomcalib.calibrate.scatter`); ``W3`` (n_glob, views, 6), ``S`` the Schur
+    complement."""
+    n_glob, n_views = prob.n_cam + prob.n_modes, len(V)
+    row_view = np.repeat(_view_rows(prob), 2)
+    order = np.argsort(row_view, kind="stable")
+    bounds = np.searchsorted(row_view[order], np.arange(n_views + 1))
+    data = J[:len(row_view)].tocsr()[order]
+    residual = r[:len(row_view)][order]
+    through_pose = np.linalg.solve(V, W3.transpose(1, 2, 0))             # (views, 6, n_glob)
+    A, g = np.zeros((n_views, n_glob, n_glob)), np.zeros((n_views, n_glob))
+    for v in range(n_views):                       # dense blocks of a few hundred rows each
+        rows = data[bounds[v]:bounds[v + 1]]
+        pose = rows[:, n_glob + 6 * v:n_glob + 6 * v + 6].toarray()
+        Jt = rows[:, :n_glob].toarray() - pose @ through_pose[v]
+        A[v], g[v] = Jt.T @ Jt, Jt.T @ residual[bounds[v]:bounds[v + 1]]
+    return _deletion_steps(S, A, g)[:, :prob.n_cam]
 
 
 def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
-                  camera_rows: np.ndarray) -> ViewScatter:
+                  camera_rows: np.ndarray, deletions: np.ndarray) -> ViewScatter:
     """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) of every step's free
     intrinsics: corner ``i``'s share of their move is ``S^-1[cam, :] (J_g,i^T r_i - W_v V_v^-1
     J_p,i^T r_i)``; ``camera_rows`` is ``S^-1[cam, :]`` (n_cam, n_glob), ``camera_pose`` the
-    same times ``W V^-1`` (n_cam, 6 views), ``r``, ``J`` the weighted residuals and Jacobian."""
+    same times ``W V^-1`` (n_cam, 6 views), ``r``, ``J`` the weighted residuals and Jacobian,
+    ``deletions`` :func:`_view_deletions`."""
     n_glob = prob.n_cam + prob.n_modes
     n_rows = sum(2 * int(step.inlier.sum()) for step in prob.steps)
     corner = scipy.sparse.csr_matrix((np.ones(n_rows), (np.arange(n_rows) // 2,
@@ -1048,13 +1081,12 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
     scores = corner @ scipy.sparse.diags(r[:n_rows]) @ J[:n_rows]       # (corners, unknowns)
     influence = (scores[:, :n_glob] @ camera_rows.T
                  - scores[:, n_glob:] @ camera_pose.T)                   # (corners, n_cam)
-    view = np.concatenate([prob.view_start[s] + step.view[step.inlier]
-                           for s, step in enumerate(prob.steps)])
+    view = _view_rows(prob)
     names = [f"{prob.steps[s].name}:{PARAMS[j]}" for s, j in zip(*np.nonzero(prob.free),
                                                                   strict=True)]
     model_sd = np.sqrt(np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
     return view_scatter(np.asarray(influence), view, int(prob.view_start[-1]), tuple(names),
-                        model_sd)
+                        model_sd, deletions)
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
