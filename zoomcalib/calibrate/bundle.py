@@ -753,23 +753,39 @@ class _Problem:
         """Per view, the camera's move when that view is left out, ``(S - A_v)^-1 g_v`` (m, 12)
         over ``CAMERA_NAMES``, with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
         Jt_i^T Jt_i`` view ``v``'s share of the gradient and of the Schur complement
-        ``S = U - sum_v W_v V_v^-1 W_v^T`` (one Gauss-Newton step: the delete-one-view jackknife
-        of :mod:`zoomcalib.calibrate.scatter`; ``U, W, V`` blocks of :meth:`normal_equations`).
-        Only for a target held fixed (None otherwise: with free target coordinates ``S`` is too
-        large to solve once per view); NaN rows where a view carries a parameter alone."""
-        if self.nx:
+        ``S = U - sum_v W_v V_v^-1 W_v^T`` over camera and free target coordinates (one
+        Gauss-Newton step: the delete-one-view jackknife of :mod:`zoomcalib.calibrate.scatter`;
+        ``U, W, V`` blocks of :meth:`normal_equations`). None when there are more than
+        :data:`DELETION_MAX_UNKNOWNS` of those (``S`` then costs too much to solve once per
+        view); NaN rows where a view carries a parameter alone."""
+        ny = self.nc + self.nx
+        if ny > DELETION_MAX_UNKNOWNS:
             return None
-        r, Jc, Jp, _ = self.jacobians(s)
+        r, Jc, Jp, Jx = self.jacobians(s)
         T = left_jacobian(s.rvecs)[self.vi]
         Jp[:, :, :3] = Jp[:, :, :3] @ T                                     # Rodrigues columns
-        H = np.linalg.solve(V, W.transpose(0, 2, 1))                        # (m, 6, nc)
+        H = np.linalg.solve(V, W.transpose(0, 2, 1))                        # (m, 6, ny)
         S = U - np.einsum("vci,vid->cd", W, H)
-        Jt = Jc - Jp @ H[self.vi]                                           # (N, 2, nc)
-        g = np.zeros((self.m, self.nc))
-        np.add.at(g, self.vi, np.einsum("nkc,nk->nc", Jt, r))
-        A = np.zeros((self.m, self.nc, self.nc))
-        np.add.at(A, self.vi, Jt.transpose(0, 2, 1) @ Jt)
-        return _deletion_steps(S, A, g) @ self.cam_map.T
+        if not self.nx:
+            Jt = Jc - Jp @ H[self.vi]                                       # (N, 2, nc)
+            g = np.zeros((self.m, ny))
+            np.add.at(g, self.vi, np.einsum("nkc,nk->nc", Jt, r))
+            A = np.zeros((self.m, ny, ny))
+            np.add.at(A, self.vi, Jt.transpose(0, 2, 1) @ Jt)
+            return _deletion_steps(S, A, g) @ self.cam_map.T
+        moves = np.empty((self.m, ny))
+        ends = np.append(self.starts, self.N)
+        free_at = np.searchsorted(self.wx_obs, ends)       # free point coordinates, by view
+        for v in range(self.m):                            # dense (2k, ny) blocks, k corners
+            lo, hi = ends[v], ends[v + 1]
+            Jy = np.zeros((hi - lo, 2, ny))
+            Jy[:, :, :self.nc] = Jc[lo:hi]
+            f = slice(free_at[v], free_at[v + 1])
+            o, a = self.wx_obs[f], self.wx_a[f]
+            Jy[o - lo, :, self.wx_row[f]] = Jx[o, :, a]
+            Jt = (Jy - Jp[lo:hi] @ H[v]).reshape(-1, ny)
+            moves[v] = _deletion_steps(S, (Jt.T @ Jt)[None], (Jt.T @ r[lo:hi].ravel())[None])[0]
+        return moves[:, :self.nc] @ self.cam_map.T
 
     def normal_equations(self, s: _State):
         """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
@@ -861,17 +877,27 @@ class _Problem:
         return t
 
 
+#: Most camera and free target unknowns for which :meth:`_Problem.camera_deletions` solves
+#: once per view (a 10 x 10 board with its coordinates free has 312).
+DELETION_MAX_UNKNOWNS = 400
+
+
 def _deletion_steps(S: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
     """``(S - A_v)^-1 g_v`` for each ``v`` (``S`` (k, k), ``A`` (m, k, k), ``g`` (m, k)), solved
-    scaled to ``S``'s unit diagonal; NaN rows where ``S - A_v`` is not positive definite."""
+    by Cholesky scaled to ``S``'s unit diagonal; NaN rows where ``S - A_v`` is not positive
+    definite or a pivot falls below 1e-10 of it (a view that carries a parameter alone)."""
     d = np.sqrt(np.clip(np.diag(S), 0.0, None))
     scale = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
     M = (S - A) * np.outer(scale, scale)
     M[:, d == 0, d == 0] = 1.0
     out = np.full(g.shape, np.nan)
-    eig = np.linalg.eigvalsh(M)
-    ok = eig[:, 0] > 1e-10 * eig[:, -1]
-    out[ok] = np.linalg.solve(M[ok], (g[ok] * scale)[:, :, None])[:, :, 0] * scale
+    for v in range(len(M)):
+        try:
+            factor = scipy.linalg.cho_factor(M[v], check_finite=False)
+        except np.linalg.LinAlgError:
+            continue
+        if np.min(np.diag(factor[0])) ** 2 > 1e-10:
+            out[v] = scipy.linalg.cho_solve(factor, g[v] * scale, check_finite=False) * scale
     return out
 
 

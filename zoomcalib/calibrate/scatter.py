@@ -26,8 +26,9 @@ residuals).
 
 With few views the fit's leverage makes ``var_views`` too small (about 0.6-0.7 of the truth at
 8 views and 9 camera terms): each view's residuals are pulled towards the solution that view
-helped make. Where the global unknowns are few enough to solve once per view (a target held
-fixed; the zoom-wide adjustment's intrinsics and board modes), the check uses instead the
+helped make. Where the global unknowns are few enough to solve once per view (at most
+``DELETION_MAX_UNKNOWNS`` camera and free target unknowns in the bundle, which OpenCV's fits and
+a 10 x 10 board are; the zoom-wide adjustment's intrinsics and board modes), the check uses the
 delete-one-view jackknife in one Gauss-Newton step (CR3 of Bell & McCaffrey 2002):
 ``delta_v = (S - A_v)^-1 g_v`` with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
 Jt_i^T Jt_i``, and ``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``.
