@@ -89,7 +89,8 @@ def test_a_parameter_too_few_views_carry_takes_its_fits_median_factor():
     per_fit = check.by_group()
     assert set(per_fit) == {"a", "b"} and per_fit["a"].names == ("cx", "cy", "f")
     assert list(per_fit["a"].to_dict()["pooled"]) == ["f"] and per_fit["b"].to_dict() == {
-        "factor": {"cx": pytest.approx(1.0, rel=0.15)}, "views": {"cx": pytest.approx(
+        "factor": {"cx": pytest.approx(1.0, rel=0.15)},
+        "test_factor": {"cx": pytest.approx(1.0, rel=0.15)}, "views": {"cx": pytest.approx(
             per_fit["b"].views[0])}, "threshold": {"cx": pytest.approx(
                 per_fit["b"].threshold[0])}, "scaled": [], "pooled": {}}
 

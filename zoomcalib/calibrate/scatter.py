@@ -24,18 +24,20 @@ views (Satterthwaite: ``d`` views of equal weight, fewer when some dominate). Th
 1 like ``chi^2_d / d`` (a little below 1 with few views, where the fit's leverage shrinks the
 residuals).
 
-With few views the fit's leverage makes ``var_views`` too small (about 0.6-0.7 of the truth at
-8 views and 9 camera terms): each view's residuals are pulled towards the solution that view
-helped make. Where the global unknowns are few enough to solve once per view (at most
+With few views the fit's leverage makes ``var_views`` too small: each view's residuals are
+pulled towards the solution that view helped make. Where the global unknowns are few enough to solve once per view (at most
 ``DELETION_MAX_UNKNOWNS`` camera and free target unknowns in the bundle, which OpenCV's fits and
 a 10 x 10 board are; the zoom-wide adjustment's intrinsics and board modes), the check uses the
 delete-one-view jackknife in one Gauss-Newton step (CR3 of Bell & McCaffrey 2002):
 ``delta_v = (S - A_v)^-1 g_v`` with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
-Jt_i^T Jt_i``, and ``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``.
+Jt_i^T Jt_i``, and ``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``, for the size of
+the scaled sigma. The test stays on the clustered sum: the jackknife's spread under the noise
+model has heavier tails than ``chi^2_d / d`` where the fit is not linear in one view (on rendered
+sweeps it flagged a long-end fx whose noise-model sigma was honest).
 
-The factor is significant when its square exceeds the 99.9 % point of ``chi^2_d / d``. Where it
-is, the sigma the calibration reports is the factor times the noise model's; elsewhere it is
-kept. Below :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten
+The clustered sum's factor is significant when its square exceeds the 99.9 % point of
+``chi^2_d / d``. Where it is, the sigma the calibration reports is the factor (the jackknife's
+where computed, at least 1) times the noise model's; elsewhere it is kept. Below :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten
 carry) a parameter cannot be checked; when another parameter of the same fit is found
 disagreeing, it takes the median factor of the fit's checked parameters, since the errors the
 views share act on all of them.
@@ -62,8 +64,10 @@ class ViewScatter:
     Attributes
     ----------
     factor : (k,) ndarray
-        The view-clustered 1-sigma over the noise model's; NaN for a fixed parameter or below
-        :data:`MIN_VIEWS` effective views.
+        The view-clustered 1-sigma over the noise model's (the jackknife's where it was
+        computed); NaN for a fixed parameter or below :data:`MIN_VIEWS` effective views.
+    test_factor : (k,) ndarray
+        The same from the clustered sum, which the significance test reads.
     views : (k,) ndarray
         Effective number of views ``d``.
     threshold : (k,) ndarray
@@ -75,6 +79,7 @@ class ViewScatter:
     """
 
     factor: np.ndarray
+    test_factor: np.ndarray
     views: np.ndarray
     threshold: np.ndarray
     names: tuple[str, ...]
@@ -84,7 +89,7 @@ class ViewScatter:
     def significant(self) -> np.ndarray:
         """(k,) bool: the views disagree beyond what the corner noise explains."""
         with np.errstate(invalid="ignore"):
-            return np.nan_to_num(self.factor) > self.threshold
+            return np.nan_to_num(self.test_factor) > self.threshold
 
     def _groups(self) -> dict[str, list[int]]:
         groups: dict[str, list[int]] = {}
@@ -97,7 +102,7 @@ class ViewScatter:
         parameter with too few effective views to be checked, the median factor of the checked
         parameters of its fit when one of them is significant (the views' errors are shared by
         all of a fit's parameters); else 1."""
-        out = np.where(self.significant, self.factor, 1.0)
+        out = np.where(self.significant, np.maximum(self.factor, 1.0), 1.0)
         for members in self._groups().values():
             q = np.array(members)
             checked = q[np.isfinite(self.factor[q])]
@@ -118,7 +123,8 @@ class ViewScatter:
 
     def by_group(self) -> dict[str, ViewScatter]:
         """The check split by fit (``'step:cx'`` -> fit ``'step'``, parameter ``'cx'``)."""
-        return {g: ViewScatter(self.factor[q], self.views[q], self.threshold[q],
+        return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
+                               self.threshold[q],
                                tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q])
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
@@ -129,7 +135,8 @@ class ViewScatter:
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
         applied = self.applied()
         return {key: {self.names[q]: float(arr[q]) for q in checked}
-                for key, arr in (("factor", self.factor), ("views", self.views),
+                for key, arr in (("factor", self.factor), ("test_factor", self.test_factor),
+                                 ("views", self.views),
                                  ("threshold", self.threshold))} | {
             "scaled": [self.names[q] for q in checked if self.significant[q]],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
@@ -154,8 +161,8 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         The noise model's 1-sigma of each parameter (0 or NaN: not checked).
     deletions : (n_views, k) ndarray, optional
         Each view's deletion step ``(S - A_v)^-1 g_v``: the variance is then the jackknife's
-        (module docstring); a NaN row (a view that carries a parameter alone) leaves the
-        parameters it touches unchecked.
+        (module docstring) for the size of a scaled sigma; where a view carries a parameter
+        alone (a NaN row) the clustered sum's is used.
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
@@ -170,19 +177,21 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     used = (total > 0) & (model_sd > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         views = np.where(used, total**2 / np.sum(corner_sq**2, axis=0), 0.0)
-        if deletions is None:
-            per_view = np.zeros((n_views, a.shape[1]))
-            np.add.at(per_view, view_idx, a)
-            var_views = np.sum(per_view**2, axis=0) * views / (views - 1.0)
-        else:
-            seen = np.bincount(view_idx, minlength=n_views) > 0
-            moves = np.asarray(deletions, dtype=float)[seen]
-            var_views = ((len(moves) - 1) / len(moves)
+        per_view = np.zeros((n_views, a.shape[1]))
+        np.add.at(per_view, view_idx, a)
+        clustered = np.sum(per_view**2, axis=0) * views / (views - 1.0)
+        test_factor = np.sqrt(np.clip(clustered, 0.0, None)) / model_sd
+        factor = test_factor
+        if deletions is not None:
+            moves = np.asarray(deletions, dtype=float)[np.bincount(view_idx,
+                                                                   minlength=n_views) > 0]
+            jackknife = ((len(moves) - 1) / len(moves)
                          * np.sum((moves - moves.mean(axis=0))**2, axis=0))
-        factor = np.sqrt(np.clip(var_views, 0.0, None)) / model_sd
-    ok = used & (views >= MIN_VIEWS) & np.isfinite(factor)
+            factor = np.where(np.isfinite(jackknife), np.sqrt(jackknife) / model_sd, factor)
+    ok = used & (views >= MIN_VIEWS) & np.isfinite(test_factor)
     dof = np.where(ok, views, 1.0)
     threshold = np.where(ok, np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof),
                          np.nan)
-    return ViewScatter(factor=np.where(ok, factor, np.nan), views=views, threshold=threshold,
-                       names=tuple(names), free=used)
+    return ViewScatter(factor=np.where(ok, factor, np.nan),
+                       test_factor=np.where(ok, test_factor, np.nan), views=views,
+                       threshold=threshold, names=tuple(names), free=used)
