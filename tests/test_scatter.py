@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from zoomcalib.calibrate.bundle import CAMERA_NAMES, calibrate_bundle
-from zoomcalib.calibrate.checks import conditioning_flags, cross_validate
+from zoomcalib.calibrate.checks import conditioning_flags, cross_validate, split_halves
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.opencv_backend import (
     _camera_covariance,
@@ -24,7 +24,7 @@ from zoomcalib.calibrate.opencv_backend import (
     observations_from_detections,
 )
 from zoomcalib.calibrate.result import Observations
-from zoomcalib.calibrate.scatter import view_scatter
+from zoomcalib.calibrate.scatter import view_groups, view_scatter
 from zoomcalib.calibrate.synthetic import sweep_detections
 from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide
 from zoomcalib.detect.opencv import detect_folder
@@ -265,3 +265,40 @@ def test_real_wide_lens_halves_figueroa():
             z_used.append(d / np.hypot(a.sd[q], b.sd[q]))
     assert np.sqrt(np.mean(np.square(z_model))) > 3.0
     assert np.sqrt(np.mean(np.square(z_used))) < 2.0
+
+
+def _video_frames(obs: Observations, rng: np.random.Generator, copies: int, field_px: float
+                  ) -> Observations:
+    """Each view as ``copies`` frames of a video where the board hardly moved (0.3 px apart, 0.1
+    px of fresh noise each), all sharing that pose's hidden smooth error field."""
+    fields = _with_view_fields(obs, rng, field_px)
+    views = []
+    for (ids, pts), (_, moved) in zip(obs.views, fields.views, strict=True):
+        for _ in range(copies):
+            views.append((ids, moved + 0.3 * rng.normal(size=2) + 0.1 * rng.normal(size=pts.shape)))
+    return Observations(obs.object_points, views, obs.image_size)
+
+
+def test_frames_of_one_pose_count_once():
+    """Ten poses, three video frames each, every pose with its hidden error field: the frames
+    are found to be one view each (ten groups), the check's sigmas cover the truth (counting the
+    30 frames as independent views would make them about sqrt(3) too small), and the halves of
+    the cross-validation keep a pose's frames together."""
+    z_used = []
+    for seed in range(10):
+        rng = np.random.default_rng(500 + seed)
+        sweep = sweep_detections(rng, steps=1, views=10, noise_px=0.0)
+        (obs,) = sweep.observations.values()
+        truth = next(iter(sweep.truth.values()))
+        frames = _video_frames(obs, rng, 3, 0.3)
+        groups = view_groups(frames.views, frames.image_size)
+        assert groups.tolist() == np.repeat(np.arange(10), 3).tolist()
+        res = calibrate_opencv(frames)
+        z_used.append([(res.cx - truth["cx"]) / res.sd["cx"], (res.cy - truth["cy"]) / res.sd["cy"],
+                       (res.fx - truth["fx"]) / res.sd["fx"]])
+    rms = np.sqrt(np.mean(np.square(z_used)))
+    # 30 z values: an honest RMS lies within about +-30 % of 1
+    assert 0.6 < rms < 1.4, rms
+    even, odd = split_halves(frames)
+    assert (even.n_views, odd.n_views) == (15, 15)
+    assert [p for _, p in even.views[:3]] == [p for _, p in frames.views[:3]]

@@ -173,7 +173,7 @@ from zoomcalib.calibrate.result import (
     Observations,
     one_opencv_thread,
 )
-from zoomcalib.calibrate.scatter import view_scatter
+from zoomcalib.calibrate.scatter import view_groups, view_scatter
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -748,19 +748,22 @@ class _Problem:
         influence -= np.einsum("nca,na->nc", through_pose[self.vi], pose_score)
         return influence @ self.cam_map.T
 
-    def camera_deletions(self, s: _State, U: np.ndarray, W: np.ndarray, V: np.ndarray
-                         ) -> np.ndarray | None:
-        """Per view, the camera's move when that view is left out, ``(S - A_v)^-1 g_v`` (m, 12)
-        over ``CAMERA_NAMES``, with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
-        Jt_i^T Jt_i`` view ``v``'s share of the gradient and of the Schur complement
+    def camera_deletions(self, s: _State, U: np.ndarray, W: np.ndarray, V: np.ndarray,
+                         groups: np.ndarray | None = None) -> np.ndarray | None:
+        """Per group of views (``groups`` (m,) labels ``0..G-1``; default one view each), the
+        camera's move when the group is left out, ``(S - A_g)^-1 g_g`` (G, 12) over
+        ``CAMERA_NAMES``, with ``g_g = sum_{i in g} Jt_i^T r_i`` and ``A_g = sum_{i in g}
+        Jt_i^T Jt_i`` the group's share of the gradient and of the Schur complement
         ``S = U - sum_v W_v V_v^-1 W_v^T`` over camera and free target coordinates (one
         Gauss-Newton step: the delete-one-view jackknife of :mod:`zoomcalib.calibrate.scatter`;
         ``U, W, V`` blocks of :meth:`normal_equations`). None when there are more than
         :data:`DELETION_MAX_UNKNOWNS` of those (``S`` then costs too much to solve once per
-        view); NaN rows where a view carries a parameter alone."""
+        view); NaN rows where a group carries a parameter alone."""
         ny = self.nc + self.nx
         if ny > DELETION_MAX_UNKNOWNS:
             return None
+        groups = np.arange(self.m) if groups is None else np.asarray(groups)
+        n_groups = int(groups.max()) + 1
         r, Jc, Jp, Jx = self.jacobians(s)
         T = left_jacobian(s.rvecs)[self.vi]
         Jp[:, :, :3] = Jp[:, :, :3] @ T                                     # Rodrigues columns
@@ -768,23 +771,27 @@ class _Problem:
         S = U - np.einsum("vci,vid->cd", W, H)
         if not self.nx:
             Jt = Jc - Jp @ H[self.vi]                                       # (N, 2, nc)
-            g = np.zeros((self.m, ny))
-            np.add.at(g, self.vi, np.einsum("nkc,nk->nc", Jt, r))
-            A = np.zeros((self.m, ny, ny))
-            np.add.at(A, self.vi, Jt.transpose(0, 2, 1) @ Jt)
+            g = np.zeros((n_groups, ny))
+            np.add.at(g, groups[self.vi], np.einsum("nkc,nk->nc", Jt, r))
+            A = np.zeros((n_groups, ny, ny))
+            np.add.at(A, groups[self.vi], Jt.transpose(0, 2, 1) @ Jt)
             return _deletion_steps(S, A, g) @ self.cam_map.T
-        moves = np.empty((self.m, ny))
+        moves = np.empty((n_groups, ny))
         ends = np.append(self.starts, self.N)
         free_at = np.searchsorted(self.wx_obs, ends)       # free point coordinates, by view
-        for v in range(self.m):                            # dense (2k, ny) blocks, k corners
-            lo, hi = ends[v], ends[v + 1]
-            Jy = np.zeros((hi - lo, 2, ny))
-            Jy[:, :, :self.nc] = Jc[lo:hi]
-            f = slice(free_at[v], free_at[v + 1])
-            o, a = self.wx_obs[f], self.wx_a[f]
-            Jy[o - lo, :, self.wx_row[f]] = Jx[o, :, a]
-            Jt = (Jy - Jp[lo:hi] @ H[v]).reshape(-1, ny)
-            moves[v] = _deletion_steps(S, (Jt.T @ Jt)[None], (Jt.T @ r[lo:hi].ravel())[None])[0]
+        for group in range(n_groups):                      # dense (2k, ny) blocks, k corners
+            A, g = np.zeros((ny, ny)), np.zeros(ny)
+            for v in np.flatnonzero(groups == group):
+                lo, hi = ends[v], ends[v + 1]
+                Jy = np.zeros((hi - lo, 2, ny))
+                Jy[:, :, :self.nc] = Jc[lo:hi]
+                f = slice(free_at[v], free_at[v + 1])
+                o, a = self.wx_obs[f], self.wx_a[f]
+                Jy[o - lo, :, self.wx_row[f]] = Jx[o, :, a]
+                Jt = (Jy - Jp[lo:hi] @ H[v]).reshape(-1, ny)
+                A += Jt.T @ Jt
+                g += Jt.T @ r[lo:hi].ravel()
+            moves[group] = _deletion_steps(S, A[None], g[None])[0]
         return moves[:, :self.nc] @ self.cam_map.T
 
     def normal_equations(self, s: _State):
@@ -1666,9 +1673,10 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     nd = 5 if model == "standard" else 8
     sd_names = CAMERA_NAMES[:4 + nd]
     camera_sd = cov.camera_sd(cam_map, "repeatability")
+    groups = view_groups(obs.views, obs.image_size)
     scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
-                           prob.vi, m, CAMERA_NAMES, camera_sd,
-                           prob.camera_deletions(state, *ne[:3]))
+                           groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
+                           prob.camera_deletions(state, *ne[:3], groups))
     sd = dict(zip(sd_names, camera_sd[:4 + nd].tolist(), strict=True))
     post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
                        strict=True))

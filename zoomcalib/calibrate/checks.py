@@ -16,7 +16,8 @@ not fit, a board that moves, correlated errors within a view), or when its solve
 converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
-two halves (even and odd images), each half is calibrated on its own as the full set was, and
+two halves (even and odd images; views of nearly one pose count as one and stay together), each
+half is calibrated on its own as the full set was, and
 for ``q`` in ``fx, cx, cy`` the difference is expressed in its combined sigma,
 
     z_q = (q_a - q_b) / sqrt(sd_a^2 + sd_b^2),
@@ -33,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .result import CalibrationResult, Observations
+from .scatter import view_groups
 
 __all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_halves",
            "CROSS_VALIDATED", "Z_LIMIT"]
@@ -95,9 +97,14 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
 
 
 def split_halves(obs: Observations) -> tuple[Observations, Observations]:
-    """The even and the odd views of ``obs`` (in their order, i.e. by image name)."""
-    def pick(start: int) -> Observations:
-        keep = range(start, obs.n_views, 2)
+    """The even and the odd views of ``obs`` (in their order, i.e. by image name), counting
+    views of nearly one pose as one (:func:`~zoomcalib.calibrate.scatter.view_groups`: frames
+    of a video where the board hardly moved go to the same half, or the halves would share
+    their errors)."""
+    half = view_groups(obs.views, obs.image_size) % 2
+
+    def pick(parity: int) -> Observations:
+        keep = np.flatnonzero(half == parity)
         return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
                             [obs.names[i] for i in keep] if obs.names else [])
     return pick(0), pick(1)

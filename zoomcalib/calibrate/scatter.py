@@ -25,36 +25,81 @@ views (Satterthwaite: ``d`` views of equal weight, fewer when some dominate). Th
 residuals).
 
 With few views the fit's leverage makes ``var_views`` too small: each view's residuals are
-pulled towards the solution that view helped make. Where the global unknowns are few enough to solve once per view (at most
-``DELETION_MAX_UNKNOWNS`` camera and free target unknowns in the bundle, which OpenCV's fits and
-a 10 x 10 board are; the zoom-wide adjustment's intrinsics and board modes), the check uses the
-delete-one-view jackknife in one Gauss-Newton step (CR3 of Bell & McCaffrey 2002):
-``delta_v = (S - A_v)^-1 g_v`` with ``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v}
-Jt_i^T Jt_i``, and ``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``, for the size of
-the scaled sigma. The test stays on the clustered sum: the jackknife's spread under the noise
-model has heavier tails than ``chi^2_d / d`` where the fit is not linear in one view (on rendered
-sweeps it flagged a long-end fx whose noise-model sigma was honest).
+pulled towards the solution that view helped make. Where the global unknowns are few enough to
+solve once per view (at most ``DELETION_MAX_UNKNOWNS`` camera and free target unknowns in the
+bundle, which OpenCV's fits and a 10 x 10 board are; the zoom-wide adjustment's intrinsics and
+board modes), the size of a scaled sigma comes from the delete-one-view jackknife in one
+Gauss-Newton step (CR3 of Bell & McCaffrey 2002): ``delta_v = (S - A_v)^-1 g_v`` with
+``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v} Jt_i^T Jt_i``, and
+``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``. The test stays on the clustered
+sum: the jackknife's spread under the noise model has heavier tails than ``chi^2_d / d`` where
+the fit is not linear in one view (on rendered sweeps it flagged a long-end fx whose
+noise-model sigma was honest).
 
 The clustered sum's factor is significant when its square exceeds the 99.9 % point of
 ``chi^2_d / d``. Where it is, the sigma the calibration reports is the factor (the jackknife's
-where computed, at least 1) times the noise model's; elsewhere it is kept. Below :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten
-carry) a parameter cannot be checked; when another parameter of the same fit is found
-disagreeing, it takes the median factor of the fit's checked parameters, since the errors the
-views share act on all of them.
+where computed, at least 1) times the noise model's; elsewhere it is kept. Below
+:data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten carry) a
+parameter cannot be checked; when another parameter of the same fit is found disagreeing, it
+takes the median factor of the fit's checked parameters, since the errors the views share act
+on all of them.
+
+"Views" are independent draws only if they are different views. Frames of a video where the
+board hardly moved see it through the same part of the lens and share their systematic errors;
+:func:`view_groups` joins them, and the check clusters (and deletes) by group.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 import scipy.stats
 
-__all__ = ["ViewScatter", "view_scatter", "MIN_VIEWS", "SIGNIFICANCE"]
+__all__ = ["ViewScatter", "view_scatter", "view_groups", "MIN_VIEWS", "SIGNIFICANCE",
+           "SAME_VIEW_FRACTION"]
 
 #: Fewest effective views (``d``) for which the check is made.
 MIN_VIEWS = 4.0
 #: One-sided level of the chi-square test of ``F``.
 SIGNIFICANCE = 0.001
+#: Two views whose common corners lie closer than this fraction of the image diagonal (RMS) are
+#: one view for the check (:func:`view_groups`).
+SAME_VIEW_FRACTION = 0.01
+
+
+def view_groups(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int, int],
+                fraction: float = SAME_VIEW_FRACTION) -> np.ndarray:
+    """(m,) int: a group per view, views of nearly one pose sharing one (labels ``0..G-1`` in
+    order of their first view).
+
+    Two views are linked when at least 4 corners are common to both and those lie within
+    ``fraction`` of the image diagonal of each other (RMS, px); groups are the linked views'
+    connected sets. Frames taken from a video where the board hardly moved see the same board
+    through the same part of the lens: their systematic errors are one draw, not several, and
+    the check (and the two halves of ``--cross-validate``) must count them once.
+
+    ``views``: ``(ids (k,), points (k, 2))`` per view, px; ``image_size`` ``(width, height)``.
+    """
+    m = len(views)
+    n = 1 + max((int(ids.max()) for ids, _ in views if len(ids)), default=-1)
+    grid = np.full((m, max(n, 1), 2), np.nan)
+    for v, (ids, pts) in enumerate(views):
+        grid[v, ids] = pts
+    limit2 = (fraction * float(np.hypot(*image_size))) ** 2
+    linked = np.zeros((m, m), bool)
+    for v in range(m):
+        d2 = np.sum((grid - grid[v]) ** 2, axis=2)                      # (m, n), NaN unseen
+        common = np.sum(np.isfinite(d2), axis=1)
+        with np.errstate(invalid="ignore"):
+            linked[v] = (common >= 4) & (np.nanmean(np.where(common[:, None] > 0, d2, 0.0),
+                                                    axis=1) < limit2)
+    _, labels = scipy.sparse.csgraph.connected_components(scipy.sparse.csr_matrix(linked),
+                                                          directed=False)
+    _, first = np.unique(labels, return_index=True)
+    order = np.argsort(np.argsort(first))          # renumber groups by their first view
+    return order[labels]
 
 
 @dataclass

@@ -118,7 +118,7 @@ from .opencv_backend import (
     not_a_camera,
 )
 from .result import CalibrationResult, Observations
-from .scatter import ViewScatter, view_scatter
+from .scatter import ViewScatter, view_groups, view_scatter
 from .zoommodel import (
     CANDIDATES,
     ZoomModel,
@@ -310,7 +310,8 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
 @dataclass
 class _Step:
     """One zoom step's observations, flattened: ``view`` (N,) index into the step's views,
-    ``point`` (N,) board point ids, ``uv`` (N, 2) px; ``inlier`` (N,) bool."""
+    ``point`` (N,) board point ids, ``uv`` (N, 2) px; ``inlier`` (N,) bool; ``group``
+    (n_views,) views of nearly one pose (:func:`~zoomcalib.calibrate.scatter.view_groups`)."""
 
     name: str
     view: np.ndarray
@@ -318,6 +319,7 @@ class _Step:
     uv: np.ndarray
     n_views: int
     inlier: np.ndarray
+    group: np.ndarray
     sigma: float = 1.0
 
     @classmethod
@@ -325,7 +327,8 @@ class _Step:
         view = np.concatenate([np.full(len(ids), i) for i, (ids, _) in enumerate(obs.views)])
         point = np.concatenate([ids for ids, _ in obs.views]).astype(np.int64)
         uv = np.concatenate([pts for _, pts in obs.views]).astype(np.float64)
-        return cls(name, view, point, uv, obs.n_views, np.ones(len(view), bool), sigma)
+        return cls(name, view, point, uv, obs.n_views, np.ones(len(view), bool),
+                   view_groups(obs.views, obs.image_size), sigma)
 
 
 @dataclass
@@ -1038,19 +1041,25 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
                               camera_rows, deletions)
 
 
-def _view_rows(prob: _ZoomProblem) -> tuple[np.ndarray, np.ndarray]:
+def _view_rows(prob: _ZoomProblem) -> np.ndarray:
     """The view of each inlier corner (residual rows ``2 i, 2 i + 1``), in row order."""
     return np.concatenate([prob.view_start[s] + step.view[step.inlier]
                            for s, step in enumerate(prob.steps)])
 
 
+def _view_groups(prob: _ZoomProblem) -> np.ndarray:
+    """(views,) the group of every view of the sweep, numbered across steps."""
+    offsets = np.cumsum([0] + [int(step.group.max()) + 1 for step in prob.steps])
+    return np.concatenate([offsets[s] + step.group for s, step in enumerate(prob.steps)])
+
+
 def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.ndarray,
                     S: np.ndarray) -> np.ndarray:
-    """Per view, the intrinsics' move when that view is left out, ``(S - A_v)^-1 g_v``
-    (views, n_cam): ``A_v = Jt_v^T Jt_v`` and ``g_v = Jt_v^T r_v`` with ``Jt_v = J_g,v - J_p,v
-    V_v^-1 W_v^T`` the view's rows over the intrinsics and board modes, its pose projected out
-    (:mod:`zoomcalib.calibrate.scatter`); ``W3`` (n_glob, views, 6), ``S`` the Schur
-    complement."""
+    """Per group of views (:func:`_view_groups`), the intrinsics' move when the group is left
+    out, ``(S - A_g)^-1 g_g`` (groups, n_cam): ``A_g`` and ``g_g`` sum ``Jt_v^T Jt_v`` and
+    ``Jt_v^T r_v`` over its views, ``Jt_v = J_g,v - J_p,v V_v^-1 W_v^T`` a view's rows over the
+    intrinsics and board modes, its pose projected out (:mod:`zoomcalib.calibrate.scatter`);
+    ``W3`` (n_glob, views, 6), ``S`` the Schur complement."""
     n_glob, n_views = prob.n_cam + prob.n_modes, len(V)
     row_view = np.repeat(_view_rows(prob), 2)
     order = np.argsort(row_view, kind="stable")
@@ -1058,12 +1067,14 @@ def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.
     data = J[:len(row_view)].tocsr()[order]
     residual = r[:len(row_view)][order]
     through_pose = np.linalg.solve(V, W3.transpose(1, 2, 0))             # (views, 6, n_glob)
-    A, g = np.zeros((n_views, n_glob, n_glob)), np.zeros((n_views, n_glob))
+    groups = _view_groups(prob)
+    A, g = np.zeros((groups.max() + 1, n_glob, n_glob)), np.zeros((groups.max() + 1, n_glob))
     for v in range(n_views):                       # dense blocks of a few hundred rows each
         rows = data[bounds[v]:bounds[v + 1]]
         pose = rows[:, n_glob + 6 * v:n_glob + 6 * v + 6].toarray()
         Jt = rows[:, :n_glob].toarray() - pose @ through_pose[v]
-        A[v], g[v] = Jt.T @ Jt, Jt.T @ residual[bounds[v]:bounds[v + 1]]
+        A[groups[v]] += Jt.T @ Jt
+        g[groups[v]] += Jt.T @ residual[bounds[v]:bounds[v + 1]]
     return _deletion_steps(S, A, g)[:, :prob.n_cam]
 
 
@@ -1081,12 +1092,12 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
     scores = corner @ scipy.sparse.diags(r[:n_rows]) @ J[:n_rows]       # (corners, unknowns)
     influence = (scores[:, :n_glob] @ camera_rows.T
                  - scores[:, n_glob:] @ camera_pose.T)                   # (corners, n_cam)
-    view = _view_rows(prob)
+    groups = _view_groups(prob)
     names = [f"{prob.steps[s].name}:{PARAMS[j]}" for s, j in zip(*np.nonzero(prob.free),
                                                                   strict=True)]
     model_sd = np.sqrt(np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
-    return view_scatter(np.asarray(influence), view, int(prob.view_start[-1]), tuple(names),
-                        model_sd, deletions)
+    return view_scatter(np.asarray(influence), groups[_view_rows(prob)], int(groups.max()) + 1,
+                        tuple(names), model_sd, deletions)
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
