@@ -175,10 +175,10 @@ def test_nothing_is_scaled_where_the_corner_noise_is_all_there_is():
     assert len(scaled) <= 1
 
 
-def test_the_jackknife_averages_the_noise_model_with_ten_views():
+def test_the_check_averages_the_noise_model_with_ten_views():
     """Per-step OpenCV on 24 seeded sets of 10 views with independent corner noise: the
-    delete-one-view jackknife's variance averages near the noise model's, and no pinhole term
-    is scaled."""
+    view-clustered variance averages near the noise model's, and no pinhole term is scaled (so
+    the jackknife is not computed)."""
     ratios, scaled = [], []
     for seed in range(24):
         sweep = sweep_detections(np.random.default_rng(400 + seed), steps=1, views=10,
@@ -189,8 +189,8 @@ def test_the_jackknife_averages_the_noise_model_with_ten_views():
         scaled += [q for q in check["scaled"] if q in ("fx", "fy", "cx", "cy")]
     mean = np.nanmean(ratios, axis=0)
     # each ratio spreads like chi2_d / d with d of 5-10 (sd about 0.5): the mean of ~24 by 0.1;
-    # the jackknife errs high where the fit is not linear (fx: about 1.3 here)
-    assert np.all((mean > 0.7) & (mean < 1.6)), mean
+    # the fit's leverage shrinks it somewhat with 10 views
+    assert np.all((mean > 0.6) & (mean < 1.4)), mean
     assert scaled == []
 
 

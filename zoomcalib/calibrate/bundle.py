@@ -1676,7 +1676,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     groups = view_groups(obs.views, obs.image_size)
     scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
                            groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
-                           prob.camera_deletions(state, *ne[:3], groups))
+                           lambda: prob.camera_deletions(state, *ne[:3], groups))
     sd = dict(zip(sd_names, camera_sd[:4 + nd].tolist(), strict=True))
     post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
                        strict=True))

@@ -50,6 +50,7 @@ board hardly moved see it through the same part of the lens and share their syst
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -190,7 +191,7 @@ class ViewScatter:
 
 def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                  names: tuple[str, ...], model_sd: np.ndarray,
-                 deletions: np.ndarray | None = None) -> ViewScatter:
+                 deletions: Callable[[], np.ndarray | None] | None = None) -> ViewScatter:
     """The view-scatter check (module docstring) from each corner's influence.
 
     Parameters
@@ -204,16 +205,16 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     names : the parameters' names, k of them.
     model_sd : (k,) ndarray
         The noise model's 1-sigma of each parameter (0 or NaN: not checked).
-    deletions : (n_views, k) ndarray, optional
-        Each view's deletion step ``(S - A_v)^-1 g_v``: the variance is then the jackknife's
-        (module docstring) for the size of a scaled sigma; where a view carries a parameter
-        alone (a NaN row) the clustered sum's is used.
+    deletions : callable, optional
+        Returns each view's deletion step ``(S - A_v)^-1 g_v`` (n_views, k), or None: the
+        variance is then the jackknife's (module docstring) for the size of a scaled sigma;
+        where a view carries a parameter alone (a NaN row) the clustered sum's is used. Called
+        only when a parameter is found disagreeing (it costs a solve per view).
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
     if (a.ndim != 2 or a.shape[1] != len(names) or len(view_idx) != len(a)
-            or model_sd.shape != (len(names),)
-            or (deletions is not None and np.shape(deletions) != (n_views, len(names)))):
+            or model_sd.shape != (len(names),)):
         raise ValueError(f"influence of shape {a.shape} for {len(view_idx)} corners, "
                          f"{len(names)} parameters and {model_sd.shape} sigmas")
     corner_sq = np.zeros((n_views, a.shape[1]))
@@ -226,17 +227,22 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         np.add.at(per_view, view_idx, a)
         clustered = np.sum(per_view**2, axis=0) * views / (views - 1.0)
         test_factor = np.sqrt(np.clip(clustered, 0.0, None)) / model_sd
-        factor = test_factor
-        if deletions is not None:
-            moves = np.asarray(deletions, dtype=float)[np.bincount(view_idx,
-                                                                   minlength=n_views) > 0]
-            jackknife = ((len(moves) - 1) / len(moves)
-                         * np.sum((moves - moves.mean(axis=0))**2, axis=0))
-            factor = np.where(np.isfinite(jackknife), np.sqrt(jackknife) / model_sd, factor)
     ok = used & (views >= MIN_VIEWS) & np.isfinite(test_factor)
     dof = np.where(ok, views, 1.0)
     threshold = np.where(ok, np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof),
                          np.nan)
+    factor = test_factor
+    moves = deletions() if deletions is not None and np.any(ok & (test_factor > threshold)) \
+        else None
+    if moves is not None:
+        if np.shape(moves) != (n_views, len(names)):
+            raise ValueError(f"deletions of shape {np.shape(moves)} for {n_views} views and "
+                             f"{len(names)} parameters")
+        moves = np.asarray(moves, dtype=float)[np.bincount(view_idx, minlength=n_views) > 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            jackknife = ((len(moves) - 1) / len(moves)
+                         * np.sum((moves - moves.mean(axis=0))**2, axis=0))
+            factor = np.where(np.isfinite(jackknife), np.sqrt(jackknife) / model_sd, factor)
     return ViewScatter(factor=np.where(ok, factor, np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
                        threshold=threshold, names=tuple(names), free=used)

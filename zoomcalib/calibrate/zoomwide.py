@@ -1036,9 +1036,8 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     if not check:
         return cov, None
     camera_rows = cov[:prob.n_cam]
-    deletions = _view_deletions(prob, r, J, W3, V, S)
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
-                              camera_rows, deletions)
+                              camera_rows, lambda: _view_deletions(prob, r, J, W3, V, S))
 
 
 def _view_rows(prob: _ZoomProblem) -> np.ndarray:
@@ -1079,12 +1078,12 @@ def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.
 
 
 def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
-                  camera_rows: np.ndarray, deletions: np.ndarray) -> ViewScatter:
+                  camera_rows: np.ndarray, deletions) -> ViewScatter:
     """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) of every step's free
     intrinsics: corner ``i``'s share of their move is ``S^-1[cam, :] (J_g,i^T r_i - W_v V_v^-1
     J_p,i^T r_i)``; ``camera_rows`` is ``S^-1[cam, :]`` (n_cam, n_glob), ``camera_pose`` the
     same times ``W V^-1`` (n_cam, 6 views), ``r``, ``J`` the weighted residuals and Jacobian,
-    ``deletions`` :func:`_view_deletions`."""
+    ``deletions`` a callable giving :func:`_view_deletions`."""
     n_glob = prob.n_cam + prob.n_modes
     n_rows = sum(2 * int(step.inlier.sum()) for step in prob.steps)
     corner = scipy.sparse.csr_matrix((np.ones(n_rows), (np.arange(n_rows) // 2,
