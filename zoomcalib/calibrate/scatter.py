@@ -122,6 +122,8 @@ class ViewScatter:
         adjustment's steps).
     free : (k,) bool ndarray
         Estimated (not fixed); a free parameter with a NaN factor had too few effective views.
+    whole : (factor, d, threshold), optional
+        The :meth:`fit_test` of the solution this check is a part of (:meth:`by_group`).
     """
 
     factor: np.ndarray
@@ -130,12 +132,44 @@ class ViewScatter:
     threshold: np.ndarray
     names: tuple[str, ...]
     free: np.ndarray
+    whole: tuple[float, float, float] | None = None
 
     @property
     def significant(self) -> np.ndarray:
         """(k,) bool: the views disagree beyond what the corner noise explains."""
         with np.errstate(invalid="ignore"):
             return np.nan_to_num(self.test_factor) > self.threshold
+
+    def fit_test(self) -> tuple[float, float, float]:
+        """``(factor, d, threshold)`` of the whole solution (module docstring): the factor
+        pooled over every checked parameter, ``sqrt(sum_g d_g mean_g(F^2) / sum_g d_g)`` with
+        ``d_g`` the median effective views of fit ``g``, and the factor above which it is
+        significant, ``sqrt(chi2_{0.999, D} / D)``, ``D = sum_g d_g``. NaN when nothing was
+        checked. A part of a solution (:meth:`by_group`) answers for the whole."""
+        if self.whole is not None:
+            return self.whole
+        weighted, dof = 0.0, 0.0
+        for members in self._groups().values():
+            q = np.array(members)
+            q = q[np.isfinite(self.test_factor[q])]
+            if len(q):
+                d = float(np.median(self.views[q]))
+                weighted += d * float(np.mean(self.test_factor[q] ** 2))
+                dof += d
+        if dof == 0.0:
+            return float("nan"), 0.0, float("nan")
+        return (float(np.sqrt(weighted / dof)), dof,
+                float(np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof)))
+
+    @property
+    def fit_significant(self) -> bool:
+        """The views disagree over the solution as a whole (:meth:`fit_test`)."""
+        factor, _, threshold = self.fit_test()
+        return bool(factor > threshold)
+
+    def _own(self) -> np.ndarray:
+        """(k,) bool: the parameters whose sigma takes their own factor."""
+        return self.significant | (self.fit_significant & np.isfinite(self.factor))
 
     def _groups(self) -> dict[str, list[int]]:
         groups: dict[str, list[int]] = {}
@@ -144,15 +178,17 @@ class ViewScatter:
         return groups
 
     def applied(self) -> np.ndarray:
-        """(k,) the factor each sigma is multiplied by: its own where significant; for a free
-        parameter with too few effective views to be checked, the median factor of the checked
-        parameters of its fit when one of them is significant (the views' errors are shared by
-        all of a fit's parameters); else 1."""
-        out = np.where(self.significant, np.maximum(self.factor, 1.0), 1.0)
+        """(k,) the factor each sigma is multiplied by (at least 1): its own where significant,
+        and for every checked parameter when the solution as a whole is
+        (:meth:`fit_significant`); for a free parameter with too few effective views to be
+        checked, the median factor of the checked parameters of its fit when one of them takes
+        its own (the views' errors are shared by all of a fit's parameters); else 1."""
+        own = self._own()
+        out = np.where(own, np.maximum(self.factor, 1.0), 1.0)
         for members in self._groups().values():
             q = np.array(members)
             checked = q[np.isfinite(self.factor[q])]
-            if not self.significant[q].any():
+            if not own[q].any():
                 continue
             pooled = max(float(np.median(self.factor[checked])), 1.0)
             unchecked = q[self.free[q] & ~np.isfinite(self.factor[q])]
@@ -169,9 +205,11 @@ class ViewScatter:
 
     def by_group(self) -> dict[str, ViewScatter]:
         """The check split by fit (``'step:cx'`` -> fit ``'step'``, parameter ``'cx'``)."""
+        whole = self.fit_test()
         return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
                                self.threshold[q],
-                               tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q])
+                               tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q],
+                               whole)
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     def to_dict(self) -> dict:
@@ -180,11 +218,13 @@ class ViewScatter:
         those scaled by the fit's median factor (``pooled``, too few views to check)."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
         applied = self.applied()
+        fit_factor, fit_views, fit_threshold = self.fit_test()
         return {key: {self.names[q]: float(arr[q]) for q in checked}
                 for key, arr in (("factor", self.factor), ("test_factor", self.test_factor),
                                  ("views", self.views),
                                  ("threshold", self.threshold))} | {
-            "scaled": [self.names[q] for q in checked if self.significant[q]],
+            "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold},
+            "scaled": [self.names[q] for q in checked if applied[q] > 1.0],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
                        if q not in checked and applied[q] != 1.0}}
 
@@ -231,9 +271,12 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     dof = np.where(ok, views, 1.0)
     threshold = np.where(ok, np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof),
                          np.nan)
+    check = ViewScatter(factor=np.where(ok, test_factor, np.nan),
+                        test_factor=np.where(ok, test_factor, np.nan), views=views,
+                        threshold=threshold, names=tuple(names), free=used)
     factor = test_factor
-    moves = deletions() if deletions is not None and np.any(ok & (test_factor > threshold)) \
-        else None
+    moves = (deletions() if deletions is not None
+             and (check.significant.any() or check.fit_significant) else None)
     if moves is not None:
         if np.shape(moves) != (n_views, len(names)):
             raise ValueError(f"deletions of shape {np.shape(moves)} for {n_views} views and "

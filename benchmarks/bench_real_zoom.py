@@ -1,0 +1,142 @@
+"""A zoom sweep of real corners: mrcal's figueroa set cut by a digital zoom.
+
+``python benchmarks/bench_real_zoom.py [--zooms 1.5 4 7] [--views 24] [--drift 30]
+[--splits 10] [--seed 1]``
+
+:func:`zoomcalib.calibrate.digital_zoom.digital_zoom_sweep` crops the 186 real views (6016 x
+4016, a wide lens) to windows of ``1/z`` of the sensor, scaled to 1280 x 854 px, one window per
+zoom step, each real view used by one step only. Every step is then a camera whose noise, lens
+misfit and board warp are real. Three backends calibrate the sweep with default settings:
+zoom-wide, per-step OpenCV, per-step bundle. Two checks, neither of which knows the truth:
+
+- halves: each step's views in two halves (even/odd groups of nearly one pose, then
+  ``--splits - 1`` random splits of the groups), both halves calibrated, ``z`` of fx, cx, cy
+  over their combined reported sigma (the issue's real-set goal: within 3);
+- one camera: each step's fx, cx, cy mapped back to the sensor must be the same camera's,
+  so each step is compared with the weighted mean of the others,
+  ``z = (b_k - mean_others) / sqrt(sd_k^2 + sd_mean^2)`` (zoom-wide's steps share the board
+  and the prior, so its z are conservative).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # benchmark this checkout
+
+from zoomcalib.calibrate.bundle import calibrate_bundle  # noqa: E402
+from zoomcalib.calibrate.checks import conditioning_flags  # noqa: E402
+from zoomcalib.calibrate.digital_zoom import DigitalZoom, digital_zoom_sweep  # noqa: E402
+from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
+from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
+from zoomcalib.calibrate.result import Observations  # noqa: E402
+from zoomcalib.calibrate.scatter import view_groups  # noqa: E402
+from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+
+DATA = ROOT / "tests" / "data" / "mrcal-figueroa" / "figueroa_obs.npz"
+COMPARED = ("fx", "cx", "cy")
+
+
+def per_step(calibrate):
+    def run(observations: dict[str, Observations]):
+        out = {}
+        for step, obs in observations.items():
+            try:
+                out[step] = calibrate(obs)
+            except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+                print(f"    {step}: failed ({exc})")
+        return out
+    return run
+
+
+BACKENDS = {
+    "zoom-wide": lambda obs: calibrate_zoom_wide(obs).results,
+    "opencv": per_step(calibrate_opencv_robust),
+    "bundle": per_step(calibrate_bundle),
+}
+
+
+def halves(obs: Observations, count: int, rng: np.random.Generator):
+    """Even/odd groups of views, then random halves of the groups."""
+    groups = view_groups(obs.views, obs.image_size)
+    n = int(groups.max()) + 1
+    masks = [groups % 2 == 0]
+    masks += [np.isin(groups, rng.permutation(n)[: n // 2]) for _ in range(count - 1)]
+    return [tuple(Observations(obs.object_points, [obs.views[i] for i in np.flatnonzero(m)],
+                               obs.image_size) for m in (mask, ~mask)) for mask in masks]
+
+
+def camera_table(sweep: DigitalZoom, name: str, results: dict) -> np.ndarray:
+    """Print each step's values mapped to the sensor; return the z against the other steps."""
+    steps = [s for s in sweep.observations if s in results]
+    value = np.array([sweep.to_sensor(s, *(getattr(results[s], q) for q in COMPARED))
+                      for s in steps])
+    sd = np.array([[results[s].sd[q] / sweep.scale[s] for q in COMPARED] for s in steps])
+    z = np.full_like(value, np.nan)
+    for k in range(len(steps)):
+        other = np.arange(len(steps)) != k
+        w = 1.0 / sd[other] ** 2
+        mean = (w * value[other]).sum(0) / w.sum(0)
+        z[k] = (value[k] - mean) / np.sqrt(sd[k] ** 2 + 1.0 / w.sum(0))
+    for k, s in enumerate(steps):
+        r = results[s]
+        flags = conditioning_flags(r, sweep.image_size)
+        print(f"  {name:9s} {s}  fx {r.fx:7.1f}  sensor "
+              + "  ".join(f"{q} {v:7.1f} +- {e:5.1f} (z {zz:+5.1f})"
+                          for q, v, e, zz in zip(COMPARED, value[k], sd[k], z[k], strict=True))
+              + f"  rms {r.rms_px:.3f}" + (f"  [{flags[0]}]" if flags else ""))
+    return z
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--zooms", type=float, nargs=3, default=(1.5, 4.0, 7),
+                    metavar=("FIRST", "LAST", "STEPS"))
+    ap.add_argument("--views", type=int, default=24, help="views per step")
+    ap.add_argument("--drift", type=float, default=30.0, help="principal point move, px")
+    ap.add_argument("--splits", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=1)
+    a = ap.parse_args()
+    warnings.simplefilter("ignore")
+    source, _ = observations_from_npz(DATA)
+    rng = np.random.default_rng(a.seed)
+    zooms = np.geomspace(a.zooms[0], a.zooms[1], int(a.zooms[2]))
+    sweep = digital_zoom_sweep(source, zooms, views_per_step=a.views, drift_px=a.drift, rng=rng)
+    print(f"digital zoom of figueroa: {sweep.image_size[0]} x {sweep.image_size[1]} px, "
+          + ", ".join(f"{s} {o.n_views} views {o.n_observations} corners fx~"
+                      f"{2072 * sweep.scale[s]:.0f}" for s, o in sweep.observations.items()))
+    parts = {s: halves(o, a.splits, rng) for s, o in sweep.observations.items()}
+    for name, calibrate in BACKENDS.items():
+        t0 = time.time()
+        results = calibrate(sweep.observations)
+        z_camera = camera_table(sweep, name, results)
+        print(f"  {name:9s} one camera: RMS z " + " ".join(
+            f"{q} {v:.2f}" for q, v in zip(COMPARED, np.sqrt(np.nanmean(z_camera**2, 0)),
+                                           strict=True))
+              + f", max |z| {np.nanmax(np.abs(z_camera)):.1f}  ({time.time() - t0:.0f} s)")
+        z_half = {s: [] for s in sweep.observations}
+        for k in range(a.splits):
+            first = calibrate({s: p[k][0] for s, p in parts.items()})
+            second = calibrate({s: p[k][1] for s, p in parts.items()})
+            for s in sweep.observations:
+                if s in first and s in second:
+                    ra, rb = first[s], second[s]
+                    z_half[s].append([(getattr(ra, q) - getattr(rb, q))
+                                      / np.hypot(ra.sd[q], rb.sd[q]) for q in COMPARED])
+        every = np.concatenate([np.reshape(v, (-1, 3)) for v in z_half.values()])
+        print(f"  {name:9s} halves ({a.splits} splits): per step RMS z fx/cx/cy "
+              + ", ".join(f"{s} " + "/".join(f"{v:.1f}" for v in np.sqrt(np.mean(
+                  np.square(z), 0))) for s, z in z_half.items() if len(z))
+              + f"; max |z| {np.abs(every).max():.1f}, |z| > 3: {(np.abs(every) > 3).sum()}"
+              f" of {every.size}  ({time.time() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
