@@ -1,0 +1,116 @@
+"""A zoom sweep cut from one real set (zoomcalib/calibrate/digital_zoom.py).
+
+The map is checked against OpenCV's own projection of a known camera through each window (a
+generator the module does not use); the sweep of real corners (mrcal's figueroa set) against
+the issue's real-set goal, halves within 3 combined sigma, with the check finding the views'
+disagreement that the noise model misses.
+"""
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from zoomcalib.calibrate.digital_zoom import digital_zoom_sweep
+from zoomcalib.calibrate.io import observations_from_npz
+from zoomcalib.calibrate.result import Observations
+from zoomcalib.calibrate.scatter import view_groups
+from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide
+
+DATA = Path(__file__).parent / "data"
+
+
+def _source(rng: np.random.Generator, K: np.ndarray, dist: np.ndarray, size=(3000, 2000)):
+    """Exact projections (``cv2.projectPoints``) of a 12 x 9 board in 30 seeded poses."""
+    board = np.array([[x, y, 0.0] for y in range(9) for x in range(12)]) * 30.0
+    views = []
+    for _ in range(30):
+        rvec = rng.uniform(-0.5, 0.5, 3)
+        tvec = np.array([-165.0, -120.0, 0.0]) + rng.normal([0, 0, 700], [60, 60, 100])
+        uv = cv2.projectPoints(board, rvec, tvec, K, dist)[0].reshape(-1, 2)
+        inside = np.all((uv >= 0) & (uv <= np.array(size) - 1), axis=1)
+        views.append((np.flatnonzero(inside), uv[inside]))
+    return Observations(board, views, size)
+
+
+def test_each_step_is_the_source_camera_seen_through_its_window():
+    """Exact corners of a known camera (fx 1800, off-centre principal point, barrel):
+    calibrating each step with OpenCV gives ``s fx`` and the moved principal point with the
+    source's distortion, and :meth:`to_sensor` maps them back to the source camera."""
+    rng = np.random.default_rng(7)
+    K = np.array([[1800.0, 0.0, 1530.0], [0.0, 1800.0, 980.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
+    sweep = digital_zoom_sweep(_source(rng, K, dist), [1.0, 1.5, 2.2], width=900,
+                               views_per_step=10, min_points=30, drift_px=20.0, rng=rng)
+    assert sweep.image_size == (900, 600) and len(sweep.observations) == 3
+    used = np.concatenate(list(sweep.source_views.values()))
+    assert len(used) == len(set(used.tolist()))                 # no view in two steps
+    for step, obs in sweep.observations.items():
+        points = [obs.object_points[ids].astype(np.float32) for ids, _ in obs.views]
+        pixels = [uv.astype(np.float32) for _, uv in obs.views]
+        assert all(np.all((uv >= 0) & (uv <= np.array(obs.image_size) - 1)) for uv in pixels)
+        rms, K1, d1, _, _ = cv2.calibrateCamera(
+            points, pixels, obs.image_size, None, None, flags=cv2.CALIB_FIX_K3,
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-14))
+        assert rms < 1e-3
+        s = sweep.scale[step]
+        assert s == pytest.approx(sweep.zoom[step] * 900 / 3000)
+        assert K1[0, 0] == pytest.approx(s * 1800.0, rel=1e-5)
+        assert d1.ravel()[:2] == pytest.approx(dist[:2], abs=1e-4)
+        fx, cx, cy = sweep.to_sensor(step, K1[0, 0], K1[0, 2], K1[1, 2])
+        assert (fx, cx, cy) == pytest.approx((1800.0, 1530.0, 980.0), abs=0.02)
+    # the drift moves the output principal point from where a centred window puts it by
+    # (20 sin 2.5t, -20t) px, t from 0 (shortest step) to 1 (longest)
+    centre = np.array([2999.0, 1999.0]) / 2
+    for step, t in (("z1.00", 0.0), ("z2.20", 1.0)):
+        shift = sweep.scale[step] * (centre - sweep.window_centre[step])
+        assert shift == pytest.approx((20.0 * np.sin(2.5 * t), -20.0 * t), abs=1e-9)
+
+
+def test_zooms_below_one_or_too_few_views_are_refused():
+    rng = np.random.default_rng(0)
+    K = np.array([[1800.0, 0.0, 1500.0], [0.0, 1800.0, 1000.0], [0.0, 0.0, 1.0]])
+    obs = _source(rng, K, np.zeros(5))
+    with pytest.raises(ValueError, match="zooms >= 1"):
+        digital_zoom_sweep(obs, [0.5, 2.0])
+    with pytest.raises(ValueError, match="step z40.00 finds 0 views"):
+        digital_zoom_sweep(obs, [1.0, 40.0])
+
+
+def _random_halves(obs: Observations, rng: np.random.Generator):
+    """Two halves of ``obs`` drawn at random, views of nearly one pose kept together."""
+    groups = view_groups(obs.views, obs.image_size)
+    first = np.isin(groups, rng.permutation(groups.max() + 1)[: (groups.max() + 1) // 2])
+    return tuple(Observations(obs.object_points, [obs.views[i] for i in np.flatnonzero(m)],
+                              obs.image_size) for m in (first, ~first))
+
+
+def test_the_halves_of_a_real_zoom_sweep_agree_within_their_sigmas():
+    """Seven steps of figueroa's real corners (z 1.5 to 4, 24 views each), zoom-wide, two random
+    splits into halves: 42 z of fx, cx, cy. The views share their errors (lens misfit, board),
+    mildly in each step: with the noise model's sigmas RMS z is above 1.5. The reported sigmas,
+    scaled where the adjustment as a whole finds the views disagreeing, give an RMS z below 1.35
+    (honest sigmas: 1 +- 0.15) and every |z| below 3.5. Checked one parameter at a time, the
+    scatter was found in a few steps only (RMS z 1.47, |z| up to 4.1)."""
+    warnings.simplefilter("ignore")
+    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
+    rng = np.random.default_rng(1)
+    sweep = digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
+                               drift_px=30.0, rng=rng)
+    z, z_model = [], []
+    for _ in range(2):
+        parts = {s: _random_halves(o, rng) for s, o in sweep.observations.items()}
+        first, second = (calibrate_zoom_wide({s: p[h] for s, p in parts.items()}).results
+                         for h in (0, 1))
+        for s in sweep.observations:
+            a, b = first[s], second[s]
+            z += [(getattr(a, q) - getattr(b, q)) / np.hypot(a.sd[q], b.sd[q])
+                  for q in ("fx", "cx", "cy")]
+            z_model += [(getattr(a, q) - getattr(b, q)) / np.hypot(
+                a.info["sd_noise_model"][q], b.info["sd_noise_model"][q])
+                for q in ("fx", "cx", "cy")]
+    assert len(z) == 42 and np.sqrt(np.mean(np.square(z_model))) > 1.5
+    assert np.sqrt(np.mean(np.square(z))) < 1.35 and np.abs(z).max() < 3.5
