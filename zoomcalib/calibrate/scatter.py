@@ -44,6 +44,14 @@ parameter cannot be checked; when another parameter of the same fit is found dis
 takes the median factor of the fit's checked parameters, since the errors the views share act
 on all of them.
 
+One parameter's test has little power with few views (``d = 6`` needs a factor of 1.9). The
+solution as a whole is also tested (:meth:`ViewScatter.fit_test`): for each fit ``g`` (a
+zoom-wide step, or the one fit) the squared factors are averaged over its checked parameters
+and counted as one draw of ``chi^2_{d_g} / d_g``, ``d_g`` the median of their effective views
+(they share the views, so not as independent ones); fits are independent, so
+``sum_g d_g mean_g(F^2) ~ chi^2_D``, ``D = sum_g d_g``. Where that is significant, every checked
+parameter takes its own factor (at least 1), significant alone or not.
+
 "Views" are independent draws only if they are different views. Frames of a video where the
 board hardly moved see it through the same part of the lens and share their systematic errors;
 :func:`view_groups` joins them, and the check clusters (and deletes) by group.
