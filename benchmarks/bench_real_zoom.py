@@ -19,8 +19,9 @@ zoom-wide, per-step OpenCV, per-step bundle. Two checks, neither of which knows 
 
 Last, where the one-camera check fails: each step's fx mapped back, from ``cv2.calibrateCamera``
 with the five-term model free and with the distortion held at the bundle's rational fit of
-all 186 full views (mrcal's weights; fx, cx, cy free). A lens the model fits gives the same
-fx whatever part of the field a step sees.
+all 186 full views (mrcal's weights; fx, cx, cy free), and from the per-step bundle with the
+standard and the rational model. A lens the model fits gives the same fx whatever part of the
+field a step sees.
 """
 
 from __future__ import annotations
@@ -124,6 +125,12 @@ def focal_by_distortion(source: Observations, weights: list, sweep: DigitalZoom)
             fx.append(sweep.to_sensor(step, K[0, 0], K[0, 2], K[1, 2])[0])
         print(f"  sensor fx, {label:15s}: " + " ".join(f"{v:.1f}" for v in fx)
               + f"  (spread {100 * np.ptp(fx) / np.mean(fx):.2f} %)")
+    for model in ("standard", "rational"):
+        fits = per_step(lambda obs, model=model: calibrate_bundle(obs, model=model))(
+            sweep.observations)
+        print(f"  per-step bundle, {model:8s}: " + " ".join(
+            f"{s} fx {sweep.to_sensor(s, r.fx, r.cx, r.cy)[0]:.1f} rms {r.rms_px:.3f}"
+            for s, r in fits.items()))
 
 
 def main() -> None:
