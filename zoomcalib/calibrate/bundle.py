@@ -161,6 +161,7 @@ import contextlib
 import functools
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -173,7 +174,7 @@ from zoomcalib.calibrate.result import (
     Observations,
     one_opencv_thread,
 )
-from zoomcalib.calibrate.scatter import view_groups, view_scatter
+from zoomcalib.calibrate.scatter import ViewScatter, view_groups, view_scatter
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -1635,21 +1636,16 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         raise ValueError(f"bundle adjustment needs at least 3 views, got {m}: with fewer the "
                          "intrinsics, poses and target points are not determined")
     vi, pi, uv, w, ids_list, pts_list = _flatten(obs, weights)
-    N = len(vi)
 
     # ---- unknowns, gauge and the count refusal -----------------------------------------
     seen = np.bincount(pi, minlength=n) >= 2
     held = np.flatnonzero(~seen) if refine_target else []
-    fixed, gauge_text, gpts = _gauge(X0, gauge_points, seen)
+    fixed, gauge_text, gauge_pts = _gauge(X0, gauge_points, seen)
     fixed[held] = True
     free_pts = ~fixed if refine_target else np.zeros((n, 3), bool)
     aspect = 1.0 if K0 is None else float(K0[0][0] / K0[1][1])
     cam_map, cam_names = _cam_map(model, fix_aspect, aspect)
-    n_unk = cam_map.shape[1] + 6 * m + int(free_pts.sum())
-    if 2 * N < n_unk:
-        raise ValueError(f"{N} observations give {2 * N} equations for {n_unk} unknowns "
-                         f"({cam_map.shape[1]} camera + 6 x {m} pose + {int(free_pts.sum())} "
-                         "target coordinates): add views, or set refine_target=False")
+    _refuse_underdetermined(len(vi), cam_map.shape[1], m, int(free_pts.sum()))
 
     # ---- stage 1: initial values and the fronto-parallel refusal ------------------------
     cam, rv0, tv0 = _initial_values(obs.image_size, X0, ids_list, pts_list, model, K0, dist0,
@@ -1658,44 +1654,31 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
     tilts = _board_tilts_deg(rv0, min_tilt_deg)
 
+    # ---- stages 2-4: the flat fit, the free target, outlier rounds ----------------------
     modes = _shape_modes(X0) if refine_target else None
-    Lam = None
-    if refine_target and target_sigma_mm is not None:
-        Lam = _ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
-    flat_state, state, prob, inlier, stages, ne = _solve_stages(
+    shape_prior = (_ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
+                   if refine_target and target_sigma_mm is not None else None)
+    flat_state, state, prob, inlier, stages, normal = _solve_stages(
         _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), cam_map, free_pts,
-        Lam, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations, tol)
+        shape_prior, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations,
+        tol)
 
-    # ---- stage 5: covariance ------------------------------------------------------------
-    if ne is None:
-        ne = prob.normal_equations(state)
-    cov = _covariances(prob, state, ne, cam_names, m)
-    nd = 5 if model == "standard" else 8
-    sd_names = CAMERA_NAMES[:4 + nd]
-    camera_sd = cov.camera_sd(cam_map, "repeatability")
-    groups = view_groups(obs.views, obs.image_size)
-    scatter = view_scatter(prob.camera_influence(state, ne[1], ne[2], cov.Sinv[:prob.nc]),
-                           groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
-                           lambda: prob.camera_deletions(state, *ne[:3], groups))
-    sd = dict(zip(sd_names, camera_sd[:4 + nd].tolist(), strict=True))
-    post_sd = dict(zip(sd_names, cov.camera_sd(cam_map, "posterior")[:4 + nd].tolist(),
-                       strict=True))
-    sd_noise_model = sd
-    if scatter_check:
-        sd, post_sd = scatter.scaled(sd), scatter.scaled(post_sd)
-    pose_sd = cov.pose_sd("repeatability")
-    pose_sd_post = cov.pose_sd("posterior")
+    # ---- stage 5: covariance and the view-scatter check ---------------------------------
+    if normal is None:
+        normal = prob.normal_equations(state)
+    cov = _covariances(prob, state, normal, cam_names, m)
+    sigmas = _camera_sigmas(prob, state, normal, cov, cam_map, model, obs, scatter_check)
+    pose_sd, pose_sd_post = cov.pose_sd("repeatability"), cov.pose_sd("posterior")
     stage_info, converged, stop_reason = _convergence_summary(stages, K0 is None)
     if not converged:
         _warn_not_converged(stage_info)
 
     cam = state.cam
-    K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
-    e2 = np.sum((project_jacobian(cam, state.rvecs, state.tvecs, state.X, vi, pi, jacobian=False)
-                 - uv) ** 2, axis=1)                   # unweighted px^2
-    per_view = np.sqrt(np.bincount(vi[inlier], e2[inlier], m)
+    residual_sq = np.sum((project_jacobian(cam, state.rvecs, state.tvecs, state.X, vi, pi,
+                                           jacobian=False) - uv) ** 2, axis=1)  # unweighted
+    per_view = np.sqrt(np.bincount(vi[inlier], residual_sq[inlier], m)
                        / np.maximum(np.bincount(vi[inlier], minlength=m), 1))
-    info: dict = {"gauge": gauge_text, "gauge_points": list(gpts),
+    info: dict = {"gauge": gauge_text, "gauge_points": list(gauge_pts),
                   "n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
                   "converged": converged, "stop_reason": stop_reason, "stages": stage_info,
                   "iterations": {k: v.iterations for k, v in stages.items()},
@@ -1706,30 +1689,87 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                   "rvecs_sd": pose_sd[:, :3], "tvecs_sd": pose_sd[:, 3:],
                   "points_held": [int(i) for i in held],
                   "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm,
-                  "sd_posterior": post_sd, "rvecs_sd_posterior": pose_sd_post[:, :3],
+                  "sd_posterior": sigmas.posterior, "rvecs_sd_posterior": pose_sd_post[:, :3],
                   "tvecs_sd_posterior": pose_sd_post[:, 3:],
-                  "view_scatter": scatter.to_dict() | {"applied": scatter_check},
-                  "sd_noise_model": sd_noise_model}
+                  "view_scatter": sigmas.scatter.to_dict() | {"applied": scatter_check},
+                  "sd_noise_model": sigmas.noise_model}
     obj_pts = obj_sd = None
     if refine_target:
-        obj_pts = state.X.copy()
-        f, cov_pts = prob.free_idx, cov.points
-        var = np.zeros(3 * n)
-        var[f] = cov.point_variances()
-        obj_sd = np.sqrt(var).reshape(n, 3)
-        info["flatness_mm"], info["flatness_sd_mm"] = _flatness(obj_pts, cov_pts, f)
-        info["guard"] = _guard(modes, X0, obj_pts, cov_pts, f, flat_state.cam, cam,
-                               sd_noise_model)
-        _warn_guard(info["guard"], guard_warn_ratio)
+        obj_pts, obj_sd = _refined_target(prob, state, cov, modes, X0, flat_state.cam,
+                                          sigmas.noise_model, guard_warn_ratio, info)
     if return_covariance:
         info["parameter_names"] = cov.names
         info["covariance_repeatability"] = cov.full("repeatability")
         info["covariance_posterior"] = cov.full("posterior")
-    return CalibrationResult(backend="bundle", K=K, dist=cam[4:4 + nd].copy(), sd=sd,
-                             rms_px=float(np.sqrt(e2[inlier].mean())), per_view_rms_px=per_view,
-                             rvecs=state.rvecs.copy(), tvecs=state.tvecs.copy(),
+    n_dist = 5 if model == "standard" else 8
+    return CalibrationResult(backend="bundle", K=_camera_matrix(cam), dist=cam[4:4 + n_dist].copy(),
+                             sd=sigmas.reported, rms_px=float(np.sqrt(residual_sq[inlier].mean())),
+                             per_view_rms_px=per_view, rvecs=state.rvecs.copy(),
+                             tvecs=state.tvecs.copy(),
                              rejected=[(int(vi[i]), int(pi[i])) for i in np.flatnonzero(~inlier)],
                              object_points=obj_pts, object_points_sd=obj_sd, info=info)
+
+
+def _refuse_underdetermined(n_obs: int, n_camera: int, n_views: int, n_target: int) -> None:
+    """Raise when the observations give fewer equations (2 each) than there are unknowns."""
+    n_unknowns = n_camera + 6 * n_views + n_target
+    if 2 * n_obs < n_unknowns:
+        raise ValueError(f"{n_obs} observations give {2 * n_obs} equations for {n_unknowns} "
+                         f"unknowns ({n_camera} camera + 6 x {n_views} pose + {n_target} "
+                         "target coordinates): add views, or set refine_target=False")
+
+
+def _camera_matrix(cam: np.ndarray) -> np.ndarray:
+    """(3, 3) ``K`` from the camera vector ``(fx, fy, cx, cy, ...)``."""
+    return np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
+
+
+class _CameraSigmas(NamedTuple):
+    """The camera's 1-sigmas by name: ``reported`` (repeatability, scaled where the views
+    disagree and the check is applied), ``posterior`` (likewise), ``noise_model`` (unscaled),
+    and the view-scatter ``scatter`` check behind the scaling."""
+
+    reported: dict[str, float]
+    posterior: dict[str, float]
+    noise_model: dict[str, float]
+    scatter: ViewScatter
+
+
+def _camera_sigmas(prob: _Problem, state: _State, normal, cov: _Covariances,
+                   cam_map: np.ndarray, model: str, obs: Observations,
+                   scatter_check: bool) -> _CameraSigmas:
+    """The camera's sigmas from the covariance, checked against the scatter between views
+    (groups of nearly one pose counted once, :mod:`zoomcalib.calibrate.scatter`)."""
+    names = CAMERA_NAMES[:4 + (5 if model == "standard" else 8)]
+    camera_sd = cov.camera_sd(cam_map, "repeatability")
+    groups = view_groups(obs.views, obs.image_size)
+    scatter = view_scatter(prob.camera_influence(state, normal[1], normal[2],
+                                                 cov.Sinv[:prob.nc]),
+                           groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
+                           lambda: prob.camera_deletions(state, *normal[:3], groups))
+    noise_model = dict(zip(names, camera_sd[:len(names)].tolist(), strict=True))
+    posterior = dict(zip(names, cov.camera_sd(cam_map, "posterior")[:len(names)].tolist(),
+                         strict=True))
+    if not scatter_check:
+        return _CameraSigmas(noise_model, posterior, noise_model, scatter)
+    return _CameraSigmas(scatter.scaled(noise_model), scatter.scaled(posterior), noise_model,
+                         scatter)
+
+
+def _refined_target(prob: _Problem, state: _State, cov: _Covariances, modes, X0: np.ndarray,
+                    flat_cam: np.ndarray, sd_noise_model: dict[str, float],
+                    guard_warn_ratio: float, info: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The refined points (n, 3) and their sigmas (0 where gauge-fixed); adds ``flatness_mm``,
+    ``flatness_sd_mm`` and the ``guard`` to ``info`` and warns when the guard trips."""
+    n = len(X0)
+    var = np.zeros(3 * n)
+    var[prob.free_idx] = cov.point_variances()
+    points = state.X.copy()
+    info["flatness_mm"], info["flatness_sd_mm"] = _flatness(points, cov.points, prob.free_idx)
+    info["guard"] = _guard(modes, X0, points, cov.points, prob.free_idx, flat_cam, state.cam,
+                           sd_noise_model)
+    _warn_guard(info["guard"], guard_warn_ratio)
+    return points, np.sqrt(var).reshape(n, 3)
 
 
 def _flatten(obs: Observations, weights):
