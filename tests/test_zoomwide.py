@@ -426,3 +426,40 @@ def test_a_distortion_centre_off_the_principal_point_does_not_pin_it(rng):
     for name in obs:
         assert {"p1", "p2"} <= set(zw.terms[name]), zw.terms[name]
     _recovered_within(zw, truth)
+
+
+def _wide_views(rng, project, views=16, noise=0.05):
+    """A 22 x 15 board seen by a 1280 x 720 camera of fx 480 px (106 degrees across) in seeded
+    poses, projected by ``project(X_cam)`` (N, 2) px, with Gaussian noise."""
+    X0 = parse_pattern("chessboard:22x15:20").object_points.astype(float)
+    centre = X0.mean(axis=0)
+    vlist = []
+    for _ in range(views):
+        R = cv2.Rodrigues(np.deg2rad([*rng.uniform(-40, 40, 2), rng.uniform(-20, 20)]))[0]
+        t = np.array([*rng.uniform(-150, 150, 2), rng.uniform(280, 420)])
+        p = project((X0 - centre) @ R.T + t) + rng.normal(0, noise, (len(X0), 2))
+        inside = np.all((p > 0) & (p < np.array(SIZE) - 1), axis=1)
+        vlist.append((np.flatnonzero(inside), p[inside]))
+    return Observations(X0.copy(), vlist, SIZE)
+
+
+def test_the_rational_model_is_chosen_only_where_five_terms_misfit(rng):
+    """A wide lens whose image height follows the equidistant fisheye law (``cv2.fisheye``,
+    another model than OpenCV's polynomial): five terms leave a systematic error, the held-out
+    views choose the rational model and zoom-wide estimates k4..k6 at that step. The same poses
+    through a five-term lens: five terms suffice and no rational term is chosen."""
+    K = np.array([[480.0, 0, 641.0], [0, 480.0, 357.0], [0, 0, 1]])
+
+    def fisheye(X):
+        return cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
+                                         np.array([0.02, -0.01, 0.0, 0.0]))[0].reshape(-1, 2)
+
+    def polynomial(X):
+        return cv2.projectPoints(X, np.zeros(3), np.zeros(3), K,
+                                 np.array([-0.28, 0.09, 0.0, 0.0, -0.012]))[0].reshape(-1, 2)
+
+    seed = int(rng.integers(1 << 30))
+    wide = _wide_views(np.random.default_rng(seed), fisheye)
+    plain = _wide_views(np.random.default_rng(seed), polynomial)
+    assert "k4" in select_distortion(wide, start=calibrate_opencv(wide)).terms
+    assert "k4" not in select_distortion(plain, start=calibrate_opencv(plain)).terms

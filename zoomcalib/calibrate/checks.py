@@ -64,9 +64,12 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
     corr, names = res.info.get("correlation"), res.info.get("correlation_names")
     if corr is not None and names:
         c = np.abs(np.asarray(corr, float)) - np.eye(len(names))
-        if "fx" in names and "fy" in names:  # one focal length in two pixel pitches
-            i, j = names.index("fx"), names.index("fy")
-            c[i, j] = c[j, i] = 0.0
+        # one focal length in two pixel pitches; the rational model's numerator and denominator
+        # terms of one order (to first order k4 = -k1: only their difference is measured)
+        for a, b in (("fx", "fy"), ("k1", "k4"), ("k2", "k5"), ("k3", "k6")):
+            if a in names and b in names:
+                i, j = names.index(a), names.index(b)
+                c[i, j] = c[j, i] = 0.0
         i, j = np.unravel_index(np.argmax(c), c.shape)
         if c[i, j] > _CORRELATION_LIMIT:
             flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")

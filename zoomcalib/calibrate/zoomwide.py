@@ -136,8 +136,10 @@ __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResu
            "prior_strength", "pooled_prior_strength", "second_difference", "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
-PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
-#: Parameters tied across zoom by the smoothness prior.
+PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+#: Parameters tied across zoom by the smoothness prior. Not the rational model's k4, k5, k6:
+#: nearly collinear with k1, k2, k3 (to first order ``k4 = -k1``), they are told apart only by
+#: a wide field's views, so only the steps whose held-out views choose them estimate them.
 SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: ``pp_model`` of :func:`calibrate_zoom_wide`: the second-difference prior of the angular
 #: principal point, that prior in px, or the zoom model chosen by held-out steps.
@@ -148,12 +150,17 @@ SELECTED = ("cx", "cy")
 DISTORTION_SETS: dict[str, tuple[str, ...]] = {
     "none": (), "k1": ("k1",), "k1k2": ("k1", "k2"), "k1k2p": ("k1", "k2", "p1", "p2"),
     "k1k2p1p2k3": ("k1", "k2", "p1", "p2", "k3"),
+    "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
 }
 #: Per distortion term, the power ``p`` of the corner's normalised radius ``d / fx`` that turns
 #: it into its displacement at the image corner as a fraction of the half-diagonal ``d``
-#: (radial ``k r^(p+1)``, tangential ``p r^2``).
-CORNER_POWER = {"k1": 2, "k2": 4, "p1": 1, "p2": 1, "k3": 6}
-_FIX_FLAGS = {"k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3}
+#: (radial ``k r^(p+1)``, tangential ``p r^2``; the rational model's denominator terms k4, k5, k6
+#: act to first order as -k1, -k2, -k3).
+CORNER_POWER = {"k1": 2, "k2": 4, "p1": 1, "p2": 1, "k3": 6, "k4": 2, "k5": 4, "k6": 6}
+_FIX_FLAGS = {"k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3,
+              "k4": cv2.CALIB_FIX_K4, "k5": cv2.CALIB_FIX_K5, "k6": cv2.CALIB_FIX_K6}
+#: The rational model's denominator terms (OpenCV's ``CALIB_RATIONAL_MODEL``).
+RATIONAL_TERMS = ("k4", "k5", "k6")
 _OUTLIER_SIGMA = 5.0
 
 
@@ -182,10 +189,30 @@ def _subset(obs: Observations, keep: np.ndarray) -> Observations:
 
 def _distortion_flags(terms: tuple[str, ...]) -> int:
     flags = 0 if {"p1", "p2"} & set(terms) else cv2.CALIB_ZERO_TANGENT_DIST
+    if set(RATIONAL_TERMS) & set(terms):
+        flags |= cv2.CALIB_RATIONAL_MODEL
     for k, bit in _FIX_FLAGS.items():
         if k not in terms:
             flags |= bit
     return flags
+
+
+def _eight(dist) -> np.ndarray:
+    """(8,) OpenCV's first eight distortion terms of ``dist`` (zeros where it has fewer)."""
+    d = np.zeros(8)
+    d[:min(len(np.ravel(dist)), 8)] = np.ravel(dist)[:8]
+    return d
+
+
+def _guess(start: CalibrationResult, terms: tuple[str, ...]) -> dict:
+    """``start``'s camera matrix and distortion as OpenCV's initial guess for a fit of
+    ``terms`` (the others zero; five terms unless ``terms`` has a rational one)."""
+    start_dist = _eight(start.dist)
+    rational = bool(set(RATIONAL_TERMS) & set(terms))
+    if not rational and np.any(start_dist[5:]):
+        start_dist[:] = 0.0  # a rational fit's k1, k2, k3 mean other things
+    dist = [d if p in terms else 0.0 for p, d in zip(PARAMS[4:], start_dist, strict=True)]
+    return {"K_guess": start.K, "dist_guess": np.array(dist if rational else dist[:5])}
 
 
 def with_decentring(terms: tuple[str, ...], decentring: bool = True) -> tuple[str, ...]:
@@ -213,6 +240,8 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     intrinsics from one half with ``terms`` free, each view of the other half placed by
     ``cv2.solvePnP`` with those intrinsics. Returns per view the sum of squared errors (px^2)
     and the number of points, both (V,); a view that cannot be placed counts 0 points.
+    RuntimeError when a fold's fit is no camera
+    (:func:`~zoomcalib.calibrate.opencv_backend.not_a_camera`).
 
     ``board_points`` (n, 3), board frame: the board's estimated shape (a waving board's
     heights), used in place of ``obs.object_points``; OpenCV then needs a start, ``start``'s
@@ -223,9 +252,7 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
         obs = Observations(np.asarray(board_points, float), obs.views, obs.image_size, obs.names)
     guess = {}
     if start is not None:
-        dist = np.array([d if p in terms else 0.0
-                         for p, d in zip(PARAMS[4:], start.dist[:5], strict=True)])
-        guess = {"K_guess": start.K, "dist_guess": dist}
+        guess = _guess(start, terms)
     elif board_points is not None:
         raise ValueError("held_out_errors: a board shape needs a start calibration")
     idx = np.arange(obs.n_views)
@@ -234,13 +261,19 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
         with warnings.catch_warnings():  # a pose's sigma is not used here
             warnings.simplefilter("ignore", RuntimeWarning)
             res = calibrate_opencv(_subset(obs, train), flags=flags, **guess)
+        if (why := not_a_camera(res, obs.image_size)) is not None:
+            raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
+                               f"diverged: {why}")
         for i in test:
             ids, pts = obs.views[i]
             obj = obs.object_points[ids].astype(np.float64)
-            ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
-            if ok:
-                proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
-                squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
+            try:
+                ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
+                if ok:
+                    proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
+                    squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
+            except cv2.error:
+                continue                   # a view that cannot be placed counts 0 points
     return squared, count
 
 
@@ -271,7 +304,11 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
     the board's shape ``board_points`` and the ``start`` calibration if given) exceeds the
     best set's by less than ``tolerance`` (relative), ``n_se`` standard errors included:
     ``excess + n_se * se(excess) <= tolerance * mse_best``. All five terms when the step has
-    fewer than 6 views.
+    fewer than 6 views. The rational model (OpenCV's eight terms) is an extension, not a
+    candidate of the same rank: it replaces that choice only where its held-out error is below
+    the best five-term set's by more than ``tolerance``, ``n_se`` standard errors included, view
+    by view (:func:`_rational_gain`: a wide field the five terms do not fit); where the data
+    cannot tell, its nearly collinear terms would only trade with the others.
 
     With the board's shape known, the held-out error of the right terms is the detection noise
     alone, so ``tolerance`` leaves out a term only when the systematic error it removes is
@@ -292,15 +329,35 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
     if not per_view:
         return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board)
     n_points = {k: c.sum() for k, (_, c) in per_view.items()}
-    mse = {k: sq.sum() / max(n_points[k], 1) for k, (sq, _) in per_view.items()}
-    best = min(mse, key=mse.get)
+    mse = {k: sq.sum() / n_points[k] if n_points[k] else np.inf
+           for k, (sq, _) in per_view.items()}
+    standard = [k for k in per_view if k != "rational"] or list(per_view)
+    best = min(standard, key=mse.get)
     se = {k: float(np.std(sq - per_view[best][0], ddof=1) * np.sqrt(len(sq))
                    / max(n_points[best], 1)) for k, (sq, _) in per_view.items()}
-    chosen = next(k for k in per_view
+    chosen = next(k for k in standard
                   if mse[k] - mse[best] + n_se * se[k] <= tolerance * mse[best])
+    if "rational" in per_view and "rational" not in standard and _rational_gain(
+            per_view["rational"], per_view[best], tolerance, n_se):
+        chosen = "rational"
     return TermChoice(DISTORTION_SETS[chosen],
                       {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
                       {k: se[k] for k in per_view}, board)
+
+
+def _rational_gain(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray],
+                   tolerance: float, n_se: float) -> bool:
+    """Whether the rational model's held-out errors (per view: squared sum, points) are below
+    the best five-term set's by more than ``tolerance``, ``n_se`` standard errors included,
+    judged on the per-view log ratio of mean squared errors (a view that one set places badly
+    does not decide it; 4 views placed by both at least)."""
+    (sq_r, n_r), (sq_b, n_b) = rational, best
+    both = (n_r > 0) & (n_b > 0) & (sq_b > 0) & (sq_r > 0)
+    if both.sum() < 4:
+        return False
+    log_ratio = np.log(sq_r[both] / n_r[both]) - np.log(sq_b[both] / n_b[both])
+    se = float(np.std(log_ratio, ddof=1) / np.sqrt(len(log_ratio)))
+    return bool(np.mean(log_ratio) + n_se * se < np.log1p(-tolerance))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -333,7 +390,7 @@ class _Step:
 
 @dataclass
 class _State:
-    """Unknowns: ``cams`` (S, 9) in ``PARAMS`` order, ``modes`` (M,) mm, ``rvecs``/``tvecs``
+    """Unknowns: ``cams`` (S, 12) in ``PARAMS`` order, ``modes`` (M,) mm, ``rvecs``/``tvecs``
     (V, 3) for the views of all steps, step after step."""
 
     cams: np.ndarray
@@ -342,7 +399,7 @@ class _State:
     tvecs: np.ndarray
 
     def vector(self, free: np.ndarray) -> np.ndarray:
-        """The unknowns in column order (``free`` (S, 9) selects the free intrinsics)."""
+        """The unknowns in column order (``free`` (S, 12) selects the free intrinsics)."""
         return np.concatenate([self.cams[free], self.modes,
                                np.column_stack([self.rvecs, self.tvecs]).ravel()])
 
@@ -376,7 +433,7 @@ class _Form:
 class _ZoomProblem:
     """Residuals and sparse Jacobian of the zoom-wide cost (module docstring).
 
-    Columns: the free intrinsics of every step (``free`` (S, 9) bool), then the board modes,
+    Columns: the free intrinsics of every step (``free`` (S, 12) bool), then the board modes,
     then six pose columns per view. Rows: two per inlier observation (scaled by ``1/sigma_s``),
     then the smoothness rows ``D q / tau_q``, then ``a / board_prior``.
     """
@@ -434,7 +491,7 @@ class _ZoomProblem:
         for s, step in enumerate(self.steps):
             v0, v1 = self.view_start[s], self.view_start[s + 1]
             sel = step.inlier
-            cam = np.concatenate([state.cams[s], np.zeros(3)])
+            cam = state.cams[s]
             out = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X,
                                    step.view[sel], step.point[sel], jacobian=jacobian)
             uv = out[0] if jacobian else out
@@ -655,8 +712,7 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
     for attempt in dict.fromkeys((terms[name], ("k1",), ())):
         flags = _distortion_flags(attempt)
         candidates, reason = [], "no start"
-        guesses = [{}] + ([] if seed is None else [{"K_guess": seed.K, "dist_guess": [
-            d if p in attempt else 0.0 for p, d in zip(PARAMS[4:], seed.dist[:5], strict=True)]}])
+        guesses = [{}] + ([] if seed is None else [_guess(seed, attempt)])
         for guess in guesses:
             try:
                 result = calibrate_opencv(obs, flags=flags, **guess)
@@ -674,15 +730,14 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
 
 
 def _free_mask(names: list[str], terms: Mapping[str, tuple[str, ...]]) -> np.ndarray:
-    """(S, 9) bool: the intrinsics each step estimates (fx, fy, cx, cy and its chosen terms)."""
+    """(S, 12) bool: the intrinsics each step estimates (fx, fy, cx, cy and its chosen terms)."""
     return np.array([[p in ("fx", "fy", "cx", "cy") or p in terms[s] for p in PARAMS]
                      for s in names])
 
 
 def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.ndarray, list]:
-    cams = np.array([[r.fx, r.fy, r.cx, r.cy, *(list(r.dist[:5]) + [0.0] * 5)[:5]]
-                     for r in init.values()])
-    # PARAMS order is k1, k2, p1, p2, k3: the same as OpenCV's first five terms
+    cams = np.array([[r.fx, r.fy, r.cx, r.cy, *_eight(r.dist)] for r in init.values()])
+    # PARAMS order is k1, k2, p1, p2, k3, k4, k5, k6: OpenCV's first eight terms
     free = _free_mask(list(init), terms)
     cams[:, 4:][~free[:, 4:]] = 0.0
     rvecs = np.concatenate([r.rvecs for r in init.values()])
@@ -695,7 +750,7 @@ def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u
             j: int, form: _Form) -> list[tuple[list[int], tuple]]:
     """Per chain of 3 or more free steps of parameter ``j``: the steps and the chain
     ``(values, noise, u, offset)`` (:mod:`~zoomcalib.calibrate.zoommodel`); ``noise`` from the
-    sigmas ``cov`` (S, 9) or a function ``cov(steps, j)`` giving a covariance. With a
+    sigmas ``cov`` (S, 12) or a function ``cov(steps, j)`` giving a covariance. With a
     ``form.weight`` ``w`` the values are ``w q``, their noise scaled alike and ``w`` the free
     offset's direction."""
     series = []
@@ -783,7 +838,7 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
     changed = False
     for s, step in enumerate(prob.steps):
         v0, v1 = prob.view_start[s], prob.view_start[s + 1]
-        cam = np.concatenate([state.cams[s], np.zeros(3)])
+        cam = state.cams[s]
         uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
                               step.point, jacobian=False)
         err = np.linalg.norm(uv - step.uv, axis=1)
@@ -963,7 +1018,7 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
 
 def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                models: Mapping[str, ZoomModel]) -> np.ndarray:
-    """``free`` (S, 9) with every distortion term that has a zoom model freed at every step of
+    """``free`` (S, 12) with every distortion term that has a zoom model freed at every step of
     each chain where one of its steps estimates it; a newly freed value starts from the
     chain's estimates, interpolated in ``u`` (held at the ends). ``state.cams`` is updated.
 
@@ -1123,7 +1178,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
         results[step.name].info.update({
             "view_scatter": step_scatter[step.name].to_dict() | {"applied": True},
             "sd_noise_model": {p: float(v / f) for (p, v), f in zip(
-                results[step.name].sd.items(), _step_scale(prob, s, scale), strict=True)},
+                results[step.name].sd.items(), _step_scale(prob, s, scale), strict=False)},
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "distortion_choice": held[step.name].to_dict() if step.name in held else {},
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
@@ -1135,7 +1190,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
 
 
 def _step_scale(prob: _ZoomProblem, s: int, scale: np.ndarray) -> np.ndarray:
-    """(9,) the view-scatter factor applied to each of step ``s``'s ``PARAMS`` (1 if fixed)."""
+    """(12,) the view-scatter factor applied to each of step ``s``'s ``PARAMS`` (1 if fixed)."""
     cols = prob.cam_col[s]
     return np.where(cols >= 0, scale[np.maximum(cols, 0)], 1.0)
 
@@ -1147,9 +1202,12 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
     fx, fy, cx, cy, *dist = state.cams[s]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     cols = prob.cam_col[s]
+    # OpenCV's five terms, or its eight where the step estimates the rational ones
+    reported = PARAMS if np.any(cols[-len(RATIONAL_TERMS):] >= 0) else PARAMS[:9]
+    dist = dist[:len(reported) - 4]
     sd = {p: float(np.sqrt(cov[cols[j], cols[j]])) if cols[j] >= 0 else 0.0
-          for j, p in enumerate(PARAMS)}
-    cam = np.concatenate([state.cams[s], np.zeros(3)])
+          for j, p in enumerate(reported)}
+    cam = state.cams[s]
     uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
                           step.point, jacobian=False)
     e2 = np.sum((uv - step.uv) ** 2, axis=1)
@@ -1161,7 +1219,7 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
     sub = cov[np.ix_(intr, intr)]
     corr = sub / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))
     info = {"mode": "zoom-wide", "distortion_terms": list(terms[step.name]),
-            "fixed": [p for j, p in enumerate(PARAMS) if cols[j] < 0],
+            "fixed": [p for j, p in enumerate(reported) if cols[j] < 0],
             "noise_sigma_px": step.sigma, "tau": {k: float(v) for k, v in tau.items()},
             "correlation": corr,
             "correlation_names": [PARAMS[j] for j in np.flatnonzero(cols >= 0)],
