@@ -239,7 +239,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         Receives one-line messages (skipped images and steps).
     zoom_wide : bool
         For a zoom set of 2 or more steps, also calibrate all steps together
-        (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`, standard model only); its
+        (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`; the rational model only where a
+        step's held-out views choose it); its
         results (backend ``"zoom-wide"``) make the zoom table. ``backends`` still run per step.
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,

@@ -12,7 +12,8 @@ the focal length. This module estimates all steps together.
 Model
 -----
 Step ``s`` has intrinsics ``theta_s = (fx, fy, cx, cy, k1, k2, p1, p2, k3)`` (OpenCV's pinhole
-and Brown-Conrady model, pixels in OpenCV's convention); each view ``v`` its pose
+and Brown-Conrady model, pixels in OpenCV's convention), and the rational model's ``k4, k5, k6``
+where its held-out views choose them (:func:`select_distortion`); each view ``v`` its pose
 ``Rt_cam_board = (rvec_v, tvec_v)``. The board is one surface for every view of every step:
 
 .. math::
