@@ -80,6 +80,16 @@ def halves(obs: Observations, count: int, rng: np.random.Generator):
                                obs.image_size) for m in (mask, ~mask)) for mask in masks]
 
 
+def _choice(result) -> str:
+    """Zoom-wide: the distortion terms estimated, and the held-out mean squared error of the
+    rational model over the five-term one's (``select_distortion``)."""
+    mse = result.info.get("distortion_choice", {}).get("mse_px2", {})
+    if not mse:
+        return ""
+    return (f"  {len(result.dist)} terms (held-out rational/five "
+            f"{mse['rational'] / mse['k1k2p1p2k3']:.2f})")
+
+
 def camera_table(sweep: DigitalZoom, name: str, results: dict) -> np.ndarray:
     """Print each step's values mapped to the sensor; return the z against the other steps."""
     steps = [s for s in sweep.observations if s in results]
@@ -98,7 +108,7 @@ def camera_table(sweep: DigitalZoom, name: str, results: dict) -> np.ndarray:
         print(f"  {name:9s} {s}  fx {r.fx:7.1f}  sensor "
               + "  ".join(f"{q} {v:7.1f} +- {e:5.1f} (z {zz:+5.1f})"
                           for q, v, e, zz in zip(COMPARED, value[k], sd[k], z[k], strict=True))
-              + f"  rms {r.rms_px:.3f}" + (f"  [{flags[0]}]" if flags else ""))
+              + f"  rms {r.rms_px:.3f}" + _choice(r) + (f"  [{flags[0]}]" if flags else ""))
     return z
 
 
