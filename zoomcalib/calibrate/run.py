@@ -358,6 +358,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
             try:
                 run.zoom_model = ZoomModel.from_table(known)
+                if "k1" not in run.zoom_model.names and any(r.get("k4") is not None
+                                                             for r in known):
+                    log("zoom model: fx, fy, cx, cy only; steps "
+                        + ", ".join(r["step"] for r in known if r.get("k4") is not None)
+                        + " hold the rational model, the others five terms")
                 run.holdout = run.zoom_model.holdout_error()
                 doc = {"model": run.zoom_model.to_dict(),
                        "holdout_rms": {k: float(v) for k, v in run.holdout.items()}}

@@ -216,6 +216,16 @@ def _guess(start: CalibrationResult, terms: tuple[str, ...]) -> dict:
     return {"K_guess": start.K, "dist_guess": np.array(dist if rational else dist[:5])}
 
 
+def _tied(free: np.ndarray, j: int) -> np.ndarray:
+    """(S,) bool: the steps whose parameter ``j`` the smoothness prior ties (``free`` (S, 12)):
+    those that estimate it, but for k1, k2, k3 not the steps with the rational model, whose
+    radial terms are the numerator of a ratio and mean something else."""
+    tied = free[:, j].copy()
+    if PARAMS[j] in ("k1", "k2", "k3"):
+        tied &= ~free[:, [PARAMS.index(k) for k in RATIONAL_TERMS]].any(axis=1)
+    return tied
+
+
 def with_decentring(terms: tuple[str, ...], decentring: bool = True) -> tuple[str, ...]:
     """``terms`` with p1, p2 added when a radial term is among them (in :data:`PARAMS` order;
     ``decentring`` False: ``terms`` as they are).
@@ -461,8 +471,9 @@ class _ZoomProblem:
         for name in SMOOTHED:
             j = PARAMS.index(name)
             tau, order = self.tau.get(name, np.inf), self.order.get(name, 2)
+            tied = _tied(self.free, j)
             for chain in self.chains:
-                steps = [s for s in chain if self.free[s, j]]
+                steps = [s for s in chain if tied[s]]
                 if len(steps) <= order or not np.isfinite(tau):
                     continue
                 form = self.forms.get(name, _Form())
@@ -754,9 +765,9 @@ def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u
     sigmas ``cov`` (S, 12) or a function ``cov(steps, j)`` giving a covariance. With a
     ``form.weight`` ``w`` the values are ``w q``, their noise scaled alike and ``w`` the free
     offset's direction."""
-    series = []
+    series, tied = [], _tied(free, j)
     for chain in chains:
-        steps = [s for s in chain if free[s, j]]
+        steps = [s for s in chain if tied[s]]
         if len(steps) < 3:
             continue
         values = cams[steps, j]
@@ -1036,8 +1047,9 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
         if j < 4:
             continue
         takes = radial if name in ("p1", "p2") else np.ones(len(free), bool)
+        tied = _tied(free, j)
         for chain in chains:
-            have = [s for s in chain if free[s, j]]
+            have = [s for s in chain if tied[s]]
             new = [s for s in chain if not free[s, j] and takes[s]]
             if not have or not new:
                 continue

@@ -489,13 +489,18 @@ class ZoomModel:
             Each with ``zoom`` and the parameters; ``sd_<name>`` columns weight them.
         names : sequence of str, optional
             Parameters to fit; default ``fx, fy, cx, cy`` and those of ``k1, k2, p1, p2, k3``
-            (and ``k4..k6``) that every row has.
+            (and ``k4..k6``) that every row has; no distortion term when some rows hold the
+            rational model (``k4``) and others not: a rational step's k1..k3 are not a
+            five-term step's, and one curve through both would be neither.
         **fit_options
             Passed to :meth:`fit`.
         """
         if names is None:
+            rational = [r.get("k4") is not None for r in rows]
+            mixed = any(rational) and not all(rational)
             names = ["fx", "fy", "cx", "cy"] + [
-                k for k in _DIST_ORDER if all(r.get(k) is not None for r in rows)]
+                k for k in _DIST_ORDER
+                if not mixed and all(r.get(k) is not None for r in rows)]
         zoom = [float(r["zoom"]) for r in rows]
         values = {k: [float(r[k]) for r in rows] for k in names}
         sd = {}
