@@ -1,7 +1,7 @@
 """A zoom sweep of real corners: mrcal's figueroa set cut by a digital zoom.
 
 ``python benchmarks/bench_real_zoom.py [--zooms 1.5 4 7] [--views 24] [--drift 30]
-[--splits 10] [--seed 1]``
+[--splits 10] [--seed 1] [--pp-model angle2] [--board-degree 4]``
 
 :func:`zoomcalib.calibrate.digital_zoom.digital_zoom_sweep` crops the 186 real views (6016 x
 4016, a wide lens) to windows of ``1/z`` of the sensor, scaled to 1280 x 854 px, one window per
@@ -151,6 +151,10 @@ def main() -> None:
     ap.add_argument("--drift", type=float, default=30.0, help="principal point move, px")
     ap.add_argument("--splits", type=int, default=10)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--pp-model", default="angle2", choices=["angle2", "prior2", "select"],
+                    help="zoom-wide's prior on cx, cy")
+    ap.add_argument("--board-degree", type=int, default=4,
+                    help="zoom-wide's board height modes (< 2: a flat board)")
     a = ap.parse_args()
     warnings.simplefilter("ignore")
     source, weights = observations_from_npz(DATA)
@@ -161,6 +165,8 @@ def main() -> None:
           + ", ".join(f"{s} {o.n_views} views {o.n_observations} corners fx~"
                       f"{2072 * sweep.scale[s]:.0f}" for s, o in sweep.observations.items()))
     parts = {s: halves(o, a.splits, rng) for s, o in sweep.observations.items()}
+    BACKENDS["zoom-wide"] = lambda obs: calibrate_zoom_wide(
+        obs, pp_model=a.pp_model, board_degree=a.board_degree).results
     for name, calibrate in BACKENDS.items():
         t0 = time.time()
         results = calibrate(sweep.observations)
