@@ -45,7 +45,7 @@ from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.scatter import view_groups  # noqa: E402
-from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+from zoomcalib.calibrate.zoomwide import board_height_modes, calibrate_zoom_wide  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "mrcal-figueroa" / "figueroa_obs.npz"
 COMPARED = ("fx", "cx", "cy")
@@ -165,12 +165,23 @@ def main() -> None:
           + ", ".join(f"{s} {o.n_views} views {o.n_observations} corners fx~"
                       f"{2072 * sweep.scale[s]:.0f}" for s, o in sweep.observations.items()))
     parts = {s: halves(o, a.splits, rng) for s, o in sweep.observations.items()}
-    BACKENDS["zoom-wide"] = lambda obs: calibrate_zoom_wide(
-        obs, pp_model=a.pp_model, board_degree=a.board_degree).results
+    first: list = []
+
+    def zoom_wide(obs: dict[str, Observations]) -> dict:
+        result = calibrate_zoom_wide(obs, pp_model=a.pp_model, board_degree=a.board_degree)
+        first.append(result)
+        return result.results
+
+    BACKENDS["zoom-wide"] = zoom_wide
     for name, calibrate in BACKENDS.items():
         t0 = time.time()
         results = calibrate(sweep.observations)
         z_camera = camera_table(sweep, name, results)
+        if name == "zoom-wide" and a.board_degree >= 2:
+            height = board_height_modes(source.object_points, a.board_degree) @ first[0].board_modes
+            print(f"  zoom-wide board: heights {height.min():+.2f} to {height.max():+.2f} mm, "
+                  f"RMS {np.std(height):.2f} mm (largest mode sigma "
+                  f"{first[0].board_modes_sd.max():.3f} mm)")
         print(f"  {name:9s} one camera: RMS z " + " ".join(
             f"{q} {v:.2f}" for q, v in zip(COMPARED, np.sqrt(np.nanmean(z_camera**2, 0)),
                                            strict=True))
