@@ -1,13 +1,16 @@
 """A zoom sweep of real corners: mrcal's figueroa set cut by a digital zoom.
 
 ``python benchmarks/bench_real_zoom.py [--zooms 1.5 4 7] [--views 24] [--drift 30]
-[--splits 10] [--seed 1] [--pp-model angle2] [--board-degree 4]``
+[--splits 10] [--seed 1] [--pp-model angle2] [--board-degree 4] [--unpooled]
+[--backends zoom-wide opencv bundle]``
 
 :func:`zoomcalib.calibrate.digital_zoom.digital_zoom_sweep` crops the 186 real views (6016 x
 4016, a wide lens) to windows of ``1/z`` of the sensor, scaled to 1280 x 854 px, one window per
 zoom step, each real view used by one step only. Every step is then a camera whose noise, lens
 misfit and board warp are real. Three backends calibrate the sweep with default settings:
-zoom-wide, per-step OpenCV, per-step bundle. Two checks, neither of which knows the truth:
+zoom-wide, per-step OpenCV, per-step bundle (their view-scatter tests pooled over the steps,
+as ``calibrate`` does; ``--unpooled``: each step's alone). Two checks, neither of which knows
+the truth:
 
 - halves: each step's views in two halves (even/odd groups of nearly one pose, then
   ``--splits - 1`` random splits of the groups), both halves calibrated, ``z`` of fx, cx, cy
@@ -44,11 +47,12 @@ from zoomcalib.calibrate.digital_zoom import DigitalZoom, digital_zoom_sweep  # 
 from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
-from zoomcalib.calibrate.scatter import view_groups  # noqa: E402
+from zoomcalib.calibrate.scatter import pooled_over_steps, view_groups  # noqa: E402
 from zoomcalib.calibrate.zoomwide import board_height_modes, calibrate_zoom_wide  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "mrcal-figueroa" / "figueroa_obs.npz"
 COMPARED = ("fx", "cx", "cy")
+POOLED = True  # per-step backends: the view-scatter test pooled over the steps, as calibrate does
 
 
 def per_step(calibrate):
@@ -59,7 +63,7 @@ def per_step(calibrate):
                 out[step] = calibrate(obs)
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 print(f"    {step}: failed ({exc})")
-        return out
+        return pooled_over_steps(out) if POOLED else out
     return run
 
 
@@ -155,7 +159,12 @@ def main() -> None:
                     help="zoom-wide's prior on cx, cy")
     ap.add_argument("--board-degree", type=int, default=4,
                     help="zoom-wide's board height modes (< 2: a flat board)")
+    ap.add_argument("--unpooled", action="store_true",
+                    help="per-step backends: each step's view-scatter test on its own")
+    ap.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=list(BACKENDS))
     a = ap.parse_args()
+    global POOLED
+    POOLED = not a.unpooled
     warnings.simplefilter("ignore")
     source, weights = observations_from_npz(DATA)
     rng = np.random.default_rng(a.seed)
@@ -173,8 +182,8 @@ def main() -> None:
         return result.results
 
     BACKENDS["zoom-wide"] = zoom_wide
-    for name, calibrate in BACKENDS.items():
-        t0 = time.time()
+    for name in a.backends:
+        calibrate, t0 = BACKENDS[name], time.time()
         results = calibrate(sweep.observations)
         z_camera = camera_table(sweep, name, results)
         if name == "zoom-wide" and a.board_degree >= 2:

@@ -49,6 +49,8 @@ def test_calibrate_zoom_set_recovers_rendered_cameras(zoom_set, tmp_path):
         # calibration must land within 4 of its noise model's 1-sigma (plus the model misfit,
         # < 0.01 px), and the reported sigma is never below that one.
         noise_sd = entry["info"]["sd_noise_model"]
+        # the per-step checks of the view scatter are tested together over the 3 steps
+        assert entry["info"]["view_scatter"]["steps_pooled"] == 3
         for k, v in (("cx", K[0, 2]), ("cy", K[1, 2]), ("fx", K[0, 0])):
             assert abs(v - cam[k]) < 4 * noise_sd[k] + 0.05, (st["step"], k, v, cam[k])
             assert entry["sd"][k] >= noise_sd[k]

@@ -24,7 +24,13 @@ from zoomcalib.calibrate.opencv_backend import (
     observations_from_detections,
 )
 from zoomcalib.calibrate.result import Observations
-from zoomcalib.calibrate.scatter import view_groups, view_scatter
+from zoomcalib.calibrate.scatter import (
+    ViewScatter,
+    pooled_over_fits,
+    pooled_over_steps,
+    view_groups,
+    view_scatter,
+)
 from zoomcalib.calibrate.synthetic import sweep_detections
 from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide
 from zoomcalib.detect.opencv import detect_folder
@@ -85,7 +91,7 @@ def test_a_parameter_too_few_views_carry_takes_its_fits_median_factor():
     applied = check.applied()
     expected = np.sqrt((1 + k) / 2)                       # design effect of a half-shared error
     assert applied[:2] == pytest.approx([expected, expected], rel=0.15)
-    assert np.isnan(check.factor[2]) and applied[2] == pytest.approx(np.median(applied[:2]))
+    assert np.isnan(check.factor[2]) and applied[2] == pytest.approx(np.median(check.factor[:2]))
     assert check.fit_significant and not check.significant[3]
     assert applied[3] == pytest.approx(max(check.factor[3], 1.0)) and applied[3] < 1.15
     assert applied[4] == pytest.approx(applied[3])       # b's median: its one checked factor
@@ -124,6 +130,37 @@ def test_many_fits_each_disagreeing_below_its_test_are_found_together():
             assert np.sqrt(np.mean(applied**2)) == pytest.approx(expected, rel=0.15)
         else:
             assert np.all(applied == 1.0)
+
+
+def test_moderated_factors_thin_the_tails_of_z():
+    """1500 fits of 8 views (16 corners, intra-view correlation 0.1: a factor of 1.58 for all
+    four parameters of every fit), each checked alone, then tested together
+    (:func:`pooled_over_fits`). Each error is an independent draw of the same model (as a
+    calibration's error is of its residuals). With each parameter's own factor (8 effective
+    views), z over the 6000 has the heavy tails of Student's t (about 1 % beyond 3); the
+    factors moderated towards their fit's give fewer, and an RMS z near 1."""
+    rng = np.random.default_rng(21)
+    fits, views, k, rho = 1500, 8, 16, 0.1
+    view_idx = np.repeat(np.arange(views), k)
+    model_sd = np.full(4, np.sqrt(views * k))
+
+    def draw() -> np.ndarray:
+        return (np.sqrt(rho) * rng.normal(size=(views, 4))[view_idx]
+                + np.sqrt(1 - rho) * rng.normal(size=(views * k, 4)))
+
+    checks = {f"s{f}": view_scatter(draw(), view_idx, views, ("fx", "fy", "cx", "cy"),
+                                    model_sd) for f in range(fits)}
+    error = np.concatenate([draw().sum(axis=0) for _ in range(fits)])
+    parts = pooled_over_fits(checks)
+    assert all(part.fit_significant for part in parts.values())
+    own = np.concatenate([np.maximum(np.nan_to_num(c.factor, nan=1.0), 1.0)
+                          for c in checks.values()])
+    z_own, z_moderated = (error / (model_sd[0] * f) for f in (
+        own, np.concatenate([parts[g].applied() for g in checks])))
+    beyond_own, beyond_moderated = (int(np.sum(np.abs(z) > 3)) for z in (z_own, z_moderated))
+    # binomial counts of about 60 and 30 (sd 8 and 5.5)
+    assert beyond_moderated < 0.75 * beyond_own and beyond_moderated < 0.008 * error.size
+    assert np.sqrt(np.mean(z_moderated**2)) == pytest.approx(1.0, abs=0.05)
 
 
 def _exact_views(seed: int, views: int = 12):
@@ -247,6 +284,52 @@ def test_zoom_wide_sigmas_cover_hidden_view_fields():
     # 30 z values: an honest RMS lies within about +-30 % of 1
     assert rms_model > 1.8
     assert 0.6 < rms_used < 1.4
+
+
+@pytest.mark.parametrize("field_px", [0.15, 0.0])
+def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px):
+    """Per-step OpenCV on 6 seeded sweeps of 6 steps x 10 views, each view with a hidden
+    smooth error field of 0.15 px beside 0.1 px of corner noise: one step's own check scales
+    some of its sigmas and leaves RMS z against the truth near 1.4 over the 108 fx, cx, cy;
+    pooled over the steps, the test fires on every sweep and the RMS z comes near 1. With no
+    field the pooled test does not fire and no sigma changes."""
+    z_own, z_pooled, fired = [], [], 0
+    for seed in range(6):
+        rng = np.random.default_rng(500 + seed)
+        sweep = sweep_detections(rng, steps=6, views=10, noise_px=0.1)
+        own = {s: calibrate_opencv(_with_view_fields(o, rng, field_px) if field_px else o)
+               for s, o in sweep.observations.items()}
+        pooled = pooled_over_steps(own)
+        for step, res in own.items():
+            check = res.info["view_scatter"]
+            assert np.all(ViewScatter.from_dict(check).applied() >= 1.0)
+            test = pooled[step].info["view_scatter"]
+            assert test["steps_pooled"] == 6
+            fired += test["fit"]["factor"] > test["fit"]["threshold"]
+            truth = sweep.truth[step]
+            err = np.array([res.fx - truth["fx"], res.cx - truth["cx"], res.cy - truth["cy"]])
+            z_own.append(err / [res.sd[q] for q in ("fx", "cx", "cy")])
+            z_pooled.append(err / [pooled[step].sd[q] for q in ("fx", "cx", "cy")])
+            # never lowered
+            assert all(pooled[step].sd[q] >= res.sd[q] for q in res.sd)
+    rms_own, rms_pooled = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_own, z_pooled))
+    # 108 z values: an honest RMS lies within about +-18 % of 1 (chi-square, 99 %)
+    if field_px:
+        assert fired == 36 and rms_own > 1.25 and 0.82 < rms_pooled < 1.18
+    else:
+        assert fired == 0 and np.array_equal(z_pooled, z_own) and 0.82 < rms_own < 1.18
+
+
+def test_a_check_survives_its_record():
+    """``info['view_scatter']`` read back gives the factors the calibration applied."""
+    rng = np.random.default_rng(9)
+    sweep = sweep_detections(rng, steps=1, views=12, noise_px=0.1)
+    (obs,) = sweep.observations.values()
+    res = calibrate_bundle(_with_view_fields(obs, rng, 0.3))
+    check = ViewScatter.from_dict(res.info["view_scatter"])
+    scaled = {nm: res.sd[nm] / res.info["sd_noise_model"][nm] for nm in check.names}
+    assert any(f > 1.5 for f in scaled.values())
+    np.testing.assert_allclose(check.applied(), [scaled[nm] for nm in check.names], rtol=1e-9)
 
 
 @pytest.fixture(scope="module")

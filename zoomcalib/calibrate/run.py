@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +62,7 @@ from .opencv_backend import (
     observations_from_detections,
 )
 from .result import DIST_NAMES, CalibrationResult, Observations
+from .scatter import pooled_over_steps
 
 __all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "step_file_stems", "BACKENDS"]
 
@@ -311,6 +312,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             continue
         run.results[step] = step_results  # empty: left to the zoom-wide adjustment
         extras_of[step] = extras
+    _pool_view_scatter(run, backends)
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
                                              extras_of.items()}, pp_model)
@@ -457,6 +459,16 @@ def _same_size_images(step: str, dets: list, run: CalibrateRun, log: Callable[[s
     return kept
 
 
+def _pool_view_scatter(run: CalibrateRun, backends: Sequence[str]) -> None:
+    """Each per-step backend's view-scatter checks, tested together over the steps
+    (:func:`~zoomcalib.calibrate.scatter.pooled_over_steps`)."""
+    for backend in backends:
+        pooled = pooled_over_steps({s: r[backend] for s, r in run.results.items()
+                                    if backend in r})
+        for step, res in pooled.items():
+            run.results[step][backend] = res
+
+
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2") -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
@@ -513,7 +525,7 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
                 out[step] = _calibrate(run.table_backend[step], o, model, target)
             except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error):
                 continue
-        return out
+        return pooled_over_steps(out)
     return cross_validate({s: run.observations[s] for s in run.results}, per_step, backend)
 
 

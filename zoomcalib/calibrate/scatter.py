@@ -41,8 +41,15 @@ The clustered sum's factor is significant when its square exceeds the 99.9 % poi
 where computed, at least 1) times the noise model's; elsewhere it is kept. Below
 :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten carry) a
 parameter cannot be checked; when another parameter of the same fit is found disagreeing, it
-takes the median factor of the fit's checked parameters, since the errors the views share act
-on all of them.
+takes the median factor ``F_g`` of the fit's checked parameters, since the errors the views
+share act on all of them.
+
+A factor from ``d`` = 5-10 effective views is itself uncertain (its square spreads like
+``chi^2_d / d``, a relative sd of 45-63 %), and a sigma scaled by it gives z with the heavy
+tails of Student's t with ``d`` degrees of freedom (3 % beyond 3 at ``d = 5``, against 0.27 %).
+So a factor is moderated towards the fit's, as variances are in the moderated t-statistic
+(Smyth 2004): ``F^2 <- (d F^2 + d_g F_g^2) / (d + d_g)``, ``d_g`` the fit's median effective
+views. A parameter significant on its own keeps at least its own factor.
 
 One parameter's test has little power with few views (``d = 6`` needs a factor of 1.9). The
 solution as a whole is also tested (:meth:`ViewScatter.fit_test`): for each fit ``g`` (a
@@ -58,7 +65,8 @@ board hardly moved see it through the same part of the lens and share their syst
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,8 +74,10 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.stats
 
-__all__ = ["ViewScatter", "view_scatter", "view_groups", "MIN_VIEWS", "SIGNIFICANCE",
-           "SAME_VIEW_FRACTION"]
+from .result import CalibrationResult
+
+__all__ = ["ViewScatter", "view_scatter", "view_groups", "pooled_over_fits",
+           "pooled_over_steps", "MIN_VIEWS", "SIGNIFICANCE", "SAME_VIEW_FRACTION"]
 
 #: Fewest effective views (``d``) for which the check is made.
 MIN_VIEWS = 4.0
@@ -186,21 +196,29 @@ class ViewScatter:
         return groups
 
     def applied(self) -> np.ndarray:
-        """(k,) the factor each sigma is multiplied by (at least 1): its own where significant,
-        and for every checked parameter when the solution as a whole is
-        (:meth:`fit_significant`); for a free parameter with too few effective views to be
-        checked, the median factor of the checked parameters of its fit when one of them takes
-        its own (the views' errors are shared by all of a fit's parameters); else 1."""
+        """(k,) the factor each sigma is multiplied by (at least 1).
+
+        Where a parameter is significant on its own, or the solution as a whole is
+        (:meth:`fit_significant`), each checked parameter of the fit takes its factor
+        moderated towards the fit's median factor ``F_g`` (module docstring):
+        ``sqrt((d F^2 + d_g F_g^2) / (d + d_g))``, ``d_g`` the fit's median effective views;
+        one significant on its own keeps at least its own ``F``. A free parameter with too few
+        effective views to be checked takes ``F_g``. Else 1."""
         own = self._own()
-        out = np.where(own, np.maximum(self.factor, 1.0), 1.0)
+        out = np.ones(len(self.names))
         for members in self._groups().values():
             q = np.array(members)
-            checked = q[np.isfinite(self.factor[q])]
             if not own[q].any():
                 continue
-            pooled = max(float(np.median(self.factor[checked])), 1.0)
-            unchecked = q[self.free[q] & ~np.isfinite(self.factor[q])]
-            out[unchecked] = pooled
+            checked = q[np.isfinite(self.factor[q])]
+            factor, views = self.factor[checked], self.views[checked]
+            typical, typical_views = (float(np.median(a)) for a in (factor, views))
+            moderated = np.sqrt((views * factor**2 + typical_views * typical**2)
+                                / (views + typical_views))
+            chosen = np.where(self.significant[checked], np.maximum(factor, moderated),
+                              moderated)
+            out[checked] = np.where(own[checked], np.maximum(chosen, 1.0), 1.0)
+            out[q[self.free[q] & ~np.isfinite(self.factor[q])]] = max(typical, 1.0)
         return out
 
     def scaled(self, sd: dict[str, float]) -> dict[str, float]:
@@ -220,18 +238,29 @@ class ViewScatter:
                                whole)
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
-    def to_dict(self) -> dict:
+    @classmethod
+    def from_dict(cls, saved: dict) -> ViewScatter:
+        """The check back from :meth:`to_dict` (its free parameters; ``whole`` not kept)."""
+        names = tuple(saved["free"])
+        arrays = {key: np.array([saved[key].get(nm, np.nan) for nm in names], dtype=float)
+                  for key in ("factor", "test_factor", "views", "threshold")}
+        return cls(names=names, free=np.ones(len(names), bool), **arrays)
+
+    def to_dict(self, applied: np.ndarray | None = None) -> dict:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
         ``views`` and ``threshold``; the names whose sigma was ``scaled`` by its own factor, and
-        those scaled by the fit's median factor (``pooled``, too few views to check)."""
+        those scaled by the fit's median factor (``pooled``, too few views to check); the
+        ``free`` parameters. ``applied``: the factors used, if not :meth:`applied`'s."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
-        applied = self.applied()
+        applied = self.applied() if applied is None else applied
         fit_factor, fit_views, fit_threshold = self.fit_test()
+        free = [self.names[q] for q in range(len(self.names)) if self.free[q]]
         return {key: {self.names[q]: float(arr[q]) for q in checked}
                 for key, arr in (("factor", self.factor), ("test_factor", self.test_factor),
                                  ("views", self.views),
                                  ("threshold", self.threshold))} | {
             "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold},
+            "free": free,
             "scaled": [self.names[q] for q in checked if applied[q] > 1.0],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
                        if q not in checked and applied[q] != 1.0}}
@@ -297,3 +326,55 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     return ViewScatter(factor=np.where(ok, factor, np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
                        threshold=threshold, names=tuple(names), free=used)
+
+
+def pooled_over_fits(checks: Mapping[str, ViewScatter]) -> dict[str, ViewScatter]:
+    """Separate fits' checks (one per key) as the parts of one solution: each part answers for
+    the test of them all (:meth:`ViewScatter.fit_test`, ``whole``), as a zoom-wide
+    adjustment's steps do."""
+    parts = list(checks.values())
+    joined = ViewScatter(
+        *(np.concatenate([getattr(c, f) for c in parts])
+          for f in ("factor", "test_factor", "views", "threshold")),
+        names=tuple(f"{key}:{name}" for key, c in checks.items() for name in c.names),
+        free=np.concatenate([c.free for c in parts]))
+    return joined.by_group()
+
+
+def pooled_over_steps(results: Mapping[str, CalibrationResult]) -> dict[str, CalibrationResult]:
+    """Separate calibrations of a sweep's steps, with the whole-solution test of their
+    view-scatter checks pooled over the steps of each backend.
+
+    One step of 10-30 views has too few for its test to see a factor of 1.5; the errors views
+    share (a lens misfit, a waving board) are the same kind at every step, and the pooled test
+    (module docstring) sees them. Where it is significant, every checked parameter of every
+    pooled step takes its own factor (at least 1), as a zoom-wide adjustment's do. A sigma is
+    never lowered: what a step's own check applied stays. Results whose check was not applied
+    (the bundle's ``scatter_check=False``) or that have none are returned unchanged, as are all
+    when fewer than two steps can be pooled. ``info['view_scatter']['fit']`` is then the pooled
+    test and ``['steps_pooled']`` the number of steps in it; ``sd`` and ``info['sd_posterior']``
+    are scaled.
+    """
+    out = dict(results)
+    by_backend: dict[str, dict[str, ViewScatter]] = {}
+    for step, res in results.items():
+        saved = res.info.get("view_scatter")
+        if saved and saved.get("applied") and "free" in saved:
+            by_backend.setdefault(res.backend, {})[step] = ViewScatter.from_dict(saved)
+    for checks in by_backend.values():
+        if len(checks) < 2:
+            continue
+        for step, part in pooled_over_fits(checks).items():
+            res, own = results[step], checks[step]
+            applied = np.maximum(part.applied(), own.applied())
+            factor = dict(zip(own.names, applied / own.applied(), strict=True))
+            info = res.info | {"view_scatter": part.to_dict(applied) | {
+                "applied": True, "steps_pooled": len(checks)}}
+            if "sd_posterior" in info:
+                info["sd_posterior"] = _times(info["sd_posterior"], factor)
+            out[step] = dataclasses.replace(res, sd=_times(res.sd, factor), info=info)
+    return out
+
+
+def _times(sd: dict[str, float], factor: dict[str, float]) -> dict[str, float]:
+    return {name: float(value * factor.get(name, 1.0)) for name, value in sd.items()}
