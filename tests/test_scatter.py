@@ -293,7 +293,7 @@ def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px
     some of its sigmas and leaves RMS z against the truth near 1.4 over the 108 fx, cx, cy;
     pooled over the steps, the test fires on every sweep and the RMS z comes near 1. With no
     field the pooled test does not fire and no sigma changes."""
-    z_own, z_pooled, fired = [], [], 0
+    z_own, z_pooled, fired, flagged = [], [], 0, 0
     for seed in range(6):
         rng = np.random.default_rng(500 + seed)
         sweep = sweep_detections(rng, steps=6, views=10, noise_px=0.1)
@@ -312,12 +312,15 @@ def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px
             z_pooled.append(err / [pooled[step].sd[q] for q in ("fx", "cx", "cy")])
             # never lowered
             assert all(pooled[step].sd[q] >= res.sd[q] for q in res.sd)
+            flagged += any("tested over 6 steps" in f
+                           for f in conditioning_flags(pooled[step], (800, 600)))
     rms_own, rms_pooled = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_own, z_pooled))
     # 108 z values: an honest RMS lies within about +-18 % of 1 (chi-square, 99 %)
     if field_px:
-        assert fired == 36 and rms_own > 1.25 and 0.82 < rms_pooled < 1.18
+        assert fired == 36 and rms_own > 1.25 and 0.82 < rms_pooled < 1.18 and flagged >= 18
     else:
-        assert fired == 0 and np.array_equal(z_pooled, z_own) and 0.82 < rms_own < 1.18
+        assert fired == 0 and flagged == 0 and np.array_equal(z_pooled, z_own)
+        assert 0.82 < rms_own < 1.18
 
 
 def test_a_check_survives_its_record():

@@ -91,7 +91,9 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
         pinhole = {nm: f for nm, f in factors.items() if nm in ("fx", "fy", "cx", "cy")}
         if pinhole:
             name = max(pinhole, key=pinhole.get)
-            flags.append(f"views disagree beyond the corner noise: sd {name} x"
+            pooled = (f", tested over {scatter['steps_pooled']} steps"
+                      if scatter.get("steps_pooled") else "")
+            flags.append(f"views disagree beyond the corner noise{pooled}: sd {name} x"
                          f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
                          "a moving board)")
     if not res.converged:
