@@ -275,37 +275,15 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     provenance: dict[str, dict] = {}
     extras_of: dict[str, dict] = {}
     for step, _, zoom, extras in steps:
-        files = step_files[step]
-        dets = _step_detections(out, step, files, target, settings, workers, progress, run,
-                                provenance, log)
-        dets = _same_size_images(step, dets, run, log)
-        if dets is None:
-            continue
-        for d in dets:
-            if d.error:
-                log(f"step {step}: skipped {d.error}")
-                run.skipped_images.setdefault(step, []).append(d.error)
-        good = [d for d in dets if d.error is None]
-        if not good:
-            _drop(run, step, "no image with a detected target", log)
-            continue
-        try:
-            obs = observations_from_detections(good, target, good[0].image_size)
-        except ValueError as exc:
-            _drop(run, step, str(exc), log)
+        dets = _step_detections(out, step, step_files[step], target, settings, workers,
+                                progress, run, provenance, log)
+        obs = _step_observations(step, dets, target, run, log)
+        if obs is None:
             continue
         run.observations[step] = obs
         run.zoom[step] = zoom
         run.zoom_source[step] = extras.get("zoom_source")
-        step_results = {}
-        for backend in backends:
-            try:
-                step_results[backend] = _calibrate(backend, obs, model, target)
-            except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
-                msg = " ".join(str(exc).split())
-                run.failures.append(f"step {step}: backend {backend} failed: {msg}")
-                log(run.failures[-1])
-                run.backend_failures.setdefault(step, []).append(backend)
+        step_results = _calibrate_step(step, obs, backends, model, target, run, log)
         if not step_results and not zoom_wide:
             run.backend_failures.pop(step, None)
             run.dropped.append(step)
@@ -329,13 +307,78 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                            "flags": "; ".join(run.flags.get(step, []))}
             for step in run.results]
 
-    meta = {"folder": str(folder), "pattern": pattern, "model": model, "backends": list(backends),
-            "method": method, "failures": run.failures, "partial": run.partial_message(),
-            "detection_settings": settings,
-            "detections": {s: {k: v for k, v in p.items() if k != "images"}
-                           for s, p in provenance.items()},
-            "left_out": run.left_out, "ignored_images": run.ignored,
-            "table_backend": run.table_backend, "flags": run.flags}
+    call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
+            "detection_settings": settings}
+    meta = _meta(run, {"folder": str(folder)} | call, provenance)
+    if run.results:
+        run.files += list(write_calibration(out, run.results, meta))
+    zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
+    if zoom_set and rows:
+        run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
+        _zoom_model(run, rows, out, log)
+    if run.results:
+        run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
+                                   log)
+        run.files += _figures(run, out, zoom_set)
+    if report and run.results:
+        _report(run, out, report_distance, log)
+    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
+    return run
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+
+
+def _step_observations(step: str, dets: list, target: Target, run: CalibrateRun,
+                       log: Callable[[str], None]) -> Observations | None:
+    """The step's detections as observations: images of another size left out, failed images
+    named in ``run.skipped_images``; None (the step dropped, with the reason) when nothing is
+    left."""
+    dets = _same_size_images(step, dets, run, log)
+    if dets is None:
+        return None
+    for d in dets:
+        if d.error:
+            log(f"step {step}: skipped {d.error}")
+            run.skipped_images.setdefault(step, []).append(d.error)
+    good = [d for d in dets if d.error is None]
+    if not good:
+        _drop(run, step, "no image with a detected target", log)
+        return None
+    try:
+        return observations_from_detections(good, target, good[0].image_size)
+    except ValueError as exc:
+        _drop(run, step, str(exc), log)
+        return None
+
+
+def _calibrate_step(step: str, obs: Observations, backends: Sequence[str], model: str,
+                    target: Target, run: CalibrateRun, log: Callable[[str], None]
+                    ) -> dict[str, CalibrationResult]:
+    """Every per-step backend's calibration of one step; a backend that fails is logged and
+    recorded in ``run`` (the others' results stay)."""
+    results = {}
+    for backend in backends:
+        try:
+            results[backend] = _calibrate(backend, obs, model, target)
+        except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
+            msg = " ".join(str(exc).split())
+            run.failures.append(f"step {step}: backend {backend} failed: {msg}")
+            log(run.failures[-1])
+            run.backend_failures.setdefault(step, []).append(backend)
+    return results
+
+
+def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dict:
+    """``calibration.json``'s ``meta``: the run's ``settings``, its failures, table backends,
+    flags, detections, cross-validation and zoom-wide adjustment."""
+    meta = settings | {
+        "failures": run.failures, "partial": run.partial_message(),
+        "detections": {s: {k: v for k, v in p.items() if k != "images"}
+                       for s, p in provenance.items()},
+        "left_out": run.left_out, "ignored_images": run.ignored,
+        "table_backend": run.table_backend, "flags": run.flags}
     if run.cross_validation is not None:
         meta["cross_validation"] = run.cross_validation.to_dict()
     if run.zoom_wide is not None:
@@ -349,45 +392,33 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                              "skipped": zw.skipped,
                              "distortion_choice": {k: v.to_dict()
                                                    for k, v in zw.held_out.items()}}
-    if run.results:
-        run.files += list(write_calibration(out, run.results, meta))
-    zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
-    if zoom_set and rows:
-        run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
-        known = [_zoom_model_row(r) for r in rows if np.isfinite(r["zoom"])]
-        if len(known) >= 4:
-            from ..zoom import ZoomModel
-
-            try:
-                run.zoom_model = ZoomModel.from_table(known)
-                if "k1" not in run.zoom_model.names and any(r.get("k4") is not None
-                                                             for r in known):
-                    log("zoom model: fx, fy, cx, cy only; steps "
-                        + ", ".join(r["step"] for r in known if r.get("k4") is not None)
-                        + " hold the rational model, the others five terms")
-                run.holdout = run.zoom_model.holdout_error()
-                doc = {"model": run.zoom_model.to_dict(),
-                       "holdout_rms": {k: float(v) for k, v in run.holdout.items()}}
-                path = out / "zoom_model.json"
-                path.write_text(json.dumps(doc, indent=1))
-                run.files.append(path)
-            except (ValueError, np.linalg.LinAlgError) as exc:
-                run.failures.append(f"zoom model: {exc}")
-                log(run.failures[-1])
-    if run.results:
-        run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
-                                   log)
-        run.files += _figures(run, out, zoom_set)
-    if report and run.results:
-        _report(run, out, report_distance, log)
-    call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
-            "detection_settings": settings}
-    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
-    return run
+    return meta
 
 
-# ----------------------------------------------------------------------------------------------
-# helpers of calibrate_folder: detection cache, image sizes, output folder, table backend
+def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
+                log: Callable[[str], None]) -> None:
+    """``zoom_model.json`` from the table rows of known zoom (4 or more), its held-out error in
+    ``run.holdout``; a fit that fails is logged and recorded."""
+    known = [_zoom_model_row(r) for r in rows if np.isfinite(r["zoom"])]
+    if len(known) < 4:
+        return
+    from ..zoom import ZoomModel
+
+    try:
+        run.zoom_model = ZoomModel.from_table(known)
+        if "k1" not in run.zoom_model.names and any(r.get("k4") is not None for r in known):
+            log("zoom model: fx, fy, cx, cy only; steps "
+                + ", ".join(r["step"] for r in known if r.get("k4") is not None)
+                + " hold the rational model, the others five terms")
+        run.holdout = run.zoom_model.holdout_error()
+        doc = {"model": run.zoom_model.to_dict(),
+               "holdout_rms": {k: float(v) for k, v in run.holdout.items()}}
+        path = out / "zoom_model.json"
+        path.write_text(json.dumps(doc, indent=1))
+        run.files.append(path)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        run.failures.append(f"zoom model: {exc}")
+        log(run.failures[-1])
 
 
 def _camera_name(folder: str | Path) -> str:
