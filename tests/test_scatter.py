@@ -133,14 +133,15 @@ def test_many_fits_each_disagreeing_below_its_test_are_found_together():
 
 
 def test_moderated_factors_thin_the_tails_of_z():
-    """1500 fits of 8 views (16 corners, intra-view correlation 0.1: a factor of 1.58 for all
+    """2000 fits of 6 views (16 corners, intra-view correlation 0.1: a factor of 1.58 for all
     four parameters of every fit), each checked alone, then tested together
     (:func:`pooled_over_fits`). Each error is an independent draw of the same model (as a
-    calibration's error is of its residuals). With each parameter's own factor (8 effective
-    views), z over the 6000 has the heavy tails of Student's t (about 1 % beyond 3); the
-    factors moderated towards their fit's give fewer, and an RMS z near 1."""
+    calibration's error is of its residuals). With each parameter's own factor (6 views), z
+    over the 8000 has the heavy tails of Student's t (about 1.1 % beyond 3, against 0.27 % for
+    a normal z); the factors moderated towards their fit's give about half as many, and an RMS
+    z near 1."""
     rng = np.random.default_rng(21)
-    fits, views, k, rho = 1500, 8, 16, 0.1
+    fits, views, k, rho = 2000, 6, 16, 0.1
     view_idx = np.repeat(np.arange(views), k)
     model_sd = np.full(4, np.sqrt(views * k))
 
@@ -158,8 +159,8 @@ def test_moderated_factors_thin_the_tails_of_z():
     z_own, z_moderated = (error / (model_sd[0] * f) for f in (
         own, np.concatenate([parts[g].applied() for g in checks])))
     beyond_own, beyond_moderated = (int(np.sum(np.abs(z) > 3)) for z in (z_own, z_moderated))
-    # binomial counts of about 60 and 30 (sd 8 and 5.5)
-    assert beyond_moderated < 0.75 * beyond_own and beyond_moderated < 0.008 * error.size
+    # binomial counts of about 87 and 40 (sd 9 and 6): seeds 21-23 gave 87/44, 87/37, 87/45
+    assert beyond_moderated < 0.7 * beyond_own and beyond_moderated < 0.007 * error.size
     assert np.sqrt(np.mean(z_moderated**2)) == pytest.approx(1.0, abs=0.05)
 
 
