@@ -174,11 +174,11 @@ def main() -> None:
           + ", ".join(f"{s} {o.n_views} views {o.n_observations} corners fx~"
                       f"{2072 * sweep.scale[s]:.0f}" for s, o in sweep.observations.items()))
     parts = {s: halves(o, a.splits, rng) for s, o in sweep.observations.items()}
-    first: list = []
+    zoom_wide_fits: list = []
 
     def zoom_wide(obs: dict[str, Observations]) -> dict:
         result = calibrate_zoom_wide(obs, pp_model=a.pp_model, board_degree=a.board_degree)
-        first.append(result)
+        zoom_wide_fits.append(result)
         return result.results
 
     BACKENDS["zoom-wide"] = zoom_wide
@@ -187,21 +187,22 @@ def main() -> None:
         results = calibrate(sweep.observations)
         z_camera = camera_table(sweep, name, results)
         if name == "zoom-wide" and a.board_degree >= 2:
-            height = board_height_modes(source.object_points, a.board_degree) @ first[0].board_modes
+            height = (board_height_modes(source.object_points, a.board_degree)
+                      @ zoom_wide_fits[0].board_modes)
             print(f"  zoom-wide board: heights {height.min():+.2f} to {height.max():+.2f} mm, "
                   f"RMS {np.std(height):.2f} mm (largest mode sigma "
-                  f"{first[0].board_modes_sd.max():.3f} mm)")
+                  f"{zoom_wide_fits[0].board_modes_sd.max():.3f} mm)")
         print(f"  {name:9s} one camera: RMS z " + " ".join(
             f"{q} {v:.2f}" for q, v in zip(COMPARED, np.sqrt(np.nanmean(z_camera**2, 0)),
                                            strict=True))
               + f", max |z| {np.nanmax(np.abs(z_camera)):.1f}  ({time.time() - t0:.0f} s)")
         z_half = {s: [] for s in sweep.observations}
         for k in range(a.splits):
-            first = calibrate({s: p[k][0] for s, p in parts.items()})
-            second = calibrate({s: p[k][1] for s, p in parts.items()})
+            half_a = calibrate({s: p[k][0] for s, p in parts.items()})
+            half_b = calibrate({s: p[k][1] for s, p in parts.items()})
             for s in sweep.observations:
-                if s in first and s in second:
-                    ra, rb = first[s], second[s]
+                if s in half_a and s in half_b:
+                    ra, rb = half_a[s], half_b[s]
                     z_half[s].append([(getattr(ra, q) - getattr(rb, q))
                                       / np.hypot(ra.sd[q], rb.sd[q]) for q in COMPARED])
         every = np.concatenate([np.reshape(v, (-1, 3)) for v in z_half.values()])
