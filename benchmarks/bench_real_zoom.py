@@ -42,12 +42,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from zoomcalib.calibrate.bundle import calibrate_bundle  # noqa: E402
-from zoomcalib.calibrate.checks import conditioning_flags  # noqa: E402
+from zoomcalib.calibrate.checks import conditioning_flags, random_halves  # noqa: E402
 from zoomcalib.calibrate.digital_zoom import DigitalZoom, digital_zoom_sweep  # noqa: E402
 from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
-from zoomcalib.calibrate.scatter import pooled_over_steps, view_groups  # noqa: E402
+from zoomcalib.calibrate.scatter import pooled_over_steps  # noqa: E402
 from zoomcalib.calibrate.zoomwide import board_height_modes, calibrate_zoom_wide  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "mrcal-figueroa" / "figueroa_obs.npz"
@@ -72,16 +72,6 @@ BACKENDS = {
     "opencv": per_step(calibrate_opencv_robust),
     "bundle": per_step(calibrate_bundle),
 }
-
-
-def halves(obs: Observations, count: int, rng: np.random.Generator):
-    """Even/odd groups of views, then random halves of the groups."""
-    groups = view_groups(obs.views, obs.image_size)
-    n = int(groups.max()) + 1
-    masks = [groups % 2 == 0]
-    masks += [np.isin(groups, rng.permutation(n)[: n // 2]) for _ in range(count - 1)]
-    return [tuple(Observations(obs.object_points, [obs.views[i] for i in np.flatnonzero(m)],
-                               obs.image_size) for m in (mask, ~mask)) for mask in masks]
 
 
 def _choice(result) -> str:
@@ -173,7 +163,7 @@ def main() -> None:
     print(f"digital zoom of figueroa: {sweep.image_size[0]} x {sweep.image_size[1]} px, "
           + ", ".join(f"{s} {o.n_views} views {o.n_observations} corners fx~"
                       f"{2072 * sweep.scale[s]:.0f}" for s, o in sweep.observations.items()))
-    parts = {s: halves(o, a.splits, rng) for s, o in sweep.observations.items()}
+    parts = {s: random_halves(o, a.splits, rng) for s, o in sweep.observations.items()}
     zoom_wide_fits: list = []
 
     def zoom_wide(obs: dict[str, Observations]) -> dict:

@@ -8,6 +8,7 @@ Gaussian detection noise; principal point, distortion and poses drawn from a see
 import cv2
 import numpy as np
 import pytest
+import scipy.stats
 
 from zoomcalib.calibrate.checks import (
     Z_LIMIT,
@@ -19,6 +20,8 @@ from zoomcalib.calibrate.opencv_backend import calibrate_opencv
 from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.zoommodel import prior_operator
 from zoomcalib.calibrate.zoomwide import (
+    DISTORTION_SETS,
+    TermChoice,
     calibrate_zoom_wide,
     prior_strength,
     second_difference,
@@ -463,3 +466,19 @@ def test_the_rational_model_is_chosen_only_where_five_terms_misfit(rng):
     plain = _wide_views(np.random.default_rng(seed), polynomial)
     assert "k4" in select_distortion(wide, start=calibrate_opencv(wide)).terms
     assert "k4" not in select_distortion(plain, start=calibrate_opencv(plain)).terms
+
+
+def test_the_other_models_weight_is_the_chance_it_is_better_by_the_tolerance():
+    """``TermChoice.other_model_weight``: the normal probability that the rational model's
+    held-out error is below the five terms' by more than 1 %, from the per-view log ratio's
+    mean and standard error; its complement where the rational model was chosen."""
+    five = DISTORTION_SETS["k1k2p1p2k3"]
+    margin = np.log1p(-0.01)
+    for mean, se in ((-0.03, 0.01), (0.0, 0.004), (-0.2, 0.05)):
+        expected = scipy.stats.norm.cdf((margin - mean) / se)
+        assert TermChoice(five, rational_log_ratio=(mean, se)).other_model_weight() == (
+            pytest.approx(expected))
+        assert TermChoice(DISTORTION_SETS["rational"], rational_log_ratio=(mean, se)
+                          ).other_model_weight() == pytest.approx(1.0 - expected)
+    assert TermChoice(five).other_model_weight() == 0.0
+    assert TermChoice(five, rational_log_ratio=(-0.1, 0.0)).other_model_weight() == 0.0

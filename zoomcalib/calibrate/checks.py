@@ -37,6 +37,7 @@ from .result import CalibrationResult, Observations
 from .scatter import view_groups
 
 __all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_halves",
+           "random_halves",
            "CROSS_VALIDATED", "Z_LIMIT"]
 
 #: Parameters compared between the halves.
@@ -106,13 +107,28 @@ def split_halves(obs: Observations) -> tuple[Observations, Observations]:
     views of nearly one pose as one (:func:`~zoomcalib.calibrate.scatter.view_groups`: frames
     of a video where the board hardly moved go to the same half, or the halves would share
     their errors)."""
-    half = view_groups(obs.views, obs.image_size) % 2
+    groups = view_groups(obs.views, obs.image_size)
+    return _halves(obs, groups % 2 == 0)
 
-    def pick(parity: int) -> Observations:
-        keep = np.flatnonzero(half == parity)
+
+def random_halves(obs: Observations, count: int, rng: np.random.Generator
+                  ) -> list[tuple[Observations, Observations]]:
+    """``count`` splits of ``obs`` into two halves: :func:`split_halves`' even and odd groups of
+    views of nearly one pose, then ``count - 1`` splits of the groups drawn at random (half of
+    them, rounded down, in the first half)."""
+    groups = view_groups(obs.views, obs.image_size)
+    n = int(groups.max()) + 1
+    masks = [groups % 2 == 0]
+    masks += [np.isin(groups, rng.permutation(n)[: n // 2]) for _ in range(count - 1)]
+    return [_halves(obs, mask) for mask in masks]
+
+
+def _halves(obs: Observations, first: np.ndarray) -> tuple[Observations, Observations]:
+    """The views of ``obs`` where ``first`` (per view) is True, and the others."""
+    def pick(keep: np.ndarray) -> Observations:
         return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
                             [obs.names[i] for i in keep] if obs.names else [])
-    return pick(0), pick(1)
+    return pick(np.flatnonzero(first)), pick(np.flatnonzero(~first))
 
 
 @dataclass

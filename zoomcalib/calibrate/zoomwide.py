@@ -110,6 +110,7 @@ import cv2
 import numpy as np
 import scipy.linalg
 import scipy.sparse
+import scipy.stats
 
 from .bundle import _deletion_steps, project_jacobian
 from .opencv_backend import (
@@ -296,16 +297,41 @@ class TermChoice:
     set (px^2 per point; ``inf`` where the set could not be fitted). ``excess_se_px2``: the
     standard error of each set's excess over the best set, from the view-by-view differences.
     ``board``: ``"flat"`` or ``"estimated"``, the board shape the choice was made on.
+    ``five_terms``: the best five-term set's name; ``rational_log_ratio``: the mean and the
+    standard error of the per-view log ratio of the rational model's held-out mean squared
+    error over that set's (:func:`_log_ratio`), None where not both could be fitted.
     """
 
     terms: tuple[str, ...]
     mse_px2: dict[str, float] = field(default_factory=dict)
     excess_se_px2: dict[str, float] = field(default_factory=dict)
     board: str = "flat"
+    five_terms: str = "k1k2p1p2k3"
+    rational_log_ratio: tuple[float, float] | None = None
+
+    @property
+    def rational(self) -> bool:
+        """The rational model was chosen."""
+        return bool(set(RATIONAL_TERMS) & set(self.terms))
+
+    def other_model_weight(self, tolerance: float = 0.01) -> float:
+        """The probability that the model not chosen (rational or the best five-term set) is
+        the better one: that the rational model's held-out error is below the five terms' by
+        more than ``tolerance`` (relative), or is not, from the per-view log ratio's mean ``m``
+        and standard error ``s`` (normal): ``P = Phi((log(1 - tolerance) - m) / s)``, and
+        ``1 - P`` where the rational model was chosen. 0 when unknown."""
+        if self.rational_log_ratio is None or not self.rational_log_ratio[1] > 0:
+            return 0.0
+        mean, se = self.rational_log_ratio
+        better = float(scipy.stats.norm.cdf((np.log1p(-tolerance) - mean) / se))
+        return 1.0 - better if self.rational else better
 
     def to_dict(self) -> dict:
         return {"terms": list(self.terms), "mse_px2": self.mse_px2,
-                "excess_se_px2": self.excess_se_px2, "board": self.board}
+                "excess_se_px2": self.excess_se_px2, "board": self.board,
+                "five_terms": self.five_terms,
+                "rational_log_ratio": (None if self.rational_log_ratio is None
+                                       else list(self.rational_log_ratio))}
 
 
 def select_distortion(obs: Observations, tolerance: float = 0.01,
@@ -318,7 +344,7 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
     fewer than 6 views. The rational model (OpenCV's eight terms) is an extension, not a
     candidate of the same rank: it replaces that choice only where its held-out error is below
     the best five-term set's by more than ``tolerance``, ``n_se`` standard errors included, view
-    by view (:func:`_rational_gain`: a wide field the five terms do not fit); where the data
+    by view (:func:`_log_ratio`: a wide field the five terms do not fit); where the data
     cannot tell, its nearly collinear terms would only trade with the others.
 
     With the board's shape known, the held-out error of the right terms is the detection noise
@@ -348,27 +374,29 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
                    / max(n_points[best], 1)) for k, (sq, _) in per_view.items()}
     chosen = next(k for k in standard
                   if mse[k] - mse[best] + n_se * se[k] <= tolerance * mse[best])
-    if "rational" in per_view and "rational" not in standard and _rational_gain(
-            per_view["rational"], per_view[best], tolerance, n_se):
+    ratio = (_log_ratio(per_view["rational"], per_view[best])
+             if "rational" in per_view and "rational" not in standard else None)
+    if ratio is not None and ratio[0] + n_se * ratio[1] < np.log1p(-tolerance):
         chosen = "rational"
     return TermChoice(DISTORTION_SETS[chosen],
                       {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
-                      {k: se[k] for k in per_view}, board)
+                      {k: se[k] for k in per_view}, board, best, ratio)
 
 
-def _rational_gain(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray],
-                   tolerance: float, n_se: float) -> bool:
-    """Whether the rational model's held-out errors (per view: squared sum, points) are below
-    the best five-term set's by more than ``tolerance``, ``n_se`` standard errors included,
-    judged on the per-view log ratio of mean squared errors (a view that one set places badly
-    does not decide it; 4 views placed by both at least)."""
+def _log_ratio(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray]
+               ) -> tuple[float, float] | None:
+    """The mean and standard error of the per-view log ratio of the rational model's held-out
+    mean squared error over the best five-term set's (per view: squared sum, points). Judged
+    view by view, a view that one set places badly does not decide it; None below 4 views
+    placed by both. The rational model is chosen where the mean, ``n_se`` standard errors
+    included, is below ``log(1 - tolerance)`` (:func:`select_distortion`)."""
     (sq_r, n_r), (sq_b, n_b) = rational, best
     both = (n_r > 0) & (n_b > 0) & (sq_b > 0) & (sq_r > 0)
     if both.sum() < 4:
-        return False
+        return None
     log_ratio = np.log(sq_r[both] / n_r[both]) - np.log(sq_b[both] / n_b[both])
-    se = float(np.std(log_ratio, ddof=1) / np.sqrt(len(log_ratio)))
-    return bool(np.mean(log_ratio) + n_se * se < np.log1p(-tolerance))
+    return (float(np.mean(log_ratio)),
+            float(np.std(log_ratio, ddof=1) / np.sqrt(len(log_ratio))))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -963,7 +991,72 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
             r.info["prior_share"] = _prior_share(r, joint_cov, s)
+    _add_model_choice_spread(result, observations, held, decentring)
     return result
+
+
+#: Smallest probability of the model not chosen (:meth:`TermChoice.other_model_weight`) for
+#: which what it would change is added to a step's variance.
+OTHER_MODEL_MIN_WEIGHT = 0.01
+
+
+def _add_model_choice_spread(result: ZoomWideResult, observations: Mapping[str, Observations],
+                             held: Mapping[str, TermChoice], decentring: bool = True) -> None:
+    """Where a step's choice between the rational model and five terms is uncertain, add what
+    the other model would change to the variance of the step's fx, fy, cx, cy (in ``sd`` and
+    the joint covariance's diagonal), as model averaging does (Buckland, Burnham & Augustin
+    1997) about the chosen model's value:
+
+        var(q) += w (q_other - q_chosen)^2,
+
+    ``w`` the other model's probability of being the better one
+    (:meth:`TermChoice.other_model_weight`, at least :data:`OTHER_MODEL_MIN_WEIGHT`). The
+    change is that of per-step OpenCV calibrations of the step's views on the board's estimated
+    shape with either model, started from the adjustment's values. Neither sigma covers it:
+    both halves of a step can each choose a model firmly, differently, and be a few sigmas
+    apart. ``info["model_choice"]`` records ``other``, ``weight`` and ``shift`` (None with the
+    reason when the other model could not be fitted)."""
+    column = {c: i for i, c in enumerate(result.columns)}
+    for name, res in result.results.items():
+        choice = held.get(name)
+        weight = choice.other_model_weight() if choice is not None else 0.0
+        if weight < OTHER_MODEL_MIN_WEIGHT:
+            continue
+        other = RATIONAL_TERMS if not choice.rational else DISTORTION_SETS[choice.five_terms]
+        record: dict = {"other": "rational" if not choice.rational else choice.five_terms,
+                        "weight": weight}
+        try:
+            shift = _model_shift(observations[name], res,
+                                 [with_decentring(t, decentring) for t in (choice.terms, other)])
+        except RuntimeError as exc:
+            res.info["model_choice"] = record | {"shift": None, "why": str(exc)}
+            continue
+        for q, moved in shift.items():
+            res.sd[q] = float(np.sqrt(res.sd[q] ** 2 + weight * moved**2))
+            if (name, q) in column:
+                result.covariance[column[name, q], column[name, q]] += weight * moved**2
+        res.info["model_choice"] = record | {"shift": shift}
+
+
+def _model_shift(obs: Observations, res: CalibrationResult, term_sets: list[tuple[str, ...]]
+                 ) -> dict[str, float]:
+    """fx, fy, cx, cy of the second term set's OpenCV calibration minus the first's, both of
+    ``obs`` on the board ``res.object_points``, started from ``res``. RuntimeError when one
+    fails or gives no camera."""
+    on_board = Observations(res.object_points, obs.views, obs.image_size, obs.names)
+    fits = []
+    for terms in term_sets:
+        try:
+            with warnings.catch_warnings():  # a pose's sigma is not used here
+                warnings.simplefilter("ignore", RuntimeWarning)
+                fit = calibrate_opencv(on_board, flags=_distortion_flags(terms),
+                                       **_guess(res, terms))
+        except (ValueError, cv2.error) as exc:
+            raise RuntimeError(f"{'+'.join(terms)}: {' '.join(str(exc).split())}") from exc
+        if (why := not_a_camera(fit, obs.image_size)) is not None:
+            raise RuntimeError(f"{'+'.join(terms)}: {why}")
+        fits.append(fit)
+    return {q: float(getattr(fits[1], q) - getattr(fits[0], q)) for q in ("fx", "fy", "cx", "cy")}
 
 
 def _prior_share(result: CalibrationResult, joint_cov, s: int) -> dict[str, float]:
