@@ -164,6 +164,29 @@ def test_moderated_factors_thin_the_tails_of_z():
     assert np.sqrt(np.mean(z_moderated**2)) == pytest.approx(1.0, abs=0.05)
 
 
+def test_a_focal_length_that_two_tilted_views_carry_is_flagged():
+    """Eight views within 3 degrees of fronto-parallel and two tilted by up to 40 degrees (one
+    camera; the long end's usual set): the two carry fx (fewer than 4 effective views), so its
+    sigma cannot be checked against the views' scatter, and both backends say so. Ten views
+    tilted by up to 35 degrees: no such flag."""
+    for seed in range(4):
+        flat = sweep_detections(np.random.default_rng(10 + seed), steps=1, views=8,
+                                max_tilt_deg=3.0)
+        tilted = sweep_detections(np.random.default_rng(20 + seed), steps=1, views=2,
+                                  max_tilt_deg=40.0)
+        (a,), (b,) = flat.observations.values(), tilted.observations.values()
+        obs = Observations(a.object_points, a.views + b.views, a.image_size)
+        spread = sweep_detections(np.random.default_rng(30 + seed), steps=1, views=10)
+        (varied,) = spread.observations.values()
+        for calibrate in (calibrate_opencv, calibrate_bundle):
+            res = calibrate(obs)
+            assert res.info["view_scatter"]["unchecked"]["fx"] < 4.0
+            assert any(f.startswith("fx rests on") and "cannot be checked" in f
+                       for f in conditioning_flags(res, obs.image_size))
+            assert not any("effective views" in f
+                           for f in conditioning_flags(calibrate(varied), obs.image_size))
+
+
 def _exact_views(seed: int, views: int = 12):
     sweep = sweep_detections(np.random.default_rng(seed), steps=1, views=views, noise_px=0.0)
     (obs,) = sweep.observations.values()

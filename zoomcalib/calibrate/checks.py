@@ -12,7 +12,9 @@ a truncated distortion term alone is replaced there but not flagged: the radial 
 narrow field are nearly collinear, and their sum is what the views determine), when its views
 disagree beyond what the corner noise explains so that the sigma of fx, fy, cx or cy was
 scaled up (``info['view_scatter']``, :mod:`zoomcalib.calibrate.scatter`: a lens the model does
-not fit, a board that moves, correlated errors within a view), or when its solve did not
+not fit, a board that moves, correlated errors within a view), when one of fx, fy, cx, cy
+rests on fewer than 4 effective views so that its sigma cannot be checked that way (a few
+tilted views of many nearly fronto-parallel ones carry fx), or when its solve did not
 converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
@@ -34,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .result import CalibrationResult, Observations
-from .scatter import view_groups
+from .scatter import MIN_VIEWS, view_groups
 
 __all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_halves",
            "random_halves",
@@ -97,6 +99,12 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
             flags.append(f"views disagree beyond the corner noise{pooled}: sd {name} x"
                          f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
                          "a moving board)")
+    few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
+           if nm in ("fx", "fy", "cx", "cy")}
+    if few:
+        name = next(nm for nm in ("fx", "fy", "cx", "cy") if nm in few)
+        flags.append(f"{name} rests on {few[name]:.1f} effective views (fewer than "
+                     f"{MIN_VIEWS:.0f}): its sigma cannot be checked against their scatter")
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags

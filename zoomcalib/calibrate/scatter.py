@@ -250,7 +250,8 @@ class ViewScatter:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
         ``views`` and ``threshold``; the names whose sigma was ``scaled`` by its own factor, and
         those scaled by the fit's median factor (``pooled``, too few views to check); the
-        ``free`` parameters. ``applied``: the factors used, if not :meth:`applied`'s."""
+        ``free`` parameters, and the effective views of those not checked (``unchecked``).
+        ``applied``: the factors used, if not :meth:`applied`'s."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
         applied = self.applied() if applied is None else applied
         fit_factor, fit_views, fit_threshold = self.fit_test()
@@ -261,6 +262,8 @@ class ViewScatter:
                                  ("threshold", self.threshold))} | {
             "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold},
             "free": free,
+            "unchecked": {self.names[q]: float(self.views[q]) for q in range(len(self.names))
+                          if self.free[q] and q not in checked},
             "scaled": [self.names[q] for q in checked if applied[q] > 1.0],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
                        if q not in checked and applied[q] != 1.0}}
