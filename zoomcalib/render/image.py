@@ -52,8 +52,10 @@ import cv2
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 from scipy.spatial import cKDTree
+from scipy.special import ndtr
 
 from ..camera import Sensor
+from ..imaging import auto_n_sub, bivariate_normal_cdf, pixel_nodes
 from ..targets import Target
 
 __all__ = ["Radiometry", "Optics", "PSF_KINDS", "psf_sigma_px", "psf_kernel",
@@ -534,10 +536,6 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
     ``m_1^T C m_2 / (s_1 s_2)``; reaches and the pixel rule follow the major and minor sd.
     Targets with dots then return None (their rims are written for an isotropic PSF).
     """
-    from scipy.special import ndtr
-
-    from ..imaging import auto_n_sub, bivariate_normal_cdf, pixel_nodes
-
     s_major = s_minor = sigma
     if psf_cov is not None:
         s_minor, s_major = np.sqrt(np.linalg.eigvalsh(psf_cov))
@@ -556,96 +554,130 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
     out = np.empty((H, W))
     discs = target.discs
     tree = cKDTree(discs[:, :2]) if len(discs) else None
-    nx, ny = value.shape
     for r0 in range(0, H, band_rows):
         v = np.arange(r0, min(H, r0 + band_rows), dtype=float)
         bx, by = bxs(v, u), bys(v, u)  # shape (V, W)
         bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
         by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
-        terms = []
-        for spl, coord, gu, gv, lines in ((bxs, bx, bx_u, bx_v, xs), (bys, by, by_u, by_v, ys)):
-            i = np.searchsorted(lines, coord)
-            left = lines[np.clip(i - 1, 0, len(lines) - 1)]
-            right = lines[np.clip(i, 0, len(lines) - 1)]
-            d_left = np.where(i > 0, coord - left, np.inf)
-            d_right = np.where(i < len(lines), right - coord, np.inf)
-            g = np.maximum(np.hypot(gu, gv), 1e-300)  # board units per px across the line
-            if np.any(np.maximum(d_left, d_right) / g < second_reach):
-                return None  # two lines of one family within reach: not locally one edge
-            step = np.where(d_right < d_left, 1, -1)
-            t_c = -np.minimum(d_left, d_right) / g  # px, < 0: the centre is in its own cell
-            # Second order along the normal: perspective (and distortion) make |grad b| vary
-            # across the line, so (board distance) / |grad b| at the centre is t - step (h/2) t^2
-            # for an image distance t, h = n^T (d^2 b / d uv^2) n / |grad b| (px^-1,
-            # n = grad b / |grad b|). The error has one sign on both sides of the line: it
-            # moved every edge by (h / 2) (sigma^2 + 1/12) px along n (1/12 from the pixel
-            # box); benchmarks/render_accuracy.py measures what is left.
-            nu, nv = gu / g, gv / g
-            h = (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
-                 + spl(v, u, dx=2) * nv * nv) / g
-            t_c += np.where(t_c > -reach, 0.5 * step * h * t_c**2, 0.0)
-            m = np.stack([step * gu / g, step * gv / g], -1)  # unit normal into the neighbour
-            # the PSF's sd across the line, px
-            s_n = (sigma if psf_cov is None else np.sqrt(
-                psf_cov[0, 0] * m[..., 0] ** 2 + 2 * psf_cov[0, 1] * m[..., 0] * m[..., 1]
-                + psf_cov[1, 1] * m[..., 1] ** 2))
-            terms.append((i, step, t_c, m, s_n))
-        (ix, sx, t1c, m1, s1), (iy, sy, t2c, m2, s2) = terms
-        ix2, iy2 = np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)
-        v00, v10 = value[ix, iy], value[ix2, iy]
-        v01, v11 = value[ix, iy2], value[ix2, iy2]
-        pix = v00.copy()
-        # Only pixels within the blur's reach of a line differ from their cell's value.
-        for t_c, m, s_n, dv in ((t1c, m1, s1, v10 - v00), (t2c, m2, s2, v01 - v00)):
-            sel = (t_c > -reach) & (dv != 0)
-            tn = (t_c[sel][:, None] + m[sel][:, 0:1] * nodes[:, 0]
-                  + m[sel][:, 1:2] * nodes[:, 1]) / _pick(s_n, sel)
-            pix[sel] += dv[sel] * (ndtr(tn) @ weights)
-        cross = v11 - v10 - v01 + v00
-        near = (cross != 0) & (t1c > -reach) & (t2c > -reach)
-        if np.any(near):
-            if psf_cov is None:
-                rho = np.sum(m1[near] * m2[near], -1)
-            else:
-                rho = np.sum((m1[near] @ psf_cov) * m2[near], -1) / (s1[near] * s2[near])
-            rho = np.clip(rho, -0.98, 0.98)
-            h = (t1c[near][:, None] + m1[near][:, 0:1] * nodes[:, 0]
-                 + m1[near][:, 1:2] * nodes[:, 1]) / _pick(s1, near)
-            k = (t2c[near][:, None] + m2[near][:, 0:1] * nodes[:, 0]
-                 + m2[near][:, 1:2] * nodes[:, 1]) / _pick(s2, near)
-            pix[near] += cross[near] * (bivariate_normal_cdf(h, k, rho[:, None]) @ weights)
+        terms = [_nearest_line(spl, coord, gu, gv, lines, v, u, sigma, psf_cov, reach,
+                               second_reach)
+                 for spl, coord, gu, gv, lines in ((bxs, bx, bx_u, bx_v, xs),
+                                                   (bys, by, by_u, by_v, ys))]
+        if terms[0] is None or terms[1] is None:
+            return None  # two lines of one family within reach: not locally one edge
+        pix = _blend_cells(value, *terms, nodes, weights, reach, psf_cov)
         if tree is not None:
-            dist, kk = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
-            dist, kk = dist.reshape(bx.shape), kk.reshape(bx.shape)
-            ex = (bx - discs[kk, 0]) / np.maximum(dist, 1e-12)
-            ey = (by - discs[kk, 1]) / np.maximum(dist, 1e-12)
-            gu, gv = bx_u * ex + by_u * ey, bx_v * ex + by_v * ey  # grad of |b - c| in px
-            g = np.maximum(np.hypot(gu, gv), 1e-300)
-            d_in = (discs[kk, 2] - dist) / g  # px inside the rim
-            # Second order along the normal, as for the lines. With e = (ex, ey), J = d b / d uv
-            # and n = J^T e / g, |b - c| has n^T H n = sum_k e_k n^T (d^2 b_k / d uv^2) n
-            # + (|J n|^2 - g^2) / |b - c| (px^-2 times mm), and the distance inside the rim is
-            # d_in - (h / 2) d_in^2 with h = n^T H n / g (px^-1).
-            nu, nv = gu / g, gv / g
-            h = sum(e_k * (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
-                           + spl(v, u, dx=2) * nv * nv) for e_k, spl in ((ex, bxs), (ey, bys)))
-            jn_sq = (bx_u * nu + bx_v * nv) ** 2 + (by_u * nu + by_v * nv) ** 2
-            h = (h + (jn_sq - g * g) / np.maximum(dist, 1e-12)) / g
-            d_in -= np.where(np.abs(d_in) < reach, 0.5 * h * d_in**2, 0.0)
-            pix[d_in >= reach] = 0.0  # deep inside a dot
-            sel = np.abs(d_in) < reach
-            # rim curvature in the image: |det A| / (r |A e'|^3), A = (d b / d uv)^-1
-            det_j = (bx_u * by_v - bx_v * by_u)[sel]
-            exs, eys = ex[sel], ey[sel]
-            a_u = (by_v[sel] * -eys - bx_v[sel] * exs) / det_j  # A @ e', e' = (-ey, ex)
-            a_v = (-by_u[sel] * -eys + bx_u[sel] * exs) / det_j
-            kappa = 1.0 / (np.abs(det_j) * discs[kk[sel], 2] * np.hypot(a_u, a_v) ** 3)
-            nu, nv = (gu / g)[sel], (gv / g)[sel]
-            dn = (d_in[sel][:, None] - nu[:, None] * nodes[:, 0]
-                  - nv[:, None] * nodes[:, 1]) / sigma
-            pix[sel] *= 1.0 - ndtr(dn - 0.5 * sigma * kappa[:, None]) @ weights
+            _dot_rims(pix, discs, tree, bx, by, (bx_u, bx_v, by_u, by_v), bxs, bys, v, u,
+                      reach, sigma, nodes, weights)
         out[r0:r0 + len(v)] = pix
     return out
+
+
+def _nearest_line(spl, coord: np.ndarray, gu: np.ndarray, gv: np.ndarray, lines: np.ndarray,
+                  v: np.ndarray, u: np.ndarray, sigma: float, psf_cov: np.ndarray | None,
+                  reach: float, second_reach: float):
+    """The nearest board line of one family (``lines``, board coordinate ``coord`` with
+    gradient ``(gu, gv)`` per px, spline ``spl``) at each pixel of a band (V, W): the index
+    of the cell boundary ``i``, the side of the neighbouring cell ``step`` (+-1), the signed
+    distance ``t_c`` (px) from the pixel centre into it (second order along the normal), the
+    unit normal ``m`` (V, W, 2) into it and the PSF's sd across the line ``s_n`` (px). None
+    when a second line of the family lies within ``second_reach``: not locally one edge."""
+    i = np.searchsorted(lines, coord)
+    left = lines[np.clip(i - 1, 0, len(lines) - 1)]
+    right = lines[np.clip(i, 0, len(lines) - 1)]
+    d_left = np.where(i > 0, coord - left, np.inf)
+    d_right = np.where(i < len(lines), right - coord, np.inf)
+    g = np.maximum(np.hypot(gu, gv), 1e-300)  # board units per px across the line
+    if np.any(np.maximum(d_left, d_right) / g < second_reach):
+        return None
+    step = np.where(d_right < d_left, 1, -1)
+    t_c = -np.minimum(d_left, d_right) / g  # px, < 0: the centre is in its own cell
+    # Second order along the normal: perspective (and distortion) make |grad b| vary across
+    # the line, so (board distance) / |grad b| at the centre is t - step (h/2) t^2 for an image
+    # distance t, h = n^T (d^2 b / d uv^2) n / |grad b| (px^-1, n = grad b / |grad b|). The
+    # error has one sign on both sides of the line: it moved every edge by
+    # (h / 2) (sigma^2 + 1/12) px along n (1/12 from the pixel box);
+    # benchmarks/render_accuracy.py measures what is left.
+    nu, nv = gu / g, gv / g
+    h = (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
+         + spl(v, u, dx=2) * nv * nv) / g
+    t_c += np.where(t_c > -reach, 0.5 * step * h * t_c**2, 0.0)
+    m = np.stack([step * gu / g, step * gv / g], -1)  # unit normal into the neighbour
+    s_n = (sigma if psf_cov is None else np.sqrt(
+        psf_cov[0, 0] * m[..., 0] ** 2 + 2 * psf_cov[0, 1] * m[..., 0] * m[..., 1]
+        + psf_cov[1, 1] * m[..., 1] ** 2))
+    return i, step, t_c, m, s_n
+
+
+def _blend_cells(value: np.ndarray, line_x: tuple, line_y: tuple, nodes: np.ndarray,
+                 weights: np.ndarray, reach: float, psf_cov: np.ndarray | None) -> np.ndarray:
+    """Each pixel of a band from the four cells around its nearest lines of the two families
+    (:func:`_nearest_line`), by the closed form of :func:`_render_analytic`, averaged over the
+    pixel with ``nodes`` and ``weights``."""
+    (ix, sx, t1c, m1, s1), (iy, sy, t2c, m2, s2) = line_x, line_y
+    nx, ny = value.shape
+    ix2, iy2 = np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)
+    v00, v10 = value[ix, iy], value[ix2, iy]
+    v01, v11 = value[ix, iy2], value[ix2, iy2]
+    pix = v00.copy()
+    # Only pixels within the blur's reach of a line differ from their cell's value.
+    for t_c, m, s_n, dv in ((t1c, m1, s1, v10 - v00), (t2c, m2, s2, v01 - v00)):
+        sel = (t_c > -reach) & (dv != 0)
+        tn = (t_c[sel][:, None] + m[sel][:, 0:1] * nodes[:, 0]
+              + m[sel][:, 1:2] * nodes[:, 1]) / _pick(s_n, sel)
+        pix[sel] += dv[sel] * (ndtr(tn) @ weights)
+    cross = v11 - v10 - v01 + v00
+    near = (cross != 0) & (t1c > -reach) & (t2c > -reach)
+    if np.any(near):
+        if psf_cov is None:
+            rho = np.sum(m1[near] * m2[near], -1)
+        else:
+            rho = np.sum((m1[near] @ psf_cov) * m2[near], -1) / (s1[near] * s2[near])
+        rho = np.clip(rho, -0.98, 0.98)
+        h = (t1c[near][:, None] + m1[near][:, 0:1] * nodes[:, 0]
+             + m1[near][:, 1:2] * nodes[:, 1]) / _pick(s1, near)
+        k = (t2c[near][:, None] + m2[near][:, 0:1] * nodes[:, 0]
+             + m2[near][:, 1:2] * nodes[:, 1]) / _pick(s2, near)
+        pix[near] += cross[near] * (bivariate_normal_cdf(h, k, rho[:, None]) @ weights)
+    return pix
+
+
+def _dot_rims(pix: np.ndarray, discs: np.ndarray, tree: cKDTree, bx: np.ndarray,
+              by: np.ndarray, gradients: tuple, bxs, bys, v: np.ndarray, u: np.ndarray,
+              reach: float, sigma: float, nodes: np.ndarray, weights: np.ndarray) -> None:
+    """Multiply each pixel of a band (``pix``, in place) by the blurred inside of the nearest
+    dark disc (``discs`` (n, 3): centre and radius on the board), ``1 - Phi(d/s - s kappa/2)``
+    (:func:`_render_analytic`); ``gradients`` are ``bx_u, bx_v, by_u, by_v``."""
+    bx_u, bx_v, by_u, by_v = gradients
+    dist, kk = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
+    dist, kk = dist.reshape(bx.shape), kk.reshape(bx.shape)
+    ex = (bx - discs[kk, 0]) / np.maximum(dist, 1e-12)
+    ey = (by - discs[kk, 1]) / np.maximum(dist, 1e-12)
+    gu, gv = bx_u * ex + by_u * ey, bx_v * ex + by_v * ey  # grad of |b - c| in px
+    g = np.maximum(np.hypot(gu, gv), 1e-300)
+    d_in = (discs[kk, 2] - dist) / g  # px inside the rim
+    # Second order along the normal, as for the lines. With e = (ex, ey), J = d b / d uv and
+    # n = J^T e / g, |b - c| has n^T H n = sum_k e_k n^T (d^2 b_k / d uv^2) n
+    # + (|J n|^2 - g^2) / |b - c| (px^-2 times mm), and the distance inside the rim is
+    # d_in - (h / 2) d_in^2 with h = n^T H n / g (px^-1).
+    nu, nv = gu / g, gv / g
+    h = sum(e_k * (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
+                   + spl(v, u, dx=2) * nv * nv) for e_k, spl in ((ex, bxs), (ey, bys)))
+    jn_sq = (bx_u * nu + bx_v * nv) ** 2 + (by_u * nu + by_v * nv) ** 2
+    h = (h + (jn_sq - g * g) / np.maximum(dist, 1e-12)) / g
+    d_in -= np.where(np.abs(d_in) < reach, 0.5 * h * d_in**2, 0.0)
+    pix[d_in >= reach] = 0.0  # deep inside a dot
+    sel = np.abs(d_in) < reach
+    # rim curvature in the image: |det A| / (r |A e'|^3), A = (d b / d uv)^-1
+    det_j = (bx_u * by_v - bx_v * by_u)[sel]
+    exs, eys = ex[sel], ey[sel]
+    a_u = (by_v[sel] * -eys - bx_v[sel] * exs) / det_j  # A @ e', e' = (-ey, ex)
+    a_v = (-by_u[sel] * -eys + bx_u[sel] * exs) / det_j
+    kappa = 1.0 / (np.abs(det_j) * discs[kk[sel], 2] * np.hypot(a_u, a_v) ** 3)
+    nu, nv = (gu / g)[sel], (gv / g)[sel]
+    dn = (d_in[sel][:, None] - nu[:, None] * nodes[:, 0]
+          - nv[:, None] * nodes[:, 1]) / sigma
+    pix[sel] *= 1.0 - ndtr(dn - 0.5 * sigma * kappa[:, None]) @ weights
 
 
 def _pick(s_n: float | np.ndarray, sel: np.ndarray) -> float | np.ndarray:
