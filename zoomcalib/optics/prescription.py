@@ -192,6 +192,33 @@ def load_prescription(name_or_path: str | Path = "laikin-10x") -> Prescription:
 
 
 def _parse(doc: dict, path: str) -> Prescription:
+    surfaces = _parse_surfaces(doc, path)
+    groups = _parse_groups(doc, path, surfaces["group_of"])
+    after, design_arr = _parse_gaps(doc, path, len(surfaces["group_of"]))
+    f_number = _number(path, "f_number", doc.get("f_number", 4.0), positive=True)
+    thickness = np.array(surfaces["thick"])
+    gap_after = np.array(after) - 1
+    thickness[gap_after] = design_arr[0]
+    return Prescription(
+        name=str(doc.get("name", Path(path).stem)),
+        curvature=np.array(surfaces["curv"]),
+        thickness=thickness,
+        n_after=np.array(surfaces["n_after"]),
+        semi_diameter=np.array(surfaces["semi"]),
+        surface_group=tuple(surfaces["group_of"]),
+        groups=groups,
+        stop=surfaces["stop"],
+        gap_after=gap_after,
+        design_gaps=design_arr,
+        f_number=f_number,
+        source=str(doc.get("source", "")),
+        path=path,
+    )
+
+
+def _parse_surfaces(doc: dict, path: str) -> dict:
+    """The ``surfaces`` list, checked: per surface its curvature (1/mm, 0 flat), thickness
+    (mm), index after it, semi-diameter (mm, NaN unknown) and group; the stop's index."""
     surfaces = doc.get("surfaces")
     if not isinstance(surfaces, list) or len(surfaces) < 2:
         raise _fail(path, "field 'surfaces' must be a list of at least two surfaces")
@@ -224,18 +251,25 @@ def _parse(doc: dict, path: str) -> Prescription:
                           f"found {len(stops)}")
     if n_after[-1] != 1.0:
         raise _fail(path, f"field 'surfaces[{len(surfaces) - 1}].nd' must be 1 (image in air)")
+    return {"curv": curv, "thick": thick, "n_after": n_after, "semi": semi,
+            "group_of": group_of, "stop": stops[0]}
 
+
+def _parse_groups(doc: dict, path: str, group_of: list[str]) -> dict[str, tuple[int, int]]:
+    """The ``groups`` object, checked against each surface's group: name -> (first, last)
+    surface index."""
     groups_doc = doc.get("groups")
     if not isinstance(groups_doc, dict) or not groups_doc:
         raise _fail(path, "field 'groups' must be an object of group name -> {surfaces: [a, b]}")
+    n_surfaces = len(group_of)
     groups: dict[str, tuple[int, int]] = {}
     for gname, g in groups_doc.items():
         rng = g.get("surfaces") if isinstance(g, dict) else None
         if (not isinstance(rng, list) or len(rng) != 2
                 or not all(isinstance(i, int) for i in rng)
-                or not 1 <= rng[0] <= rng[1] <= len(surfaces)):
+                or not 1 <= rng[0] <= rng[1] <= n_surfaces):
             raise _fail(path, f"field 'groups.{gname}.surfaces' must be [first, last] surface "
-                              f"numbers within 1..{len(surfaces)}")
+                              f"numbers within 1..{n_surfaces}")
         groups[gname] = (rng[0] - 1, rng[1] - 1)
         for k in range(rng[0] - 1, rng[1]):
             if group_of[k] != gname:
@@ -244,13 +278,18 @@ def _parse(doc: dict, path: str) -> Prescription:
     unknown = sorted(set(group_of) - set(groups))
     if unknown:
         raise _fail(path, f"field 'surfaces[].group' names undeclared group(s) {unknown}")
+    return groups
 
+
+def _parse_gaps(doc: dict, path: str, n_surfaces: int) -> tuple[list[int], np.ndarray]:
+    """The ``variable_gaps_mm`` object, checked: the three surface numbers the variable gaps
+    follow, and the design positions (P, 3), mm."""
     gaps_doc = doc.get("variable_gaps_mm")
     if not isinstance(gaps_doc, dict):
         raise _fail(path, "field 'variable_gaps_mm' is missing")
     after = gaps_doc.get("after_surface")
     if (not isinstance(after, list) or len(after) != 3
-            or not all(isinstance(i, int) and 1 <= i < len(surfaces) for i in after)
+            or not all(isinstance(i, int) and 1 <= i < n_surfaces for i in after)
             or sorted(after) != after):
         raise _fail(path, "field 'variable_gaps_mm.after_surface' must list three increasing "
                           "surface numbers (variator gap, middle gap, compensator gap)")
@@ -272,23 +311,4 @@ def _parse(doc: dict, path: str) -> Prescription:
     if design_arr[0, 0] == design_arr[-1, 0]:
         raise _fail(path, "field 'variable_gaps_mm.design_positions': the variator gap must "
                           "differ between the first and last positions")
-    f_number = _number(path, "f_number", doc.get("f_number", 4.0), positive=True)
-
-    thickness = np.array(thick)
-    gap_after = np.array(after) - 1
-    thickness[gap_after] = design_arr[0]
-    return Prescription(
-        name=str(doc.get("name", Path(path).stem)),
-        curvature=np.array(curv),
-        thickness=thickness,
-        n_after=np.array(n_after),
-        semi_diameter=np.array(semi),
-        surface_group=tuple(group_of),
-        groups=groups,
-        stop=stops[0],
-        gap_after=gap_after,
-        design_gaps=design_arr,
-        f_number=f_number,
-        source=str(doc.get("source", "")),
-        path=path,
-    )
+    return after, design_arr
