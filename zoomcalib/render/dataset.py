@@ -26,6 +26,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -229,6 +230,60 @@ def _axis_tilted(em, lens, zoom, axis_tilt_mrad, keystone: bool):
     return tilted_sensor(em, lens, zoom, 1e-3 * np.asarray(axis_tilt_mrad, float), keystone)
 
 
+class _StepPlan(NamedTuple):
+    """One step's generator, misalignment, exact mapping, the mapping rendered through, the
+    target scaled for it and its poses."""
+
+    rng: np.random.Generator
+    misalignment: Misalignment
+    exact: object
+    mapping: object
+    target: Target
+    poses: list
+
+
+def _plan_step(lens: Prescription, z: float, mis: Misalignment, rng: np.random.Generator,
+               base: Target, sensor: Sensor, n_views: int, distance_mm: float, fill: float,
+               through: str, axis_tilt_mrad, axis_tilt_keystone: bool) -> _StepPlan:
+    """The step's mapping and poses; ValueError naming the zoom when no ``n_views`` poses keep
+    the target in view."""
+    em = _axis_tilted(exact_mapping(lens, z, mis, sensor), lens, z, axis_tilt_mrad,
+                      axis_tilt_keystone)
+    mapping = em if through == "exact" else camera_mapping(em.camera)
+    target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
+    try:
+        poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
+    except RuntimeError as exc:
+        raise ValueError(f"zoom {z:g}: {exc}") from None
+    return _StepPlan(rng, mis, em, mapping, target, poses)
+
+
+def _render_step(out: Path, name: str, z: float, plan: _StepPlan, lens: Prescription,
+                 surface: BoardSurface | None, sensor: Sensor, optics: Optics,
+                 radiometry: Radiometry, supersample: int, jpeg_quality: int | None,
+                 progress: Callable[[int], None] | None) -> dict:
+    """Render and write one step's views; its ``dataset.json`` entry."""
+    (out / name).mkdir(exist_ok=True)
+    views, view = [], None
+    for j, (R, t) in enumerate(plan.poses):
+        view = render_image(plan.target, plan.mapping, R, t, sensor, optics, radiometry,
+                            plan.rng, supersample, surface=surface)
+        fname = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality).name
+        views.append({"file": f"{name}/{fname}", **view.truth_dict()})
+        if progress is not None:
+            progress(1)
+    em, mis = plan.exact, plan.misalignment
+    return {
+        "step": name, "zoom": float(z), "efl_mm": em.lens_camera.efl_mm,
+        "camera": em.camera.to_dict(), "principal_point_px": em.lens_camera.principal_point_px,
+        "model_fit_rms_px": em.lens_camera.fit_rms_px,
+        "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
+        "target": plan.target.spec, "psf_sigma_px": views and float(view.sigma_px),
+        "board_surface": None if surface is None else surface.to_dict(),
+        "views": views,
+    }
+
+
 def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
                    zoom: list[float], n_views: int, pattern: str, optics: Optics | None = None,
                    radiometry: Radiometry | None = None, seed: int = 0,
@@ -296,52 +351,26 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
     # Every step's mapping and poses first: a step whose poses cannot be found stops the run
     # before any file is written. Each step keeps its own generator, so the images do not
     # depend on this order.
-    plans = []
-    for i, z in enumerate(zoom):
-        rng = np.random.default_rng(step_seeds[i])
-        mis = Misalignment(draws.decenter[i, 0], draws.tilt[i, 0])
-        em = _axis_tilted(exact_mapping(lens, z, mis, sensor), lens, z, axis_tilt_mrad,
-                          axis_tilt_keystone)
-        mapping = em if through == "exact" else camera_mapping(em.camera)
-        target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
-        try:
-            poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
-        except RuntimeError as exc:
-            raise ValueError(f"zoom {z:g}: {exc}") from None
-        plans.append((rng, mis, em, mapping, target, poses))
+    plans = [_plan_step(lens, z, Misalignment(draws.decenter[i, 0], draws.tilt[i, 0]),
+                        np.random.default_rng(step_seeds[i]), base, sensor, n_views,
+                        distance_mm, fill, through, axis_tilt_mrad, axis_tilt_keystone)
+             for i, z in enumerate(zoom)]
     clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
     steps, rows = [], []
-    for i, (z, (rng, mis, em, mapping, target, poses)) in enumerate(zip(zoom, plans,
-                                                                          strict=True)):
+    for i, (z, plan) in enumerate(zip(zoom, plans, strict=True)):
         name = f"zoom_{i:02d}"
-        (out / name).mkdir(exist_ok=True)
         surface = board_surface
         if isinstance(board_surface, int | float):
-            surface = BoardSurface.random(target.extent_mm, float(board_surface),
+            surface = BoardSurface.random(plan.target.extent_mm, float(board_surface),
                                           np.random.default_rng(surface_seeds[i]))
-        views = []
-        for j, (R, t) in enumerate(poses):
-            view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
-                                supersample, surface=surface)
-            fname = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality).name
-            views.append({"file": f"{name}/{fname}", **view.truth_dict()})
-            if progress is not None:
-                progress(1)
-        steps.append({
-            "step": name, "zoom": float(z), "efl_mm": em.lens_camera.efl_mm,
-            "camera": em.camera.to_dict(), "principal_point_px": em.lens_camera.principal_point_px,
-            "model_fit_rms_px": em.lens_camera.fit_rms_px,
-            "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
-            "target": target.spec, "psf_sigma_px": views and float(view.sigma_px),
-            "board_surface": None if surface is None else surface.to_dict(),
-            "views": views,
-        })
+        steps.append(_render_step(out, name, z, plan, lens, surface, sensor, optics,
+                                  radiometry, supersample, jpeg_quality, progress))
         rows.append({"step": name, "zoom": float(z),
                      "direction": ("" if direction == "random" else direction
                                    if isinstance(direction, str) else direction[i]),
                      "sequence": i,
-                     "efl_mm": em.lens_camera.efl_mm})
+                     "efl_mm": plan.exact.lens_camera.efl_mm})
     write_csv(out / "steps.csv", rows, ["step", "zoom", "direction", "sequence", "efl_mm"])
     doc = {
         "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
