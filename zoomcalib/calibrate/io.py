@@ -171,52 +171,13 @@ def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult
         # the YAML keeps the run's settings; the long reports live in calibration.json
         brief = {k: v for k, v in meta.items() if k not in _JSON_ONLY_META}
         fs.write("meta_json", json.dumps(brief, default=_plain))
-        prefixes: list[tuple[str, str, str, CalibrationResult]] = []
-        used: set[str] = set()
-        for step, by_backend in results.items():
-            for backend, res in by_backend.items():
-                base = yaml_prefix(step, backend)
-                prefix, k = base, 1
-                while prefix in used:
-                    k += 1
-                    prefix = f"{base}_{k}"
-                used.add(prefix)
-                prefixes.append((prefix, str(step), str(backend), res))
+        prefixes = _yaml_prefixes(results)
         fs.startWriteStruct("entries", cv2.FileNode_SEQ)
         for prefix, *_ in prefixes:
             fs.write("", prefix)
         fs.endWriteStruct()
         for prefix, step, backend, res in prefixes:
-            fs.write(f"{prefix}_step", step)
-            fs.write(f"{prefix}_backend", backend)
-            fs.write(f"{prefix}_K", np.asarray(res.K, np.float64).reshape(3, 3))
-            fs.write(f"{prefix}_dist", np.asarray(res.dist, np.float64).reshape(1, -1))
-            fs.startWriteStruct(f"{prefix}_sd", cv2.FileNode_MAP)
-            for name, v in res.sd.items():
-                fs.write(re.sub(r"[^A-Za-z0-9_]", "_", str(name)), float(v))
-            fs.endWriteStruct()
-            fs.write(f"{prefix}_rms_px", float(res.rms_px))
-            per_view = np.asarray(res.per_view_rms_px, np.float64).reshape(1, -1)
-            fs.write(f"{prefix}_n_views", int(per_view.shape[1]))
-            if per_view.size:
-                fs.write(f"{prefix}_per_view_rms_px", per_view)
-            views = res.info.get("views")
-            if views:
-                fs.startWriteStruct(f"{prefix}_views", cv2.FileNode_SEQ)
-                for v in views:
-                    fs.write("", str(v))
-                fs.endWriteStruct()
-            fs.write(f"{prefix}_n_rejected", len(res.rejected))
-            if res.rejected:
-                fs.write(f"{prefix}_rejected", np.asarray(res.rejected, np.int32).reshape(-1, 2))
-            for name in ("rvecs", "tvecs"):
-                arr = np.asarray(getattr(res, name), np.float64).reshape(-1, 3)
-                if arr.size:
-                    fs.write(f"{prefix}_{name}", arr)
-            for name in ("object_points", "object_points_sd"):
-                arr = getattr(res, name)
-                if arr is not None:
-                    fs.write(f"{prefix}_{name}", np.asarray(arr, np.float64).reshape(-1, 3))
+            _write_yaml_entry(fs, prefix, step, backend, res)
         flat = results.get(".") if len(results) == 1 else None
         size = meta.get("image_size")
         if flat is not None and "opencv" in flat and size is not None:
@@ -229,6 +190,59 @@ def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult
     finally:
         fs.release()
     os.replace(tmp, path)
+
+
+def _yaml_prefixes(results: Mapping[str, Mapping[str, CalibrationResult]]
+                   ) -> list[tuple[str, str, str, CalibrationResult]]:
+    """``(prefix, step, backend, result)`` per entry, each prefix (:func:`yaml_prefix`) made
+    unique by a ``_2``, ``_3`` ... suffix."""
+    prefixes: list[tuple[str, str, str, CalibrationResult]] = []
+    used: set[str] = set()
+    for step, by_backend in results.items():
+        for backend, res in by_backend.items():
+            base = yaml_prefix(step, backend)
+            prefix, k = base, 1
+            while prefix in used:
+                k += 1
+                prefix = f"{base}_{k}"
+            used.add(prefix)
+            prefixes.append((prefix, str(step), str(backend), res))
+    return prefixes
+
+
+def _write_yaml_entry(fs: cv2.FileStorage, prefix: str, step: str, backend: str,
+                      res: CalibrationResult) -> None:
+    """One step's and backend's keys, all starting with ``prefix``."""
+    fs.write(f"{prefix}_step", step)
+    fs.write(f"{prefix}_backend", backend)
+    fs.write(f"{prefix}_K", np.asarray(res.K, np.float64).reshape(3, 3))
+    fs.write(f"{prefix}_dist", np.asarray(res.dist, np.float64).reshape(1, -1))
+    fs.startWriteStruct(f"{prefix}_sd", cv2.FileNode_MAP)
+    for name, v in res.sd.items():
+        fs.write(re.sub(r"[^A-Za-z0-9_]", "_", str(name)), float(v))
+    fs.endWriteStruct()
+    fs.write(f"{prefix}_rms_px", float(res.rms_px))
+    per_view = np.asarray(res.per_view_rms_px, np.float64).reshape(1, -1)
+    fs.write(f"{prefix}_n_views", int(per_view.shape[1]))
+    if per_view.size:
+        fs.write(f"{prefix}_per_view_rms_px", per_view)
+    views = res.info.get("views")
+    if views:
+        fs.startWriteStruct(f"{prefix}_views", cv2.FileNode_SEQ)
+        for v in views:
+            fs.write("", str(v))
+        fs.endWriteStruct()
+    fs.write(f"{prefix}_n_rejected", len(res.rejected))
+    if res.rejected:
+        fs.write(f"{prefix}_rejected", np.asarray(res.rejected, np.int32).reshape(-1, 2))
+    for name in ("rvecs", "tvecs"):
+        arr = np.asarray(getattr(res, name), np.float64).reshape(-1, 3)
+        if arr.size:
+            fs.write(f"{prefix}_{name}", arr)
+    for name in ("object_points", "object_points_sd"):
+        arr = getattr(res, name)
+        if arr is not None:
+            fs.write(f"{prefix}_{name}", np.asarray(arr, np.float64).reshape(-1, 3))
 
 
 def write_calibration(out_dir: str | os.PathLike,
