@@ -23,11 +23,9 @@ its sigmas by Monte Carlo.
 3. Monte Carlo: the true image points of every detected corner (``truth.json``) plus Gaussian
    noise of the detector's measured RMS error per coordinate, ``--mc`` draws, each adjusted
    zoom-wide; printed per step: the spread of fx, cx, cy over the draws and their RMS error
-   against the truth, each divided by the mean reported sigma, and the spread divided by the
-   mean repeatability sigma (``info["sd_repeatability"]``). Where the prior carries a step,
-   its reported sigma also covers how far this one path lies from what the prior expects,
-   which the draws do not redraw: the spread is then below 1 of it and the RMS error nearer
-   it; the repeatability sigma leaves that out.
+   against the truth, each divided by the mean reported sigma. Where the prior carries a step,
+   its sigma also covers how far this one path lies from what the prior expects, which the
+   draws do not redraw: the spread is then below 1 and the RMS error nearer it.
 """
 
 from __future__ import annotations
@@ -168,7 +166,6 @@ def _monte_carlo(run, points: dict, truth: dict, noise: float, draws: int, seed:
     rng = np.random.default_rng(seed)
     values = {s: [] for s in run.observations}
     sds = {s: [] for s in run.observations}
-    repeat = {s: [] for s in run.observations}
     for _ in range(draws):
         obs = {}
         for step, o in run.observations.items():
@@ -179,19 +176,17 @@ def _monte_carlo(run, points: dict, truth: dict, noise: float, draws: int, seed:
         for step, r in zw.results.items():
             values[step].append([r.fx, r.cx, r.cy])
             sds[step].append([r.sd["fx"], r.sd["cx"], r.sd["cy"]])
-            repeat[step].append([r.info["sd_repeatability"][q] for q in ("fx", "cx", "cy")])
     K = {st["step"]: np.asarray(st["K"]) for st in truth["steps"]}
     print(f"# Monte Carlo ({model}): {draws} draws, noise {noise:.4f} px per coordinate; "
-          "spread / mean reported sigma, RMS error against the truth / mean sigma, then "
-          "spread / mean repeatability sigma")
-    print(f"{'step':>9s} " + "   ".join([f"{'fx':>6s} {'cx':>6s} {'cy':>6s}"] * 3))
+          "spread / mean reported sigma, then RMS error against the truth / mean sigma")
+    print(f"{'step':>9s} {'fx':>6s} {'cx':>6s} {'cy':>6s}   {'fx':>6s} {'cx':>6s} {'cy':>6s}")
     for step in values:
         v, sd = np.array(values[step]), np.mean(sds[step], axis=0)
         true = [K[step][0, 0], K[step][0, 2], K[step][1, 2]]
-        spread = np.std(v, axis=0, ddof=1)
-        rms = np.sqrt(np.mean((v - true) ** 2, axis=0))
-        print(f"{step:>9s} " + "   ".join(" ".join(f"{x:6.2f}" for x in ratio) for ratio in (
-            spread / sd, rms / sd, spread / np.mean(repeat[step], axis=0))))
+        spread = np.std(v, axis=0, ddof=1) / sd
+        rms = np.sqrt(np.mean((v - true) ** 2, axis=0)) / sd
+        print(f"{step:>9s} " + " ".join(f"{x:6.2f}" for x in spread) + "   "
+              + " ".join(f"{x:6.2f}" for x in rms))
 
 
 def main() -> None:

@@ -482,23 +482,3 @@ def test_the_other_models_weight_is_the_chance_it_is_better_by_the_tolerance():
                           ).other_model_weight() == pytest.approx(1.0 - expected)
     assert TermChoice(five).other_model_weight() == 0.0
     assert TermChoice(five, rational_log_ratio=(-0.1, 0.0)).other_model_weight() == 0.0
-
-
-def test_the_repeatability_sigma_leaves_out_what_the_prior_adds():
-    """``info["sd_repeatability"]``: the spread over repeated noise draws, ``S^-1 (S - P)
-    S^-1``. It is never above the posterior sigma, equals it where the step's own views decide
-    the parameter (fx, which no prior ties), and falls below it where the prior carries part of
-    cx, cy (``prior_share``). The spread it predicts is measured against rendered sweeps by
-    ``benchmarks/bench_zoom_wide.py --mc`` (docs/calibration.md)."""
-    obs, _, _ = sweep_observations(np.random.default_rng(31), steps=5, views=8,
-                                   fx_range=(2300, 12000))
-    results = calibrate_zoom_wide(obs).results
-    below = []
-    for res in results.values():
-        repeat = res.info["sd_repeatability"]
-        assert set(repeat) == {q for q, v in res.sd.items() if v > 0}
-        assert all(repeat[q] <= res.sd[q] * (1 + 1e-9) for q in repeat)
-        assert repeat["fx"] == pytest.approx(res.sd["fx"], rel=0.03)
-        below += [repeat[q] / res.sd[q] for q in ("cx", "cy")
-                  if res.info["prior_share"][q] > 0.3]
-    assert below and min(below) < 0.8

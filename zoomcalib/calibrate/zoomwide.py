@@ -1264,12 +1264,10 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             inflation: list[tuple] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
     cov, scatter = _posterior_covariance(prob, state)
-    repeat = _repeatability(prob, cov)
     # where a step's views disagree beyond its corner noise, its sigmas are the views' scatter
     scale = np.ones(len(cov))
     scale[:prob.n_cam] = scatter.applied()
     cov *= np.outer(scale, scale)
-    repeat *= np.outer(scale, scale)
     for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
         col = prob.cam_col[steps, j]
         cov[np.ix_(col, col)] += extra
@@ -1287,8 +1285,6 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             "view_scatter": step_scatter[step.name].to_dict() | {"applied": True},
             "sd_noise_model": {p: float(v / f) for (p, v), f in zip(
                 results[step.name].sd.items(), _step_scale(prob, s, scale), strict=False)},
-            "sd_repeatability": {p: float(np.sqrt(max(repeat[c, c], 0.0))) for p, c in zip(
-                PARAMS, prob.cam_col[s], strict=True) if c >= 0 and p in results[step.name].sd},
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "distortion_choice": held[step.name].to_dict() if step.name in held else {},
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
@@ -1297,18 +1293,6 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
     return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
                           tau, terms, held, solve.converged, solve.stop_reason, iterations,
                           zoom_models={k: m.to_dict() for k, m in models.items()})
-
-
-def _repeatability(prob: _ZoomProblem, cov: np.ndarray) -> np.ndarray:
-    """The covariance of the intrinsics and board modes over repeated noise draws of the same
-    views, lens path and board, ``S^-1 (S - P) S^-1 = cov - cov P cov`` (``S`` the Schur
-    complement with the prior rows, ``cov = S^-1`` the posterior, ``P = J_p^T J_p`` the prior
-    rows' part, which touches no pose). The posterior also covers how far the lens's own path
-    lies from what the smoothness prior expects; a repeat does not redraw that, so where the
-    prior carries a step this is the smaller."""
-    n_glob = len(cov)
-    prior = prob.prior_rows[:, :n_glob]
-    return cov - cov @ (prior.T @ prior).toarray() @ cov
 
 
 def _step_scale(prob: _ZoomProblem, s: int, scale: np.ndarray) -> np.ndarray:
