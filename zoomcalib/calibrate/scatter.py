@@ -57,7 +57,7 @@ zoom-wide step, or the one fit) the squared factors are averaged over its checke
 and counted as one draw of ``chi^2_{d_g} / d_g``, ``d_g`` the median of their effective views
 (they share the views, so not as independent ones); fits are independent, so
 ``sum_g d_g mean_g(F^2) ~ chi^2_D``, ``D = sum_g d_g``. Where that is significant, every checked
-parameter takes its own factor (at least 1), significant alone or not.
+parameter takes its own factor (moderated as above, at least 1), significant alone or not.
 
 "Views" are independent draws only if they are different views. Frames of a video where the
 board hardly moved see it through the same part of the lens and share their systematic errors;
@@ -351,12 +351,12 @@ def pooled_over_steps(results: Mapping[str, CalibrationResult]) -> dict[str, Cal
     One step of 10-30 views has too few for its test to see a factor of 1.5; the errors views
     share (a lens misfit, a waving board) are the same kind at every step, and the pooled test
     (module docstring) sees them. Where it is significant, every checked parameter of every
-    pooled step takes its own factor (at least 1), as a zoom-wide adjustment's do. A sigma is
-    never lowered: what a step's own check applied stays. Results whose check was not applied
-    (the bundle's ``scatter_check=False``) or that have none are returned unchanged, as are all
-    when fewer than two steps can be pooled. ``info['view_scatter']['fit']`` is then the pooled
-    test and ``['steps_pooled']`` the number of steps in it; ``sd`` and ``info['sd_posterior']``
-    are scaled.
+    pooled step takes its own factor (moderated, at least 1), as a zoom-wide adjustment's do.
+    A sigma is never lowered: what a step's own check applied stays. Results whose check was
+    not applied (the bundle's ``scatter_check=False``) or that have none are returned
+    unchanged, as are all when fewer than two steps can be pooled.
+    ``info['view_scatter']['fit']`` is then the pooled test and ``['steps_pooled']`` the number
+    of steps in it; ``sd`` and ``info['sd_posterior']`` are scaled.
     """
     out = dict(results)
     by_backend: dict[str, dict[str, ViewScatter]] = {}
