@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from zoomcalib.calibrate.checks import random_halves
+from zoomcalib.calibrate.checks import conditioning_flags, random_halves
 from zoomcalib.calibrate.digital_zoom import digital_zoom_sweep
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.result import Observations
@@ -163,6 +163,10 @@ def test_where_the_halves_choose_different_models_the_sigma_covers_it():
     assert choice["other"] == "rational" and choice["weight"] > 0.5
     without = np.sqrt(b.sd["fx"] ** 2 - choice["weight"] * choice["shift"]["fx"] ** 2)
     assert abs(a.fx - b.fx) / np.hypot(a.sd["fx"], without) > 4.0
+    # the widened sigma is flagged with its reason; the half that chose firmly is not
+    assert any(f.startswith("lens model uncertain (rational model's weight 0.9")
+               for f in conditioning_flags(b, sweep.image_size))
+    assert not any("lens model uncertain" in f for f in conditioning_flags(a, sweep.image_size))
     z = np.array([[(getattr(first[s], q) - getattr(second[s], q))
                    / np.hypot(first[s].sd[q], second[s].sd[q]) for q in ("fx", "cx", "cy")]
                   for s in sweep.observations])

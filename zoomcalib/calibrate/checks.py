@@ -14,8 +14,10 @@ disagree beyond what the corner noise explains so that the sigma of fx, fy, cx o
 scaled up (``info['view_scatter']``, :mod:`zoomcalib.calibrate.scatter`: a lens the model does
 not fit, a board that moves, correlated errors within a view), when one of fx, fy, cx, cy
 rests on fewer than 4 effective views so that its sigma cannot be checked that way (a few
-tilted views of many nearly fronto-parallel ones carry fx), or when its solve did not
-converge.
+tilted views of many nearly fronto-parallel ones carry fx), when the choice between the
+rational model and five distortion terms was uncertain enough that the other model's spread
+widened one of those sigmas by more than 25 % (``info['model_choice']``, zoom-wide), or when
+its solve did not converge.
 
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
 two halves (even and odd images; views of nearly one pose count as one and stay together), each
@@ -42,6 +44,9 @@ __all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_hal
            "random_halves",
            "CROSS_VALIDATED", "Z_LIMIT"]
 
+#: A zoom-wide step is flagged when the other lens model's spread widens a sigma of fx, fy, cx
+#: or cy by more than this factor (:func:`~zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
+MODEL_CHOICE_FLAG = 1.25
 #: Parameters compared between the halves.
 CROSS_VALIDATED = ("fx", "cx", "cy")
 #: |z| beyond which the halves disagree.
@@ -99,6 +104,7 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
             flags.append(f"views disagree beyond the corner noise{pooled}: sd {name} x"
                          f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
                          "a moving board)")
+    flags += _model_choice_flags(res.info.get("model_choice"), res.sd)
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
     if few:
@@ -108,6 +114,30 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags
+
+
+def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[str]:
+    """A step whose sigmas the other lens model's spread widened by more than
+    :data:`MODEL_CHOICE_FLAG` (``info['model_choice']``, zoom-wide), or whose other model, at
+    least as likely as the chosen one, could not be fitted."""
+    if not choice:
+        return []
+    weight, shift = choice["weight"], choice.get("shift")
+    if shift is None:
+        return ([f"lens model uncertain ({choice['other']} model's weight {weight:.2f}), and "
+                 f"it could not be fitted ({choice.get('why', 'unknown reason')}): its "
+                 "uncertainty is not in the sigmas"] if weight >= 0.5 else [])
+    grown = {}
+    for name in ("fx", "fy", "cx", "cy"):
+        added = weight * shift.get(name, 0.0) ** 2
+        before = sd.get(name, 0.0) ** 2 - added
+        if added > 0 and before > 0:
+            grown[name] = float(np.sqrt(sd[name] ** 2 / before))
+    name = max(grown, key=grown.get, default=None)
+    if name is None or grown[name] <= MODEL_CHOICE_FLAG:
+        return []
+    return [f"lens model uncertain ({choice['other']} model's weight {weight:.2f}): sd {name} "
+            f"x{grown[name]:.1f} from what it would change ({shift[name]:+.2f} px, used)"]
 
 
 def split_halves(obs: Observations) -> tuple[Observations, Observations]:
