@@ -482,3 +482,25 @@ def test_the_other_models_weight_is_the_chance_it_is_better_by_the_tolerance():
                           ).other_model_weight() == pytest.approx(1.0 - expected)
     assert TermChoice(five).other_model_weight() == 0.0
     assert TermChoice(five, rational_log_ratio=(-0.1, 0.0)).other_model_weight() == 0.0
+
+
+def test_a_lens_model_choice_that_widens_a_sigma_is_flagged():
+    """``conditioning_flags``' reading of ``info["model_choice"]``: a flag where the other
+    model's spread widened a pinhole sigma by more than 25 %, none for a small widening, and
+    one where the other model is at least as likely but could not be fitted."""
+    from zoomcalib.calibrate.checks import _model_choice_flags
+
+    weight, shift = 0.92, {"fx": 2.16, "fy": 2.5, "cx": -0.09, "cy": -1.7}
+    sd = {q: float(np.hypot(0.5, np.sqrt(weight) * v)) for q, v in shift.items()}
+    (flag,) = _model_choice_flags({"other": "rational", "weight": weight, "shift": shift}, sd)
+    grown = np.hypot(0.5, np.sqrt(weight) * 2.5) / 0.5
+    assert flag.startswith("lens model uncertain (rational model's weight 0.92): sd fy x"
+                           f"{grown:.1f}")
+    small = {"fx": 0.01, "fy": 0.01, "cx": 0.11, "cy": 0.03}
+    sd = {q: float(np.hypot(0.13, np.sqrt(0.06) * v)) for q, v in small.items()}
+    assert _model_choice_flags({"other": "rational", "weight": 0.06, "shift": small}, sd) == []
+    failed = {"other": "k1k2p1p2k3", "shift": None, "why": "k1+k2: no camera"}
+    assert "could not be fitted (k1+k2: no camera)" in _model_choice_flags(
+        failed | {"weight": 0.7}, {})[0]
+    assert _model_choice_flags(failed | {"weight": 0.3}, {}) == []
+    assert _model_choice_flags(None, {}) == []
