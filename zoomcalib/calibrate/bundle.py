@@ -888,12 +888,20 @@ class _Problem:
 #: Most camera and free target unknowns for which :meth:`_Problem.camera_deletions` solves
 #: once per view (a 10 x 10 board with its coordinates free has 312).
 DELETION_MAX_UNKNOWNS = 400
+#: Smallest squared Cholesky pivot of ``S - A_v`` (scaled to ``S``'s unit diagonal) for which a
+#: view's deletion is solved. Leaving out a view that alone carries a direction (the rational
+#: model's numerator-denominator ridge at a step of few views) leaves pivots at the rounding
+#: level: on the real zoom sweep's halves they lie below 1e-6, none between 1e-6 and 1e-3.
+#: Solved at 1e-10, such deletions made a step's factors jump from 1.1-2.0 to 5.6-37 when one
+#: corner of another step was dropped.
+DELETION_MIN_PIVOT = 1e-6
 
 
 def _deletion_steps(S: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
     """``(S - A_v)^-1 g_v`` for each ``v`` (``S`` (k, k), ``A`` (m, k, k), ``g`` (m, k)), solved
     by Cholesky scaled to ``S``'s unit diagonal; NaN rows where ``S - A_v`` is not positive
-    definite or a pivot falls below 1e-10 of it (a view that carries a parameter alone)."""
+    definite or its smallest squared pivot falls below :data:`DELETION_MIN_PIVOT` (a view that
+    carries a direction of the unknowns alone)."""
     d = np.sqrt(np.clip(np.diag(S), 0.0, None))
     scale = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
     M = (S - A) * np.outer(scale, scale)
@@ -904,7 +912,7 @@ def _deletion_steps(S: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
             factor = scipy.linalg.cho_factor(M[v], check_finite=False)
         except np.linalg.LinAlgError:
             continue
-        if np.min(np.diag(factor[0])) ** 2 > 1e-10:
+        if np.min(np.diag(factor[0])) ** 2 > DELETION_MIN_PIVOT:
             out[v] = scipy.linalg.cho_solve(factor, g[v] * scale, check_finite=False) * scale
     return out
 
