@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zoomcalib.calibrate.bundle import CAMERA_NAMES, calibrate_bundle
+from zoomcalib.calibrate.bundle import CAMERA_NAMES, _deletion_steps, calibrate_bundle
 from zoomcalib.calibrate.checks import conditioning_flags, cross_validate, split_halves
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.opencv_backend import (
@@ -185,6 +185,28 @@ def test_a_focal_length_that_two_tilted_views_carry_is_flagged():
                        for f in conditioning_flags(res, obs.image_size))
             assert not any("effective views" in f
                            for f in conditioning_flags(calibrate(varied), obs.image_size))
+
+
+def test_a_deletion_leaves_what_only_its_view_carries_and_moves_the_rest_exactly():
+    """A linear least-squares problem of 8 views (20 rows, 5 unknowns each, seeded); the last
+    unknown appears in view 0 only. Each view's deletion step against the refit without it
+    (``numpy.linalg.lstsq``): equal for every view and unknown, except that leaving out view
+    0 leaves the last unknown undetermined, which is NaN, not a number made of rounding."""
+    rng = np.random.default_rng(41)
+    X = rng.normal(size=(8, 20, 5))
+    X[1:, :, 4] = 0.0
+    y = X @ rng.normal(size=5) + rng.normal(size=(8, 20))
+    full = np.linalg.lstsq(X.reshape(-1, 5), y.ravel(), rcond=None)[0]
+    A = np.einsum("vri,vrj->vij", X, X)
+    g = np.einsum("vri,vr->vi", X, y - X @ full)
+    moves = _deletion_steps(A.sum(axis=0), A, g)
+    for v in range(8):
+        keep = np.arange(8) != v
+        columns = slice(0, 4) if v == 0 else slice(0, 5)
+        refit = np.linalg.lstsq(X[keep][:, :, columns].reshape(-1, columns.stop), y[keep].ravel(),
+                                rcond=None)[0]
+        np.testing.assert_allclose(moves[v, columns], full[columns] - refit, atol=1e-9)
+    assert np.isnan(moves[0, 4]) and np.all(np.isfinite(moves[1:]))
 
 
 def _exact_views(seed: int, views: int = 12):

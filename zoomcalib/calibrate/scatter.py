@@ -42,7 +42,9 @@ where computed, at least 1) times the noise model's; elsewhere it is kept. Below
 :data:`MIN_VIEWS` effective views (a focal length that two tilted views of ten carry) a
 parameter cannot be checked; when another parameter of the same fit is found disagreeing, it
 takes the median factor ``F_g`` of the fit's checked parameters, since the errors the views
-share act on all of them.
+share act on all of them, or its own jackknife factor where that is larger and was computed:
+a parameter that few views carry moves most when one of them is left out, which the fit's
+median does not see.
 
 A factor from ``d`` = 5-10 effective views is itself uncertain (its square spreads like
 ``chi^2_d / d``, a relative sd of 45-63 %), and a sigma scaled by it gives z with the heavy
@@ -142,6 +144,9 @@ class ViewScatter:
         Estimated (not fixed); a free parameter with a NaN factor had too few effective views.
     whole : (factor, d, threshold), optional
         The :meth:`fit_test` of the solution this check is a part of (:meth:`by_group`).
+    unchecked_factor : (k,) ndarray, optional
+        The jackknife's factor of a free parameter below :data:`MIN_VIEWS` effective views
+        (NaN where not computed or checked): the least factor it takes when scaled.
     """
 
     factor: np.ndarray
@@ -151,6 +156,7 @@ class ViewScatter:
     names: tuple[str, ...]
     free: np.ndarray
     whole: tuple[float, float, float] | None = None
+    unchecked_factor: np.ndarray | None = None
 
     @property
     def significant(self) -> np.ndarray:
@@ -189,6 +195,11 @@ class ViewScatter:
         """(k,) bool: the parameters whose sigma takes their own factor."""
         return self.significant | (self.fit_significant & np.isfinite(self.factor))
 
+    def _unchecked(self) -> np.ndarray:
+        if self.unchecked_factor is None:
+            return np.full(len(self.names), np.nan)
+        return self.unchecked_factor
+
     def _groups(self) -> dict[str, list[int]]:
         groups: dict[str, list[int]] = {}
         for q, name in enumerate(self.names):
@@ -203,7 +214,8 @@ class ViewScatter:
         moderated towards the fit's median factor ``F_g`` (module docstring):
         ``sqrt((d F^2 + d_g F_g^2) / (d + d_g))``, ``d_g`` the fit's median effective views;
         one significant on its own keeps at least its own ``F``. A free parameter with too few
-        effective views to be checked takes ``F_g``. Else 1."""
+        effective views to be checked takes ``F_g``, or its :attr:`unchecked_factor` where
+        larger. Else 1."""
         own = self._own()
         out = np.ones(len(self.names))
         for members in self._groups().values():
@@ -218,7 +230,8 @@ class ViewScatter:
             chosen = np.where(self.significant[checked], np.maximum(factor, moderated),
                               moderated)
             out[checked] = np.where(own[checked], np.maximum(chosen, 1.0), 1.0)
-            out[q[self.free[q] & ~np.isfinite(self.factor[q])]] = max(typical, 1.0)
+            unchecked = q[self.free[q] & ~np.isfinite(self.factor[q])]
+            out[unchecked] = np.fmax(max(typical, 1.0), self._unchecked()[unchecked])
         return out
 
     def scaled(self, sd: dict[str, float]) -> dict[str, float]:
@@ -235,7 +248,7 @@ class ViewScatter:
         return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
                                self.threshold[q],
                                tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q],
-                               whole)
+                               whole, self._unchecked()[q])
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     @classmethod
@@ -244,7 +257,10 @@ class ViewScatter:
         names = tuple(saved["free"])
         arrays = {key: np.array([saved[key].get(nm, np.nan) for nm in names], dtype=float)
                   for key in ("factor", "test_factor", "views", "threshold")}
-        return cls(names=names, free=np.ones(len(names), bool), **arrays)
+        unchecked = np.array([saved.get("unchecked_factor", {}).get(nm, np.nan)
+                              for nm in names], dtype=float)
+        return cls(names=names, free=np.ones(len(names), bool), unchecked_factor=unchecked,
+                   **arrays)
 
     def to_dict(self, applied: np.ndarray | None = None) -> dict:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
@@ -264,6 +280,9 @@ class ViewScatter:
             "free": free,
             "unchecked": {self.names[q]: float(self.views[q]) for q in range(len(self.names))
                           if self.free[q] and q not in checked},
+            "unchecked_factor": {self.names[q]: float(self._unchecked()[q])
+                                 for q in range(len(self.names))
+                                 if np.isfinite(self._unchecked()[q])},
             "scaled": [self.names[q] for q in checked if applied[q] > 1.0],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
                        if q not in checked and applied[q] != 1.0}}
@@ -288,7 +307,7 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     deletions : callable, optional
         Returns each view's deletion step ``(S - A_v)^-1 g_v`` (n_views, k), or None: the
         variance is then the jackknife's (module docstring) for the size of a scaled sigma;
-        where a view carries a parameter alone (a NaN row) the clustered sum's is used. Called
+        where a view carries a parameter alone (a NaN move) the clustered sum's is used. Called
         only when a parameter is found disagreeing (it costs a solve per view).
     """
     a = np.asarray(influence, dtype=float)
@@ -314,21 +333,30 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     check = ViewScatter(factor=np.where(ok, test_factor, np.nan),
                         test_factor=np.where(ok, test_factor, np.nan), views=views,
                         threshold=threshold, names=tuple(names), free=used)
-    factor = test_factor
     moves = (deletions() if deletions is not None
              and (check.significant.any() or check.fit_significant) else None)
-    if moves is not None:
-        if np.shape(moves) != (n_views, len(names)):
-            raise ValueError(f"deletions of shape {np.shape(moves)} for {n_views} views and "
-                             f"{len(names)} parameters")
-        moves = np.asarray(moves, dtype=float)[np.bincount(view_idx, minlength=n_views) > 0]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            jackknife = ((len(moves) - 1) / len(moves)
-                         * np.sum((moves - moves.mean(axis=0))**2, axis=0))
-            factor = np.where(np.isfinite(jackknife), np.sqrt(jackknife) / model_sd, factor)
-    return ViewScatter(factor=np.where(ok, factor, np.nan),
+    jackknife = _jackknife_factor(moves, view_idx, n_views, model_sd)
+    return ViewScatter(factor=np.where(ok, np.where(np.isfinite(jackknife), jackknife,
+                                                    test_factor), np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
-                       threshold=threshold, names=tuple(names), free=used)
+                       threshold=threshold, names=tuple(names), free=used,
+                       unchecked_factor=np.where(used & ~ok, jackknife, np.nan))
+
+
+def _jackknife_factor(moves: np.ndarray | None, view_idx: np.ndarray, n_views: int,
+                      model_sd: np.ndarray) -> np.ndarray:
+    """(k,) the delete-one-view jackknife's 1-sigma over the noise model's, from each view's
+    deletion step ``moves`` (n_views, k); NaN where a move is NaN or none was computed."""
+    if moves is None:
+        return np.full(len(model_sd), np.nan)
+    if np.shape(moves) != (n_views, len(model_sd)):
+        raise ValueError(f"deletions of shape {np.shape(moves)} for {n_views} views and "
+                         f"{len(model_sd)} parameters")
+    moves = np.asarray(moves, dtype=float)[np.bincount(view_idx, minlength=n_views) > 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        variance = ((len(moves) - 1) / len(moves)
+                    * np.sum((moves - moves.mean(axis=0))**2, axis=0))
+        return np.sqrt(variance) / model_sd
 
 
 def pooled_over_fits(checks: Mapping[str, ViewScatter]) -> dict[str, ViewScatter]:
@@ -340,7 +368,8 @@ def pooled_over_fits(checks: Mapping[str, ViewScatter]) -> dict[str, ViewScatter
         *(np.concatenate([getattr(c, f) for c in parts])
           for f in ("factor", "test_factor", "views", "threshold")),
         names=tuple(f"{key}:{name}" for key, c in checks.items() for name in c.names),
-        free=np.concatenate([c.free for c in parts]))
+        free=np.concatenate([c.free for c in parts]),
+        unchecked_factor=np.concatenate([c._unchecked() for c in parts]))
     return joined.by_group()
 
 
