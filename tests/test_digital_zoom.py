@@ -89,6 +89,14 @@ def _random_halves(obs: Observations, rng: np.random.Generator):
                               obs.image_size) for m in (first, ~first))
 
 
+def _real_sweep(rng: np.random.Generator):
+    """``bench_real_zoom.py``'s sweep: figueroa's real corners cut to 7 steps, z 1.5 to 4."""
+    warnings.simplefilter("ignore")
+    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
+    return digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
+                              drift_px=30.0, rng=rng)
+
+
 def test_the_halves_of_a_real_zoom_sweep_agree_within_their_sigmas():
     """Seven steps of figueroa's real corners (z 1.5 to 4, 24 views each), zoom-wide, two random
     splits into halves: 42 z of fx, cx, cy. The views share their errors (lens misfit, board),
@@ -96,11 +104,8 @@ def test_the_halves_of_a_real_zoom_sweep_agree_within_their_sigmas():
     scaled where the adjustment as a whole finds the views disagreeing, give an RMS z below 1.35
     (honest sigmas: 1 +- 0.15) and every |z| below 3.5. Checked one parameter at a time, the
     scatter was found in a few steps only (RMS z 1.47, |z| up to 4.1)."""
-    warnings.simplefilter("ignore")
-    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
     rng = np.random.default_rng(1)
-    sweep = digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
-                               drift_px=30.0, rng=rng)
+    sweep = _real_sweep(rng)
     z, z_model = [], []
     for _ in range(2):
         parts = {s: _random_halves(o, rng) for s, o in sweep.observations.items()}
@@ -123,10 +128,7 @@ def test_a_wide_window_takes_the_rational_model_and_fx_becomes_one_cameras():
     (2063-2084 px, sigmas 1-3 px). The held-out views choose the rational model at z 1.5, and
     the steps' fx then agree within 0.5 % and within 2.5 of their sigmas (RMS z against the
     other steps' weighted mean)."""
-    warnings.simplefilter("ignore")
-    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
-    sweep = digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
-                               drift_px=30.0, rng=np.random.default_rng(1))
+    sweep = _real_sweep(np.random.default_rng(1))
     zoom_wide = calibrate_zoom_wide(sweep.observations)
     assert "k4" in zoom_wide.terms["z1.50"] and "k4" not in zoom_wide.terms["z4.00"]
     results = zoom_wide.results
@@ -149,11 +151,8 @@ def test_where_the_halves_choose_different_models_the_sigma_covers_it():
     spread. The five-term half adds it (weight 0.92 times the square of the 2.2 px the
     rational model moves its fx by), and the halves' fx agree within 3 sigmas (2.1); the
     other steps' z stay within 3.5 (3.07 at most)."""
-    warnings.simplefilter("ignore")
-    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
     rng = np.random.default_rng(1)
-    sweep = digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
-                               drift_px=30.0, rng=rng)
+    sweep = _real_sweep(rng)
     parts = {s: random_halves(o, 10, rng)[4] for s, o in sweep.observations.items()}
     first, second = (calibrate_zoom_wide({s: p[h] for s, p in parts.items()}).results
                      for h in (0, 1))
@@ -184,11 +183,8 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
 
     That half's cy rests on 3.3 effective views and sits 5.5 px from the other half's: with
     the fit's median factor its z is above 5; with its own jackknife factor (larger) below 3."""
-    warnings.simplefilter("ignore")
-    source, _ = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
     rng = np.random.default_rng(1)
-    sweep = digital_zoom_sweep(source, np.geomspace(1.5, 4.0, 7), views_per_step=24,
-                               drift_px=30.0, rng=rng)
+    sweep = _real_sweep(rng)
     halves = {s: random_halves(o, 10, rng)[6] for s, o in sweep.observations.items()}
     first = {s: h[0] for s, h in halves.items()}
     widest = first["z1.50"]
