@@ -204,6 +204,8 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     median = float(np.median(list(factor.values())))
     assert scatter["pooled"]["cy"] == pytest.approx(scatter["unchecked_factor"]["cy"])
     assert scatter["unchecked_factor"]["cy"] > 1.5 * median
+    assert any(f.startswith("cy rests on 3.") and f.endswith("from leaving views out (used)")
+               for f in conditioning_flags(a, sweep.image_size))
     sd_median = a.info["sd_noise_model"]["cy"] * median
     assert abs(a.cy - b.cy) / np.hypot(sd_median, b.sd["cy"]) > 5.0
     assert abs(a.cy - b.cy) / np.hypot(a.sd["cy"], b.sd["cy"]) < 3.0

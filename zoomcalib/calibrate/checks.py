@@ -109,8 +109,12 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
            if nm in ("fx", "fy", "cx", "cy")}
     if few:
         name = next(nm for nm in ("fx", "fy", "cx", "cy") if nm in few)
+        used = scatter.get("pooled", {}).get(name, 1.0)
+        sized = (f"; x{used:.1f} from leaving views out (used)"
+                 if used > 1.0 and used == scatter.get("unchecked_factor", {}).get(name) else "")
         flags.append(f"{name} rests on {few[name]:.1f} effective views (fewer than "
-                     f"{MIN_VIEWS:.0f}): its sigma cannot be checked against their scatter")
+                     f"{MIN_VIEWS:.0f}): its sigma cannot be checked against their scatter"
+                     + sized)
     if not res.converged:
         flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
     return flags
