@@ -147,10 +147,11 @@ def test_where_the_halves_choose_different_models_the_sigma_covers_it():
     """Split 4 of ``bench_real_zoom.py``'s halves (seed 1). At z 1.77 one half chooses the
     rational model, the other keeps five terms with the rational model likely the better one
     (held-out error 9.5 +- 6.4 % lower per view: within the choice's margin of 2 standard
-    errors), and their fx lie 0.64 % apart: 4.2 combined sigmas without the other model's
-    spread. The five-term half adds it (weight 0.92 times the square of the 2.2 px the
-    rational model moves its fx by), and the halves' fx agree within 3 sigmas (2.1); the
-    other steps' z stay within 3.5 (3.07 at most)."""
+    errors), and their fx lie 0.64 % apart: 3.7 combined sigmas without the other model's
+    spread (4.2 before a parameter that few views carry could take its own jackknife
+    factor). The five-term half adds it (weight 0.92 times the square of the 2.2 px the
+    rational model moves its fx by), and the halves' fx agree within 3 sigmas (2.0); the
+    other steps' z stay within 3.5 (2.0 at most; 3.07 before)."""
     rng = np.random.default_rng(1)
     sweep = _real_sweep(rng)
     parts = {s: random_halves(o, 10, rng)[4] for s, o in sweep.observations.items()}
@@ -161,7 +162,7 @@ def test_where_the_halves_choose_different_models_the_sigma_covers_it():
     choice = b.info["model_choice"]
     assert choice["other"] == "rational" and choice["weight"] > 0.5
     without = np.sqrt(b.sd["fx"] ** 2 - choice["weight"] * choice["shift"]["fx"] ** 2)
-    assert abs(a.fx - b.fx) / np.hypot(a.sd["fx"], without) > 4.0
+    assert abs(a.fx - b.fx) / np.hypot(a.sd["fx"], without) > 3.0
     # the widened sigma is flagged with its reason; the half that chose firmly is not
     assert any(f.startswith("lens model uncertain (rational model's weight 0.9")
                for f in conditioning_flags(b, sweep.image_size))
