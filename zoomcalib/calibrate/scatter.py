@@ -53,6 +53,16 @@ So a factor is moderated towards the fit's, as variances are in the moderated t-
 (Smyth 2004): ``F^2 <- (d F^2 + d_g F_g^2) / (d + d_g)``, ``d_g`` the fit's median effective
 views. A parameter significant on its own keeps at least its own factor.
 
+The fit's median ``F_g`` is uncertain in the same way, and the errors that views share (a
+lens misfit, a waving board) act on every fit of a solution (a zoom-wide adjustment's steps, or
+the steps of a per-step backend pooled by :func:`pooled_over_steps`). So ``F_g`` is first
+moderated towards the factor the fits share, ``F_g^2 <- (d_g F_g^2 + d_0 F_0^2) / (d_g + d_0)``,
+with ``F_0`` and the prior's degrees of freedom ``d_0`` estimated from the fits' ``F_g`` as
+Smyth estimates a prior for sample variances (:func:`shared_factor`): ``d_0`` is large where the
+``F_g`` spread no more than ``chi^2_{d_g} / d_g`` does, small where the fits truly differ.
+Borrowing never lowers a fit's factor: with a handful of fits ``d_0`` is itself uncertain, and
+a fit whose views disagree more than the others' must keep its own.
+
 One parameter's test has little power with few views (``d = 6`` needs a factor of 1.9). The
 solution as a whole is also tested (:meth:`ViewScatter.fit_test`): for each fit ``g`` (a
 zoom-wide step, or the one fit) the squared factors are averaged over its checked parameters
@@ -72,8 +82,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.optimize
 import scipy.sparse
 import scipy.sparse.csgraph
+import scipy.special
 import scipy.stats
 
 from .result import CalibrationResult
@@ -147,6 +159,8 @@ class ViewScatter:
     unchecked_factor : (k,) ndarray, optional
         The jackknife's factor of a free parameter below :data:`MIN_VIEWS` effective views
         (NaN where not computed or checked): the least factor it takes when scaled.
+    shared : (factor, d0), optional
+        The :meth:`shared_factor` of the solution this check is a part of (:meth:`by_group`).
     """
 
     factor: np.ndarray
@@ -157,6 +171,7 @@ class ViewScatter:
     free: np.ndarray
     whole: tuple[float, float, float] | None = None
     unchecked_factor: np.ndarray | None = None
+    shared: tuple[float, float] | None = None
 
     @property
     def significant(self) -> np.ndarray:
@@ -191,6 +206,24 @@ class ViewScatter:
         factor, _, threshold = self.fit_test()
         return bool(factor > threshold)
 
+    def shared_factor(self) -> tuple[float, float]:
+        """``(F_0, d_0)``: the factor the fits of the solution share and the degrees of
+        freedom of that prior, estimated from the fits' median factors (module docstring;
+        :func:`shared_factor`). ``d_0 = 0`` with fewer than two fits checked, ``inf`` when
+        the fits' factors differ no more than their noise. A part of a solution
+        (:meth:`by_group`) answers for the whole."""
+        if self.shared is not None:
+            return self.shared
+        typical = []
+        for members in self._groups().values():
+            q = np.array(members)
+            q = q[np.isfinite(self.factor[q])]
+            if len(q):
+                typical.append((np.median(self.factor[q]), np.median(self.views[q])))
+        if len(typical) < 2:
+            return float("nan"), 0.0
+        return shared_factor(*np.array(typical).T)
+
     def _own(self) -> np.ndarray:
         """(k,) bool: the parameters whose sigma takes their own factor."""
         return self.significant | (self.fit_significant & np.isfinite(self.factor))
@@ -211,13 +244,15 @@ class ViewScatter:
 
         Where a parameter is significant on its own, or the solution as a whole is
         (:meth:`fit_significant`), each checked parameter of the fit takes its factor
-        moderated towards the fit's median factor ``F_g`` (module docstring):
-        ``sqrt((d F^2 + d_g F_g^2) / (d + d_g))``, ``d_g`` the fit's median effective views;
-        one significant on its own keeps at least its own ``F``. A free parameter with too few
-        effective views to be checked takes ``F_g``, or its :attr:`unchecked_factor` where
-        larger. Else 1."""
+        moderated towards the fit's (module docstring): the fit's median factor, first
+        moderated towards the one the fits share (:meth:`shared_factor`),
+        ``F_g^2 <- (d_g F_g^2 + d_0 F_0^2) / (d_g + d_0)``, ``d_g`` the fit's median effective
+        views; then ``sqrt((d F^2 + d_g F_g^2) / (d + d_g))``. One significant on its own
+        keeps at least its own ``F``. A free parameter with too few effective views to be
+        checked takes ``F_g``, or its :attr:`unchecked_factor` where larger. Else 1."""
         own = self._own()
         out = np.ones(len(self.names))
+        shared, shared_views = self.shared_factor()
         for members in self._groups().values():
             q = np.array(members)
             if not own[q].any():
@@ -225,8 +260,8 @@ class ViewScatter:
             checked = q[np.isfinite(self.factor[q])]
             factor, views = self.factor[checked], self.views[checked]
             typical, typical_views = (float(np.median(a)) for a in (factor, views))
-            moderated = np.sqrt((views * factor**2 + typical_views * typical**2)
-                                / (views + typical_views))
+            typical = max(typical, _moderated(typical, typical_views, shared, shared_views))
+            moderated = _moderated(factor, views, typical, typical_views)
             chosen = np.where(self.significant[checked], np.maximum(factor, moderated),
                               moderated)
             out[checked] = np.where(own[checked], np.maximum(chosen, 1.0), 1.0)
@@ -244,16 +279,17 @@ class ViewScatter:
 
     def by_group(self) -> dict[str, ViewScatter]:
         """The check split by fit (``'step:cx'`` -> fit ``'step'``, parameter ``'cx'``)."""
-        whole = self.fit_test()
+        whole, shared = self.fit_test(), self.shared_factor()
         return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
                                self.threshold[q],
                                tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q],
-                               whole, self._unchecked()[q])
+                               whole, self._unchecked()[q], shared)
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     @classmethod
     def from_dict(cls, saved: dict) -> ViewScatter:
-        """The check back from :meth:`to_dict` (its free parameters; ``whole`` not kept)."""
+        """The check back from :meth:`to_dict` (its free parameters; ``whole`` and ``shared``
+        not kept)."""
         names = tuple(saved["free"])
         arrays = {key: np.array([saved[key].get(nm, np.nan) for nm in names], dtype=float)
                   for key in ("factor", "test_factor", "views", "threshold")}
@@ -271,12 +307,15 @@ class ViewScatter:
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
         applied = self.applied() if applied is None else applied
         fit_factor, fit_views, fit_threshold = self.fit_test()
+        shared, shared_views = self.shared_factor()
         free = [self.names[q] for q in range(len(self.names)) if self.free[q]]
         return {key: {self.names[q]: float(arr[q]) for q in checked}
                 for key, arr in (("factor", self.factor), ("test_factor", self.test_factor),
                                  ("views", self.views),
                                  ("threshold", self.threshold))} | {
-            "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold},
+            "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold,
+                    "shared_factor": shared,
+                    "shared_views": shared_views if np.isfinite(shared_views) else None},
             "free": free,
             "unchecked": {self.names[q]: float(self.views[q]) for q in range(len(self.names))
                           if self.free[q] and q not in checked},
@@ -341,6 +380,39 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
                        threshold=threshold, names=tuple(names), free=used,
                        unchecked_factor=np.where(used & ~ok, jackknife, np.nan))
+
+
+def shared_factor(factor: np.ndarray, views: np.ndarray) -> tuple[float, float]:
+    """``(F_0, d_0)`` from fits' factors ``factor`` (G,) on ``views`` (G,) effective views,
+    as Smyth (2004, section 6.2) estimates a prior for sample variances: with
+    ``e_g = log F_g^2 - digamma(d_g / 2) + log(d_g / 2)``, the variance of ``e`` beyond what
+    each ``chi^2_{d_g} / d_g`` gives, ``trigamma(d_0 / 2) = G / (G - 1) mean (e - mean e)^2 -
+    mean trigamma(d_g / 2)``, and ``log F_0^2 = mean e + digamma(d_0 / 2) - log(d_0 / 2)``.
+    Where the factors spread no more than their noise, ``d_0 = inf`` and ``F_0^2 =
+    exp(mean e)``."""
+    half = np.asarray(views, dtype=float) / 2.0
+    e = (np.log(np.maximum(np.asarray(factor, dtype=float), 1e-12) ** 2)
+         - scipy.special.digamma(half) + np.log(half))
+    extra = (len(e) / (len(e) - 1) * float(np.mean((e - e.mean()) ** 2))
+             - float(np.mean(scipy.special.polygamma(1, half))))
+    if extra <= 0.0:
+        return float(np.sqrt(np.exp(e.mean()))), float("inf")
+    half0 = scipy.optimize.brentq(lambda x: scipy.special.polygamma(1, np.exp(x)) - extra,
+                                  -30.0, 30.0)
+    d0 = 2.0 * float(np.exp(half0))
+    return (float(np.sqrt(np.exp(e.mean() + scipy.special.digamma(d0 / 2) - np.log(d0 / 2)))),
+            d0)
+
+
+def _moderated(factor, views, prior: float, prior_views: float):
+    """``sqrt((d F^2 + d_0 F_0^2) / (d + d_0))``: ``prior`` where ``prior_views`` is
+    infinite, ``factor`` where it is 0."""
+    if prior_views == 0.0:
+        return factor
+    if np.isinf(prior_views):
+        return np.full_like(np.asarray(factor, dtype=float), prior)[()]
+    return np.sqrt((views * np.square(factor) + prior_views * prior**2)
+                   / (views + prior_views))
 
 
 def _jackknife_factor(moves: np.ndarray | None, view_idx: np.ndarray, n_views: int,
