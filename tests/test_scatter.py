@@ -105,6 +105,9 @@ def test_a_parameter_too_few_views_carry_takes_its_fits_median_factor():
     assert set(per_fit) == {"a", "b"} and per_fit["a"].names == ("cx", "cy", "f")
     assert per_fit["b"].fit_test() == check.fit_test()   # a part answers for the whole
     b = per_fit["b"].to_dict()
+    assert b["fit"]["shared_views"] == pytest.approx(shared_views) and b["fit"]["shared_factor"] > 1
+    alone = view_scatter(a[:, :2], view_idx, views, ("cx", "cy"), sd[:2]).to_dict()["fit"]
+    assert alone["shared_factor"] is None and alone["shared_views"] == 0.0  # nothing to borrow
     assert list(per_fit["a"].to_dict()["pooled"]) == ["f"] and b["factor"] == {
         "cx": pytest.approx(1.0, rel=0.15)} and list(b["pooled"]) == (["f"] if b["scaled"]
                                                                        else [])

@@ -314,7 +314,7 @@ class ViewScatter:
                                  ("views", self.views),
                                  ("threshold", self.threshold))} | {
             "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold,
-                    "shared_factor": shared,
+                    "shared_factor": shared if np.isfinite(shared) else None,
                     "shared_views": shared_views if np.isfinite(shared_views) else None},
             "free": free,
             "unchecked": {self.names[q]: float(self.views[q]) for q in range(len(self.names))
