@@ -30,7 +30,8 @@ its sigmas by Monte Carlo.
    would put outside (with 40 draws 2.6 % of the ratios, with 100 draws 0.04 %, if every sigma
    were right). Where the prior carries a step,
    its sigma also covers how far this one path lies from what the prior expects, which the
-   draws do not redraw: the spread is then below 1 and the RMS error nearer it.
+   draws do not redraw: the spread can then be below 1, and the RMS error with it where the
+   path is smoother than the prior expects.
 """
 
 from __future__ import annotations
