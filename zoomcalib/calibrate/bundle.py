@@ -160,6 +160,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -174,7 +175,7 @@ from zoomcalib.calibrate.result import (
     Observations,
     one_opencv_thread,
 )
-from zoomcalib.calibrate.scatter import ViewScatter, view_groups, view_scatter
+from zoomcalib.calibrate.scatter import ViewScatter, noise_share, view_groups, view_scatter
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -749,6 +750,31 @@ class _Problem:
         influence -= np.einsum("nca,na->nc", through_pose[self.vi], pose_score)
         return influence @ self.cam_map.T
 
+    def pose_free_rows(self, s: _State, W: np.ndarray, V: np.ndarray
+                       ) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+        """A function of a view ``v`` giving its rows with the pose projected out,
+        ``Jt_v = J_y,v - J_p,v V_v^-1 W_v^T`` (2k, ny) over camera and free target coordinates,
+        and its residuals ``r_v`` (2k,), px (k corners; ``W, V`` blocks of
+        :meth:`normal_equations` at ``s``)."""
+        r, Jc, Jp, Jx = self.jacobians(s)
+        T = left_jacobian(s.rvecs)[self.vi]
+        Jp[:, :, :3] = Jp[:, :, :3] @ T                                     # Rodrigues columns
+        through_pose = np.linalg.solve(V, W.transpose(0, 2, 1))             # (m, 6, ny)
+        nc, ny = self.nc, self.nc + self.nx
+        ends = np.append(self.starts, self.N)
+        free_at = np.searchsorted(self.wx_obs, ends) if self.nx else None
+
+        def rows(v: int) -> tuple[np.ndarray, np.ndarray]:
+            lo, hi = ends[v], ends[v + 1]
+            Jy = np.zeros((hi - lo, 2, ny))
+            Jy[:, :, :nc] = Jc[lo:hi]
+            if self.nx:
+                f = slice(free_at[v], free_at[v + 1])
+                o, a = self.wx_obs[f], self.wx_a[f]
+                Jy[o - lo, :, self.wx_row[f]] = Jx[o, :, a]
+            return (Jy - Jp[lo:hi] @ through_pose[v]).reshape(-1, ny), r[lo:hi].ravel()
+        return rows
+
     def camera_deletions(self, s: _State, U: np.ndarray, W: np.ndarray, V: np.ndarray,
                          groups: np.ndarray | None = None) -> np.ndarray | None:
         """Per group of views (``groups`` (m,) labels ``0..G-1``; default one view each), the
@@ -757,43 +783,43 @@ class _Problem:
         Jt_i^T Jt_i`` the group's share of the gradient and of the Schur complement
         ``S = U - sum_v W_v V_v^-1 W_v^T`` over camera and free target coordinates (one
         Gauss-Newton step: the delete-one-view jackknife of :mod:`zoomcalib.calibrate.scatter`;
-        ``U, W, V`` blocks of :meth:`normal_equations`). None when there are more than
-        :data:`DELETION_MAX_UNKNOWNS` of those (``S`` then costs too much to solve once per
-        view); NaN rows where a group carries a parameter alone."""
+        ``U, W, V`` blocks of :meth:`normal_equations`; :meth:`pose_free_rows`). None when
+        there are more than :data:`DELETION_MAX_UNKNOWNS` of those (``S`` then costs too much
+        to solve once per view); NaN rows where a group carries a parameter alone."""
         ny = self.nc + self.nx
         if ny > DELETION_MAX_UNKNOWNS:
             return None
         groups = np.arange(self.m) if groups is None else np.asarray(groups)
-        n_groups = int(groups.max()) + 1
-        r, Jc, Jp, Jx = self.jacobians(s)
-        T = left_jacobian(s.rvecs)[self.vi]
-        Jp[:, :, :3] = Jp[:, :, :3] @ T                                     # Rodrigues columns
-        H = np.linalg.solve(V, W.transpose(0, 2, 1))                        # (m, 6, ny)
-        S = U - np.einsum("vci,vid->cd", W, H)
-        if not self.nx:
-            Jt = Jc - Jp @ H[self.vi]                                       # (N, 2, nc)
-            g = np.zeros((n_groups, ny))
-            np.add.at(g, groups[self.vi], np.einsum("nkc,nk->nc", Jt, r))
-            A = np.zeros((n_groups, ny, ny))
-            np.add.at(A, groups[self.vi], Jt.transpose(0, 2, 1) @ Jt)
-            return _deletion_steps(S, A, g) @ self.cam_map.T
-        moves = np.empty((n_groups, ny))
-        ends = np.append(self.starts, self.N)
-        free_at = np.searchsorted(self.wx_obs, ends)       # free point coordinates, by view
-        for group in range(n_groups):                      # dense (2k, ny) blocks, k corners
+        rows = self.pose_free_rows(s, W, V)
+        S = U - np.einsum("vci,vid->cd", W, np.linalg.solve(V, W.transpose(0, 2, 1)))
+        moves = np.empty((int(groups.max()) + 1, ny))
+        for group in range(len(moves)):
             A, g = np.zeros((ny, ny)), np.zeros(ny)
             for v in np.flatnonzero(groups == group):
-                lo, hi = ends[v], ends[v + 1]
-                Jy = np.zeros((hi - lo, 2, ny))
-                Jy[:, :, :self.nc] = Jc[lo:hi]
-                f = slice(free_at[v], free_at[v + 1])
-                o, a = self.wx_obs[f], self.wx_a[f]
-                Jy[o - lo, :, self.wx_row[f]] = Jx[o, :, a]
-                Jt = (Jy - Jp[lo:hi] @ H[v]).reshape(-1, ny)
+                Jt, r = rows(v)
                 A += Jt.T @ Jt
-                g += Jt.T @ r[lo:hi].ravel()
+                g += Jt.T @ r
             moves[group] = _deletion_steps(S, A[None], g[None])[0]
         return moves[:, :self.nc] @ self.cam_map.T
+
+    def camera_noise_share(self, s: _State, W: np.ndarray, V: np.ndarray,
+                           inverse: np.ndarray, groups: np.ndarray | None = None,
+                           prior: Callable[[np.ndarray], np.ndarray] | None = None
+                           ) -> np.ndarray:
+        """(12,) over ``CAMERA_NAMES``: the view-clustered sum's expectation under the noise
+        model over the camera's (repeatability) variance, per group of views
+        (:func:`~zoomcalib.calibrate.scatter.noise_share`, with ``B_g = sum_{v in g} Jt_v^T
+        (Jt_v C)`` from :meth:`pose_free_rows`). ``inverse``: ``S^-1`` (ny, ny) over camera
+        and free target coordinates; ``prior(X)``: ``diag(X^T P X)`` of the shape prior's
+        block ``P`` for ``X`` (ny, p). NaN for fixed parameters."""
+        groups = np.arange(self.m) if groups is None else np.asarray(groups)
+        rows = self.pose_free_rows(s, W, V)
+        columns = inverse[:, :self.nc] @ self.cam_map.T                    # (ny, 12)
+        blocks = np.zeros((int(groups.max()) + 1, *columns.shape))
+        for v in range(self.m):
+            Jt = rows(v)[0]
+            blocks[groups[v]] += Jt.T @ (Jt @ columns)
+        return noise_share(columns, blocks, inverse, prior=prior)
 
     def normal_equations(self, s: _State):
         """Blocks ``U (ny, ny), W (m, ny, 6), V (m, 6, 6), g_y (ny,), g_p (m, 6)``, residuals."""
@@ -1768,10 +1794,13 @@ def _camera_sigmas(prob: _Problem, state: _State, normal, cov: _Covariances,
     names = CAMERA_NAMES[:4 + (5 if model == "standard" else 8)]
     camera_sd = cov.camera_sd(cam_map, "repeatability")
     groups = view_groups(obs.views, obs.image_size)
+    prior = None if cov.Urf is None else (lambda x: cov._prior_diag(x[prob.nc:].T))
     scatter = view_scatter(prob.camera_influence(state, normal[1], normal[2],
                                                  cov.Sinv[:prob.nc]),
                            groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
-                           lambda: prob.camera_deletions(state, *normal[:3], groups))
+                           lambda: prob.camera_deletions(state, *normal[:3], groups),
+                           prob.camera_noise_share(state, normal[1], normal[2], cov.Sinv,
+                                                   groups, prior))
     noise_model = dict(zip(names, camera_sd[:len(names)].tolist(), strict=True))
     posterior = dict(zip(names, cov.camera_sd(cam_map, "posterior")[:len(names)].tolist(),
                          strict=True))

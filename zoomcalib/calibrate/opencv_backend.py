@@ -442,7 +442,8 @@ def _view_scatter(at_solution: _AtSolution, covariance, groups: np.ndarray | Non
     groups = np.arange(prob.m) if groups is None else groups
     return view_scatter(prob.camera_influence(state, W, V, S_inv), groups[prob.vi],
                         int(groups.max()) + 1, CAMERA_NAMES, np.sqrt(np.diag(cov)),
-                        lambda: prob.camera_deletions(state, U, W, V, groups))
+                        lambda: prob.camera_deletions(state, U, W, V, groups),
+                        prob.camera_noise_share(state, W, V, S_inv, groups))
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken

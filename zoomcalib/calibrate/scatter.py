@@ -13,24 +13,27 @@ independent. Eliminating the poses, the unknowns ``y`` (camera, free target coor
 out. For a camera parameter ``q`` let ``a_iq = (S^-1 Jt_i^T r_i)_q`` (``r_i`` the residual, 2
 components per corner) and ``b_vq = sum_{i in v} a_iq``. Then
 
-    var_views(q) = d / (d - 1) sum_v b_vq^2
+    var_views(q) = sum_v b_vq^2 / s_q
 
 is the variance clustered by view (Liang & Zeger 1986): it holds whatever the errors inside a
-view do, as long as views are independent. ``d / (d - 1)`` restores the degree of freedom the
-fit takes (the ``b_vq`` sum to the prior's gradient, zero without one), with
-``d = (sum_v c_vq)^2 / sum_v c_vq^2``, ``c_vq = sum_{i in v} a_iq^2``, the effective number of
-views (Satterthwaite: ``d`` views of equal weight, fewer when some dominate). The factor is
-``sqrt(var_views / var_model)``; under the noise model ``var_views / var_model`` is spread about
-1 like ``chi^2_d / d`` (a little below 1 with few views, where the fit's leverage shrinks the
-residuals).
+view do, as long as views are independent. ``s_q`` restores what the fit takes: each view's
+residuals are pulled towards the solution it helped make, so under the noise model
+``E[sum_v b_vq^2] = s_q var_model(q)`` with ``s_q = 1 - sum_v [B_v^T S^-1 B_v]_qq / M_q``,
+``B_v = A_v S^-1 e_q``, ``A_v = sum_{i in v} Jt_i^T Jt_i`` and ``M_q = sum_v [S^-1 e_q]^T B_v``
+(:func:`noise_share`, which also counts a prior): the views' leverage on ``q``. A parameter
+that two views of eight carry keeps a quarter of its variance in the clustered sum, one that
+all carry alike ``(d - 1) / d`` of it (the approximation used when the leverage is not
+given), with ``d = (sum_v c_vq)^2 / sum_v c_vq^2``, ``c_vq = sum_{i in v} a_iq^2``, the
+effective number of views (Satterthwaite: ``d`` views of equal weight, fewer when some
+dominate). The factor is ``sqrt(var_views / var_model)``; under the noise model it is spread
+about 1 like ``chi^2_d / d``.
 
-With few views the fit's leverage makes ``var_views`` too small: each view's residuals are
-pulled towards the solution that view helped make. Where the global unknowns are few enough to
-solve once per view (at most ``DELETION_MAX_UNKNOWNS`` camera and free target unknowns in the
-bundle, which OpenCV's fits and a 10 x 10 board are; the zoom-wide adjustment's intrinsics and
-board modes), the size of a scaled sigma comes from the delete-one-view jackknife in one
-Gauss-Newton step (CR3 of Bell & McCaffrey 2002): ``delta_v = (S - A_v)^-1 g_v`` with
-``g_v = sum_{i in v} Jt_i^T r_i`` and ``A_v = sum_{i in v} Jt_i^T Jt_i``, and
+The leverage's correction holds on average; the size of a scaled sigma needs more. Where the
+global unknowns are few enough to solve once per view (at most ``DELETION_MAX_UNKNOWNS``
+camera and free target unknowns in the bundle, which OpenCV's fits and a 10 x 10 board are;
+the zoom-wide adjustment's intrinsics and board modes), the size of a scaled sigma comes from
+the delete-one-view jackknife in one Gauss-Newton step (CR3 of Bell & McCaffrey 2002):
+``delta_v = (S - A_v)^-1 g_v`` with ``g_v = sum_{i in v} Jt_i^T r_i``, and
 ``var_views = (m - 1) / m sum_v (delta_v - mean delta)^2``. The test stays on the clustered
 sum: the jackknife's spread under the noise model has heavier tails than ``chi^2_d / d`` where
 the fit is not linear in one view (on rendered sweeps it flagged a long-end fx whose
@@ -90,7 +93,7 @@ import scipy.stats
 
 from .result import CalibrationResult
 
-__all__ = ["ViewScatter", "view_scatter", "view_groups", "pooled_over_fits",
+__all__ = ["ViewScatter", "view_scatter", "noise_share", "view_groups", "pooled_over_fits",
            "pooled_over_steps", "MIN_VIEWS", "SIGNIFICANCE", "SAME_VIEW_FRACTION"]
 
 #: Fewest effective views (``d``) for which the check is made.
@@ -161,6 +164,10 @@ class ViewScatter:
         (NaN where not computed or checked): the least factor it takes when scaled.
     shared : (factor, d0), optional
         The :meth:`shared_factor` of the solution this check is a part of (:meth:`by_group`).
+    null_share : (k,) ndarray, optional
+        The clustered sum's expectation under the noise model over the model variance
+        (:func:`noise_share`, or ``(d - 1) / d``; NaN where not checked): ``test_factor^2`` is
+        the clustered sum over this times the model variance.
     """
 
     factor: np.ndarray
@@ -172,6 +179,7 @@ class ViewScatter:
     whole: tuple[float, float, float] | None = None
     unchecked_factor: np.ndarray | None = None
     shared: tuple[float, float] | None = None
+    null_share: np.ndarray | None = None
 
     @property
     def significant(self) -> np.ndarray:
@@ -233,6 +241,11 @@ class ViewScatter:
             return np.full(len(self.names), np.nan)
         return self.unchecked_factor
 
+    def _null_share(self) -> np.ndarray:
+        if self.null_share is None:
+            return np.full(len(self.names), np.nan)
+        return self.null_share
+
     def _groups(self) -> dict[str, list[int]]:
         groups: dict[str, list[int]] = {}
         for q, name in enumerate(self.names):
@@ -283,7 +296,7 @@ class ViewScatter:
         return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
                                self.threshold[q],
                                tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q],
-                               whole, self._unchecked()[q], shared)
+                               whole, self._unchecked()[q], shared, self._null_share()[q])
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     @classmethod
@@ -293,15 +306,17 @@ class ViewScatter:
         names = tuple(saved["free"])
         arrays = {key: np.array([saved[key].get(nm, np.nan) for nm in names], dtype=float)
                   for key in ("factor", "test_factor", "views", "threshold")}
-        unchecked = np.array([saved.get("unchecked_factor", {}).get(nm, np.nan)
-                              for nm in names], dtype=float)
+        unchecked, null_share = (np.array([saved.get(key, {}).get(nm, np.nan) for nm in names],
+                                          dtype=float)
+                                 for key in ("unchecked_factor", "null_share"))
         return cls(names=names, free=np.ones(len(names), bool), unchecked_factor=unchecked,
-                   **arrays)
+                   null_share=null_share, **arrays)
 
     def to_dict(self, applied: np.ndarray | None = None) -> dict:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
-        ``views`` and ``threshold``; the names whose sigma was ``scaled`` by its own factor, and
-        those scaled by the fit's median factor (``pooled``, too few views to check); the
+        ``test_factor``, ``views``, ``threshold`` and ``null_share``; the names whose sigma was
+        ``scaled`` by its own factor, and those scaled by the fit's median factor (``pooled``,
+        too few views to check); the
         ``free`` parameters, and the effective views of those not checked (``unchecked``).
         ``applied``: the factors used, if not :meth:`applied`'s."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
@@ -311,8 +326,8 @@ class ViewScatter:
         free = [self.names[q] for q in range(len(self.names)) if self.free[q]]
         return {key: {self.names[q]: float(arr[q]) for q in checked}
                 for key, arr in (("factor", self.factor), ("test_factor", self.test_factor),
-                                 ("views", self.views),
-                                 ("threshold", self.threshold))} | {
+                                 ("views", self.views), ("threshold", self.threshold),
+                                 ("null_share", self._null_share()))} | {
             "fit": {"factor": fit_factor, "views": fit_views, "threshold": fit_threshold,
                     "shared_factor": shared if np.isfinite(shared) else None,
                     "shared_views": shared_views if np.isfinite(shared_views) else None},
@@ -329,7 +344,8 @@ class ViewScatter:
 
 def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                  names: tuple[str, ...], model_sd: np.ndarray,
-                 deletions: Callable[[], np.ndarray | None] | None = None) -> ViewScatter:
+                 deletions: Callable[[], np.ndarray | None] | None = None,
+                 null_share: np.ndarray | None = None) -> ViewScatter:
     """The view-scatter check (module docstring) from each corner's influence.
 
     Parameters
@@ -348,6 +364,9 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         variance is then the jackknife's (module docstring) for the size of a scaled sigma;
         where a view carries a parameter alone (a NaN move) the clustered sum's is used. Called
         only when a parameter is found disagreeing (it costs a solve per view).
+    null_share : (k,) ndarray, optional
+        The clustered sum's expectation under the noise model over the model variance
+        (:func:`noise_share`); default ``(d - 1) / d``, ``d`` the effective views.
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
@@ -363,7 +382,8 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         views = np.where(used, total**2 / np.sum(corner_sq**2, axis=0), 0.0)
         per_view = np.zeros((n_views, a.shape[1]))
         np.add.at(per_view, view_idx, a)
-        clustered = np.sum(per_view**2, axis=0) * views / (views - 1.0)
+        share = (views - 1.0) / views if null_share is None else np.asarray(null_share)
+        clustered = np.sum(per_view**2, axis=0) / share
         test_factor = np.sqrt(np.clip(clustered, 0.0, None)) / model_sd
     ok = used & (views >= MIN_VIEWS) & np.isfinite(test_factor)
     dof = np.where(ok, views, 1.0)
@@ -379,7 +399,44 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                                                     test_factor), np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
                        threshold=threshold, names=tuple(names), free=used,
-                       unchecked_factor=np.where(used & ~ok, jackknife, np.nan))
+                       unchecked_factor=np.where(used & ~ok, jackknife, np.nan),
+                       null_share=np.where(ok, share, np.nan))
+
+
+def noise_share(columns: np.ndarray, blocks: np.ndarray, inverse: np.ndarray,
+                model_variance: np.ndarray | None = None,
+                prior: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """(p,) the clustered sum's expectation under the noise model over the model variance,
+    ``E[sum_g b_g b_g^T]_qq / var_model(q)`` (module docstring), from the Schur complement's
+    inverse ``inverse`` ``S^-1`` (k, k), its ``columns`` ``C = S^-1 E`` (k, p) of the checked
+    parameters ``E``, and each group's ``blocks`` ``B_g = A_g C`` (G, k, p).
+
+    The residuals are the errors with the fit's pull removed: a group's gradient is
+    ``g_g = z_g - A_g dy`` with ``z_g = sum Jt_i^T e_i`` (covariance ``A_g``, unit noise) and
+    ``dy = S^-1 (sum_h z_h + z_prior)``. So ``E[g_g g_g^T] = A_g - 2 A_g S^-1 A_g +
+    A_g S^-1 Z S^-1 A_g``, ``Z`` the covariance of the total gradient, and with
+    ``M = sum_g diag(C^T B_g)`` and ``L = sum_g diag(B_g^T S^-1 B_g)``:
+
+    - a prior that is part of the noise model (``Z = S``; zoom-wide's smoothness prior, whose
+      sigma is the posterior ``diag(E^T S^-1 E)``, passed as ``model_variance``):
+      ``(M - L) / model_variance``;
+    - a prior held fixed (``Z = S - P``; the bundle's shape prior, whose sigma is the
+      repeatability ``M``; ``prior(X)`` gives ``diag(X^T P X)`` for ``X`` (k, p)):
+      ``(M - L - sum_g prior(S^-1 B_g)) / M``; without a prior the same with ``P = 0``.
+
+    ``L / M`` is the groups' leverage on the parameter, which ``(d - 1) / d`` approximates as
+    if every group pulled alike; NaN where ``M`` is 0 (a fixed parameter).
+    """
+    blocks = np.asarray(blocks, dtype=float)
+    data = np.einsum("kp,gkp->p", columns, blocks)
+    pulled = inverse @ blocks                                            # (G, k, p)
+    leverage = np.einsum("gkp,gkp->p", blocks, pulled)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if model_variance is not None:
+            return (data - leverage) / np.asarray(model_variance, dtype=float)
+        if prior is not None:
+            leverage = leverage + sum(prior(x) for x in pulled)
+        return np.where(data > 0, (data - leverage) / np.where(data > 0, data, 1.0), np.nan)
 
 
 def shared_factor(factor: np.ndarray, views: np.ndarray) -> tuple[float, float]:
@@ -441,7 +498,8 @@ def pooled_over_fits(checks: Mapping[str, ViewScatter]) -> dict[str, ViewScatter
           for f in ("factor", "test_factor", "views", "threshold")),
         names=tuple(f"{key}:{name}" for key, c in checks.items() for name in c.names),
         free=np.concatenate([c.free for c in parts]),
-        unchecked_factor=np.concatenate([c._unchecked() for c in parts]))
+        unchecked_factor=np.concatenate([c._unchecked() for c in parts]),
+        null_share=np.concatenate([c._null_share() for c in parts]))
     return joined.by_group()
 
 

@@ -120,7 +120,7 @@ from .opencv_backend import (
     not_a_camera,
 )
 from .result import CalibrationResult, Observations
-from .scatter import ViewScatter, view_groups, view_scatter
+from .scatter import ViewScatter, noise_share, view_groups, view_scatter
 from .zoommodel import (
     CANDIDATES,
     ZoomModel,
@@ -1197,8 +1197,12 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     if not check:
         return cov, None
     camera_rows = cov[:prob.n_cam]
+    A, g = _view_blocks(prob, r, J, W3, V)
+    share = noise_share(camera_rows.T, A @ camera_rows.T, cov,
+                        model_variance=np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
-                              camera_rows, lambda: _view_deletions(prob, r, J, W3, V, S))
+                              camera_rows, lambda: _deletion_steps(S, A, g)[:, :prob.n_cam],
+                              share)
 
 
 def _view_rows(prob: _ZoomProblem) -> np.ndarray:
@@ -1213,13 +1217,14 @@ def _view_groups(prob: _ZoomProblem) -> np.ndarray:
     return np.concatenate([offsets[s] + step.group for s, step in enumerate(prob.steps)])
 
 
-def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.ndarray,
-                    S: np.ndarray) -> np.ndarray:
-    """Per group of views (:func:`_view_groups`), the intrinsics' move when the group is left
-    out, ``(S - A_g)^-1 g_g`` (groups, n_cam): ``A_g`` and ``g_g`` sum ``Jt_v^T Jt_v`` and
-    ``Jt_v^T r_v`` over its views, ``Jt_v = J_g,v - J_p,v V_v^-1 W_v^T`` a view's rows over the
-    intrinsics and board modes, its pose projected out (:mod:`zoomcalib.calibrate.scatter`);
-    ``W3`` (n_glob, views, 6), ``S`` the Schur complement."""
+def _view_blocks(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per group of views (:func:`_view_groups`), its share of the Schur complement and of the
+    gradient, ``A_g`` (groups, n_glob, n_glob) and ``g_g`` (groups, n_glob): the sums of
+    ``Jt_v^T Jt_v`` and ``Jt_v^T r_v`` over its views, ``Jt_v = J_g,v - J_p,v V_v^-1 W_v^T``
+    a view's rows over the intrinsics and board modes, its pose projected out
+    (:mod:`zoomcalib.calibrate.scatter`); ``W3`` (n_glob, views, 6). The intrinsics' move
+    when a group is left out is ``(S - A_g)^-1 g_g``."""
     n_glob, n_views = prob.n_cam + prob.n_modes, len(V)
     row_view = np.repeat(_view_rows(prob), 2)
     order = np.argsort(row_view, kind="stable")
@@ -1235,16 +1240,19 @@ def _view_deletions(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.
         Jt = rows[:, :n_glob].toarray() - pose @ through_pose[v]
         A[groups[v]] += Jt.T @ Jt
         g[groups[v]] += Jt.T @ residual[bounds[v]:bounds[v + 1]]
-    return _deletion_steps(S, A, g)[:, :prob.n_cam]
+    return A, g
 
 
 def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
-                  camera_rows: np.ndarray, deletions) -> ViewScatter:
+                  camera_rows: np.ndarray, deletions, null_share: np.ndarray) -> ViewScatter:
     """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) of every step's free
     intrinsics: corner ``i``'s share of their move is ``S^-1[cam, :] (J_g,i^T r_i - W_v V_v^-1
     J_p,i^T r_i)``; ``camera_rows`` is ``S^-1[cam, :]`` (n_cam, n_glob), ``camera_pose`` the
     same times ``W V^-1`` (n_cam, 6 views), ``r``, ``J`` the weighted residuals and Jacobian,
-    ``deletions`` a callable giving :func:`_view_deletions`."""
+    ``deletions`` a callable giving each group's move when left out, ``null_share`` the
+    clustered sum's expectation under the noise model over the posterior variance
+    (:func:`~zoomcalib.calibrate.scatter.noise_share`, the smoothness prior part of the noise
+    model)."""
     n_glob = prob.n_cam + prob.n_modes
     n_rows = sum(2 * int(step.inlier.sum()) for step in prob.steps)
     corner = scipy.sparse.csr_matrix((np.ones(n_rows), (np.arange(n_rows) // 2,
@@ -1257,7 +1265,7 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
                                                                   strict=True)]
     model_sd = np.sqrt(np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
     return view_scatter(np.asarray(influence), groups[_view_rows(prob)], int(groups.max()) + 1,
-                        tuple(names), model_sd, deletions)
+                        tuple(names), model_sd, deletions, null_share)
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
