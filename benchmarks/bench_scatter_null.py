@@ -104,8 +104,10 @@ def main() -> None:
     ap.add_argument("--sweeps", type=int, default=12, help="synthetic zoom-wide sweeps")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    bundle_draws(args.draws)
-    zoom_wide_sweeps(args.sweeps)
+    if args.draws:
+        bundle_draws(args.draws)
+    if args.sweeps:
+        zoom_wide_sweeps(args.sweeps)
 
 
 if __name__ == "__main__":

@@ -113,7 +113,12 @@ Two kinds are computed, from ``N = J^T J + \sigma_p^2 \Lambda_R`` at the solutio
 parameters only; ``Lambda_R`` the rotated prior precision, ``sigma_p`` the pixel sigma that
 weighted the prior in the final solve, ``info['prior_sigma_px']``, so that ``N`` is the normal
 matrix of the cost actually minimised) and ``s^2 = \sum_i \|w_i r_i\|^2 / (2 N_{obs} -
-n_{unknowns})`` (``info['sigma_px']`` is ``s``):
+n_{unknowns} + tr((N^{-1} P)^2))`` (``info['sigma_px']`` is ``s``). The residuals are
+``r = (I - H) e`` with the hat matrix ``H = J N^{-1} J^T``, so ``E|r|^2 = sigma^2 (2 N_{obs} -
+2 tr H + tr H^2)``, and ``N^{-1} J^T J = I - N^{-1} P`` makes that the denominator: a prior
+that holds the points gives back the degrees of freedom their coordinates would take (with
+10 views of 88 points and the default prior, ``2 N_{obs} - n_{unknowns}`` overestimated
+``s^2`` by about 12 %; ``benchmarks/bench_scatter_null.py``):
 
 - the **repeatability** ``s^2 N^{-1} J^T J N^{-1}`` (sandwich; its marginal over camera and
   points ``s^2 S^{-1} (S - P) S^{-1}`` with ``S`` the Schur complement over the poses and
@@ -1263,7 +1268,8 @@ class _Covariances:
     ``s2 N^-1 J^T J N^-1 = s2 (N^-1 - N^-1 P N^-1)``; without a prior they are equal. ``N^-1``
     is held through the Schur complement over the poses: ``Sinv = S^-1`` (camera and points),
     ``Hf = V^-1 W^T`` (6m, ny), ``Vinv`` (m, 6, 6) and ``RH = R^-T Hf^T`` (``S = R^T R``).
-    The prior on the free points is ``ca I + Urf cD Urf^T`` (``ca = 0``, ``Urf = None``: none).
+    The prior on the free points is ``ca I + Urf cD Urf^T`` (``ca = 0``, ``Urf = None``: none);
+    ``dof`` the denominator of ``s2`` (module docstring).
     """
 
     s2: float
@@ -1276,6 +1282,7 @@ class _Covariances:
     ca: float = 0.0
     Urf: np.ndarray | None = None
     cD: np.ndarray | None = None
+    dof: float = float("nan")
 
     @property
     def points(self) -> _PointCovariance:
@@ -1284,6 +1291,16 @@ class _Covariances:
         if self.Urf is None:
             return _PointCovariance(Sxx, self.s2)
         return _PointCovariance(Sxx, self.s2, self.ca, Sxx @ self.Urf, self.cD)
+
+    def prior_dof(self) -> float:
+        """``tr((N^-1 P)^2)``, the degrees of freedom the prior gives back to the residuals
+        (module docstring): with ``Y`` the points' block of ``S^-1`` and ``P = ca I + U cD
+        U^T``, ``ca^2 |Y|_F^2 + 2 ca tr(cD (Y U)^T (Y U)) + tr((cD U^T Y U)^2)``."""
+        Y = self.Sinv[self.nc:, self.nc:]
+        YU = Y @ self.Urf
+        modes = self.cD @ (self.Urf.T @ YU)
+        return float(self.ca**2 * np.sum(Y * Y) + 2.0 * self.ca * np.sum((YU @ self.cD) * YU)
+                     + np.sum(modes * modes.T))
 
     def _prior_term(self, A: np.ndarray, B: np.ndarray | None = None) -> np.ndarray:
         """``A P B^T`` / s2 for rows ``A``, ``B`` of ``N^-1[:, x]`` (x: the free points)."""
@@ -1348,7 +1365,6 @@ def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covar
     U, W, V = (ne if ne is not None else prob.normal_equations(state))[:3]
     r = prob.residuals(state)
     dof = 2 * prob.N - prob.n_unknowns
-    s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
     try:
         iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
         G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
@@ -1361,7 +1377,7 @@ def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covar
                          "K0/dist0)") from exc
     Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
     cov = _Covariances(
-        s2=s2, nc=prob.nc, Sinv=_inverse_from_cholesky(cf[0]), Hf=Hf,
+        s2=np.nan, nc=prob.nc, Sinv=_inverse_from_cholesky(cf[0]), Hf=Hf,
         Vinv=iL.transpose(0, 2, 1) @ iL,
         RH=scipy.linalg.solve_triangular(cf[0], Hf.T, trans="T", check_finite=False),
         names=_parameter_names(cam_names, prob.free_idx, m))
@@ -1371,6 +1387,9 @@ def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covar
         c = prob.sig2 / sc**2
         cov.ca, cov.Urf = c * prob.Lam.a, prob.Lam.rotated_columns(Rs, prob.free_idx)
         cov.cD = c * prob.Lam.D
+        dof += cov.prior_dof()
+    cov.dof = float(dof)
+    cov.s2 = float(np.einsum("ij,ij->", r, r)) / dof if dof > 0 else np.nan
     return cov
 
 
@@ -1647,7 +1666,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
           ``stages`` (per LM stage: ``iterations``, ``converged``, ``stop_reason``, ``role``,
           ``cost_px2``), ``iterations`` (LM iterations per stage);
         - ``gauge`` (text), ``gauge_points``, ``n_unknowns`` (free parameters after the
-          gauge), ``n_observations`` (inliers), ``sigma_px`` (``s``, weighted px),
+          gauge), ``n_observations`` (inliers), ``residual_dof`` (the denominator of ``s^2``,
+          module docstring), ``sigma_px`` (``s``, weighted px),
           ``prior_sigma_px`` (the prior's pixel sigma in the final solve; None without a
           prior), ``model``, ``max_tilt_deg``;
         - ``sd_kind`` (``'repeatability'``), ``sd_posterior`` (by name),
@@ -1733,6 +1753,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
                   "n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
                   "converged": converged, "stop_reason": stop_reason, "stages": stage_info,
                   "iterations": {k: v.iterations for k, v in stages.items()},
+                  "residual_dof": cov.dof,
                   "sigma_px": float(np.sqrt(cov.s2)), "model": model,
                   "prior_sigma_px": (float(np.sqrt(prob.sig2)) if prob.Lam is not None
                                      else None),
