@@ -7,7 +7,8 @@ expectation under the noise model: ``null_share`` times the model variance (the 
 leverage, :func:`~zoomcalib.calibrate.scatter.noise_share`). Here the corners carry nothing but
 independent Gaussian noise, so the squared test factor should average 1 (it spreads like
 ``chi2_d / d``). Printed beside it, what the old correction ``(d - 1) / d`` would have given,
-and the spread of the estimates over the draws against the reported noise-model sigma.
+the spread of the estimates over the draws against the reported noise-model sigma, and the
+residual variance against the true one (beside it, what ``2 N - n`` in its denominator gave).
 
 1. One seeded geometry (10 views of an 88-corner board, ``sweep_detections`` seed 401) with
    ``--draws`` redraws of 0.2 px corner noise, calibrated by the bundle three ways: the target
@@ -67,7 +68,7 @@ def bundle_draws(draws: int) -> None:
     truth = next(iter(sweep.truth.values()))
     for label, settings in BUNDLE_SETTINGS.items():
         rng, start = np.random.default_rng(5), time.perf_counter()
-        stats, estimates, sigmas = [], [], []
+        stats, estimates, sigmas, noise = [], [], [], []
         for _ in range(draws):
             noisy = Observations(exact.object_points,
                                  [(ids, pts + 0.2 * rng.normal(size=pts.shape))
@@ -76,6 +77,10 @@ def bundle_draws(draws: int) -> None:
             stats.append(statistic(res.info["view_scatter"]))
             estimates.append([getattr(res, q) for q in PINHOLE])
             sigmas.append([res.info["sd_noise_model"][q] for q in PINHOLE])
+            info = res.info
+            s2 = info["sigma_px"] ** 2 / 0.2**2
+            noise.append((s2, s2 * info["residual_dof"]
+                          / (2 * info["n_observations"] - info["n_unknowns"])))
         report(f"bundle, {label}", np.concatenate(stats), time.perf_counter() - start)
         spread = np.std(estimates, axis=0) / np.sqrt(np.mean(np.square(sigmas), axis=0))
         true = [truth.get(q, truth["fx"]) for q in PINHOLE]      # square pixels: fy = fx
@@ -84,6 +89,8 @@ def bundle_draws(draws: int) -> None:
             f"{q} {s:.2f}" for q, s in zip(PINHOLE, spread, strict=True))
             + f" (+-{1 / np.sqrt(2 * draws):.2f}); mean error / spread "
             + " ".join(f"{b:+.2f}" for b in bias))
+        s2, naive = np.mean(noise, axis=0)
+        print(f"{'':30s} residual variance / true {s2:.3f} (dividing by 2N - n: {naive:.3f})")
 
 
 def zoom_wide_sweeps(sweeps: int) -> None:

@@ -117,8 +117,8 @@ n_{unknowns} + tr((N^{-1} P)^2))`` (``info['sigma_px']`` is ``s``). The residual
 ``r = (I - H) e`` with the hat matrix ``H = J N^{-1} J^T``, so ``E|r|^2 = sigma^2 (2 N_{obs} -
 2 tr H + tr H^2)``, and ``N^{-1} J^T J = I - N^{-1} P`` makes that the denominator: a prior
 that holds the points gives back the degrees of freedom their coordinates would take (with
-10 views of 88 points and the default prior, ``2 N_{obs} - n_{unknowns}`` overestimated
-``s^2`` by about 12 %; ``benchmarks/bench_scatter_null.py``):
+10 views of 88 points at 0.2 px and the default prior, ``2 N_{obs} - n_{unknowns}``
+overestimated ``s^2`` by 16 %; ``benchmarks/bench_scatter_null.py``):
 
 - the **repeatability** ``s^2 N^{-1} J^T J N^{-1}`` (sandwich; its marginal over camera and
   points ``s^2 S^{-1} (S - P) S^{-1}`` with ``S`` the Schur complement over the poses and
