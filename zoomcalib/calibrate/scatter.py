@@ -366,7 +366,8 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         only when a parameter is found disagreeing (it costs a solve per view).
     null_share : (k,) ndarray, optional
         The clustered sum's expectation under the noise model over the model variance
-        (:func:`noise_share`); default ``(d - 1) / d``, ``d`` the effective views.
+        (:func:`noise_share`), at most 1; ``(d - 1) / d`` (``d`` the effective views) where
+        not given, not finite or not positive (the record's ``null_share`` says which).
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
@@ -382,7 +383,10 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         views = np.where(used, total**2 / np.sum(corner_sq**2, axis=0), 0.0)
         per_view = np.zeros((n_views, a.shape[1]))
         np.add.at(per_view, view_idx, a)
-        share = (views - 1.0) / views if null_share is None else np.asarray(null_share)
+        share = (views - 1.0) / views
+        if null_share is not None:   # an expectation of squares over the variance: in (0, 1]
+            given = np.asarray(null_share, dtype=float)
+            share = np.where(np.isfinite(given) & (given > 0), np.minimum(given, 1.0), share)
         clustered = np.sum(per_view**2, axis=0) / share
         test_factor = np.sqrt(np.clip(clustered, 0.0, None)) / model_sd
     ok = used & (views >= MIN_VIEWS) & np.isfinite(test_factor)
