@@ -64,6 +64,24 @@ def test_the_factor_is_the_design_effect_of_a_shared_view_error():
         view_scatter(a[:, :1], view_idx, views, ("q", "control"), np.ones(2))
 
 
+def test_a_null_share_that_cannot_be_falls_back_to_the_views_count():
+    """A leverage share of NaN or below 0 (a failed inverse) is not used: the check then takes
+    ``(d - 1) / d`` for that parameter, as without one, and its record says so."""
+    rng = np.random.default_rng(4)
+    views, k = 30, 20
+    view_idx = np.repeat(np.arange(views), k)
+    a = rng.normal(size=(views * k, 3))
+    sd = np.full(3, np.sqrt(views * k))
+    plain = view_scatter(a, view_idx, views, ("p", "q", "r"), sd)
+    given = view_scatter(a, view_idx, views, ("p", "q", "r"), sd,
+                         null_share=np.array([np.nan, -0.2, 0.5]))
+    np.testing.assert_allclose(given.test_factor[:2], plain.test_factor[:2])
+    np.testing.assert_allclose(given.null_share[:2], (plain.views[:2] - 1) / plain.views[:2])
+    assert given.null_share[2] == 0.5
+    assert given.test_factor[2] == pytest.approx(
+        plain.test_factor[2] * np.sqrt(plain.null_share[2] / 0.5))
+
+
 def test_too_few_views_are_not_checked():
     rng = np.random.default_rng(0)
     a = rng.normal(size=(30, 1))
