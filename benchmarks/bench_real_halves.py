@@ -1,6 +1,6 @@
 """Real sets split in two: do the halves agree within their sigmas?
 
-``python benchmarks/bench_real_halves.py [--splits 20] [--jackknife 0] [--seed 1]``
+``python benchmarks/bench_real_halves.py [--splits 20] [--jackknife 0] [--seed 1] [--own-tests]``
 
 The check mrcal calls its most important, on data nobody on this project made:
 
@@ -15,8 +15,11 @@ and odd views), views of nearly one pose together (figueroa's 186 views are 163 
 calibrates each half and computes ``z_q = (q_a - q_b) / sqrt(sd_a^2 + sd_b^2)``
 for fx, fy, cx, cy, once with the noise model's sigmas (``info['sd_noise_model']``) and once with
 the reported ones (scaled where the view-scatter check finds the views disagreeing,
-:mod:`zoomcalib.calibrate.scatter`). Honest sigmas give an RMS z near 1 and |z| > 3 in 0.3 % of
-values. Splits share views, so their z are not independent; the RMS is still the right size.
+:mod:`zoomcalib.calibrate.scatter`, its test pooled over both halves as ``calibrate
+--cross-validate`` pools it, :func:`~zoomcalib.calibrate.checks.pooled_halves`;
+``--own-tests``: each half's test on its own). Honest sigmas give an RMS z near 1 and |z| > 3
+in 0.3 % of values. Splits share views, so their z are not independent; the RMS is still the
+right size.
 
 ``--jackknife G`` also gives, for each half of the first ``min(splits, 4)`` figueroa splits,
 the delete-a-group jackknife sigma (G groups of views, each left out once): a resampling
@@ -37,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from zoomcalib.calibrate.bundle import calibrate_bundle  # noqa: E402
+from zoomcalib.calibrate.checks import pooled_halves  # noqa: E402
 from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import (  # noqa: E402
     calibrate_opencv,
@@ -80,7 +84,7 @@ def jackknife_sd(calibrate, obs: Observations, groups: int, rng: np.random.Gener
 
 
 def run_set(name: str, obs: Observations, fits: dict, count: int, seed: int,
-            jackknife: int) -> None:
+            jackknife: int, pool: bool) -> None:
     rng = np.random.default_rng(seed)
     groups = view_groups(obs.views, obs.image_size)
     print(f"{name}: {obs.n_views} views in {groups.max() + 1} groups of nearly one pose")
@@ -99,6 +103,8 @@ def run_set(name: str, obs: Observations, fits: dict, count: int, seed: int,
                 failed += 1
                 print(f"  {name} {fit} split {k}: not converged, left out")
                 continue
+            if pool:
+                (ra,), (rb,) = (half.values() for half in pooled_halves({"": ra}, {"": rb}))
             z_model.append(z_values(ra, rb, "model"))
             z_used.append(z_values(ra, rb, None))
             factors += [[r.info["view_scatter"]["factor"].get(q, np.nan) for q in COMPARED]
@@ -129,6 +135,8 @@ def main() -> None:
     ap.add_argument("--splits", type=int, default=20)
     ap.add_argument("--jackknife", type=int, default=0, help="groups (0: none)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--own-tests", action="store_true",
+                    help="each half's view-scatter test on its own, not pooled over both")
     a = ap.parse_args()
     warnings.simplefilter("ignore")
     fig, weights = observations_from_npz(DATA / "mrcal-figueroa" / "figueroa_obs.npz")
@@ -139,11 +147,11 @@ def main() -> None:
 
     run_set("figueroa", fig, {"bundle": bundle_rational,
                               "bundle, flat": lambda o: bundle_rational(o, refine_target=False)},
-            a.splits, a.seed, a.jackknife)
+            a.splits, a.seed, a.jackknife, not a.own_tests)
     spec = "chessboard:9x6:25"
     samples = observations_from_detections(detect_folder(DATA / "opencv-samples", spec), spec)
     run_set("opencv-samples", samples, {"opencv": calibrate_opencv, "bundle": calibrate_bundle},
-            a.splits, a.seed, 0)
+            a.splits, a.seed, 0, not a.own_tests)
 
 
 if __name__ == "__main__":

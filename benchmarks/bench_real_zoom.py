@@ -9,7 +9,8 @@
 zoom step, each real view used by one step only. Every step is then a camera whose noise, lens
 misfit and board warp are real. Three backends calibrate the sweep with default settings:
 zoom-wide, per-step OpenCV, per-step bundle (their view-scatter tests pooled over the steps,
-as ``calibrate`` does; ``--unpooled``: each step's alone). Two checks, neither of which knows
+as ``calibrate`` does, and for the halves over both halves' steps, as ``calibrate
+--cross-validate`` does; ``--unpooled``: each step's alone). Two checks, neither of which knows
 the truth:
 
 - halves: each step's views in two halves (even/odd groups of nearly one pose, then
@@ -42,7 +43,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from zoomcalib.calibrate.bundle import calibrate_bundle  # noqa: E402
-from zoomcalib.calibrate.checks import conditioning_flags, random_halves  # noqa: E402
+from zoomcalib.calibrate.checks import (  # noqa: E402
+    conditioning_flags,
+    pooled_halves,
+    random_halves,
+)
 from zoomcalib.calibrate.digital_zoom import DigitalZoom, digital_zoom_sweep  # noqa: E402
 from zoomcalib.calibrate.io import observations_from_npz  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
@@ -63,7 +68,7 @@ def per_step(calibrate):
                 out[step] = calibrate(obs)
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 print(f"    {step}: failed ({exc})")
-        return pooled_over_steps(out) if POOLED else out
+        return out
     return run
 
 
@@ -175,6 +180,8 @@ def main() -> None:
     for name in a.backends:
         calibrate, t0 = BACKENDS[name], time.time()
         results = calibrate(sweep.observations)
+        if name != "zoom-wide" and POOLED:
+            results = pooled_over_steps(results)
         z_camera = camera_table(sweep, name, results)
         if name == "zoom-wide" and a.board_degree >= 2:
             height = (board_height_modes(source.object_points, a.board_degree)
@@ -190,6 +197,8 @@ def main() -> None:
         for k in range(a.splits):
             half_a = calibrate({s: p[k][0] for s, p in parts.items()})
             half_b = calibrate({s: p[k][1] for s, p in parts.items()})
+            if name != "zoom-wide" and POOLED:
+                half_a, half_b = pooled_halves(half_a, half_b)
             for s in sweep.observations:
                 if s in half_a and s in half_b:
                     ra, rb = half_a[s], half_b[s]

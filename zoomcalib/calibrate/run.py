@@ -556,8 +556,9 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
                 out[step] = _calibrate(run.table_backend[step], o, model, target)
             except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error):
                 continue
-        return pooled_over_steps(out)
-    return cross_validate({s: run.observations[s] for s in run.results}, per_step, backend)
+        return out
+    return cross_validate({s: run.observations[s] for s in run.results}, per_step, backend,
+                          pool=True)
 
 
 def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
