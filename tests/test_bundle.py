@@ -187,6 +187,41 @@ def test_dense_and_sparse_normal_equations_agree():
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
 
 
+@pytest.mark.parametrize("seen_twice", [False, True])
+def test_view_products_are_the_pose_free_rows_products(seen_twice):
+    """``view_products`` (vectorised over corners) against ``Jt_v^T (Jt_v C)`` from each view's
+    explicit pose-free rows, on a partial pattern with some target coordinates fixed; also where
+    a view sees a point twice."""
+    rng = np.random.default_rng(6)
+    X0 = grid_board()
+    poses = random_poses(rng, 6, X0)
+    obs = observe(rng, poses, X0, X0)
+    vi = np.concatenate([np.full(len(i), v) for v, (i, _) in enumerate(obs.views)])
+    pi = np.concatenate([i for i, _ in obs.views])
+    uv = np.concatenate([p for _, p in obs.views])
+    keep = rng.random(len(vi)) > 0.3
+    vi, pi, uv = vi[keep], pi[keep], uv[keep]
+    if seen_twice:
+        vi, pi, uv = np.r_[vi, vi[:3]], np.r_[pi, pi[:3]], np.r_[uv, uv[:3] + 0.5]
+    n, m = len(X0), len(poses)
+    free = np.ones((n, 3), bool)
+    free[0] = False
+    free[10, 2] = False
+    cam_map, _ = _cam_map("standard", False, 1.0)
+    state = _State(np.r_[1400, 1402, 652, 472, -0.2, 0.1, 0, 0, 0.01, 0, 0, 0.0],
+                   np.array([cv2.Rodrigues(R)[0].ravel() for R, _ in poses]),
+                   np.array([t for _, t in poses]), X0 + rng.normal(0, 0.1, X0.shape))
+    prob = _Problem(vi, pi, uv, rng.uniform(0.5, 1, len(vi)), m, n, cam_map, free, X0,
+                    shape_precision(X0, 0.01, 2.0), 0.01)
+    assert prob.one_per_cell != seen_twice
+    _, W, V, *_ = prob.normal_equations(state)
+    columns = rng.normal(size=(prob.nc + prob.nx, 5))
+    rows = prob.pose_free_rows(state, W, V)
+    explicit = np.array([rows(v)[0].T @ (rows(v)[0] @ columns) for v in range(m)])
+    np.testing.assert_allclose(prob.view_products(state, W, V, columns), explicit,
+                               rtol=0, atol=1e-10 * np.abs(explicit).max())
+
+
 # ---------------------------------------------------------------------------------------------
 # Synthetic calibration
 # ---------------------------------------------------------------------------------------------
