@@ -159,40 +159,11 @@ def test_projection_jacobian_matches_finite_differences():
         assert rel.max() < 1e-6, (name, rel)
 
 
-def test_dense_and_sparse_normal_equations_agree():
-    # the two ways of summing Jacobian products (dense view-point grid, per observation)
-    rng = np.random.default_rng(5)
-    X0 = grid_board()
-    poses = random_poses(rng, 6, X0)
-    obs = observe(rng, poses, X0, X0)
-    vi = np.concatenate([np.full(len(i), v) for v, (i, _) in enumerate(obs.views)])
-    pi = np.concatenate([i for i, _ in obs.views])
-    uv = np.concatenate([p for _, p in obs.views])
-    keep = rng.random(len(vi)) > 0.3                   # a partial pattern of observations
-    n, m = len(X0), len(poses)
-    free = np.ones((n, 3), bool)
-    free[0] = False
-    free[10, 2] = False
-    cam_map, _ = _cam_map("rational", False, 1.0)
-    state = _State(np.r_[1400, 1402, 652, 472, -0.2, 0.1, 0, 0, 0, 0.01, 0, 0.0],
-                   np.array([cv2.Rodrigues(R)[0].ravel() for R, _ in poses]),
-                   np.array([t for _, t in poses]), X0 + rng.normal(0, 0.1, X0.shape))
-    prob = _Problem(vi[keep], pi[keep], uv[keep], rng.uniform(0.5, 1, keep.sum()), m, n, cam_map,
-                    free, X0, shape_precision(X0, 0.01, 2.0), 0.01)
-    prob.dense = True
-    dense = prob.normal_equations(state)
-    prob.dense = False
-    sparse = prob.normal_equations(state)
-    for a, b in zip(dense, sparse, strict=True):
-        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
-
-
-@pytest.mark.parametrize("seen_twice", [False, True])
-def test_view_products_are_the_pose_free_rows_products(seen_twice):
-    """``view_products`` (vectorised over corners) against ``Jt_v^T (Jt_v C)`` from each view's
-    explicit pose-free rows, on a partial pattern with some target coordinates fixed; also where
-    a view sees a point twice."""
-    rng = np.random.default_rng(6)
+def _partial_problem(seed: int, model: str, seen_twice: bool = False) -> tuple[_Problem, _State]:
+    """A bundle problem of 6 views with a partial pattern of observations (and, with
+    ``seen_twice``, 3 points seen twice in their view), a fixed point and a fixed coordinate,
+    under the shape prior; and a state off the truth."""
+    rng = np.random.default_rng(seed)
     X0 = grid_board()
     poses = random_poses(rng, 6, X0)
     obs = observe(rng, poses, X0, X0)
@@ -207,17 +178,37 @@ def test_view_products_are_the_pose_free_rows_products(seen_twice):
     free = np.ones((n, 3), bool)
     free[0] = False
     free[10, 2] = False
-    cam_map, _ = _cam_map("standard", False, 1.0)
-    state = _State(np.r_[1400, 1402, 652, 472, -0.2, 0.1, 0, 0, 0.01, 0, 0, 0.0],
+    cam_map, _ = _cam_map(model, False, 1.0)
+    state = _State(np.r_[1400, 1402, 652, 472, -0.2, 0.1, 0, 0, 0.01, 0.01, 0, 0.0],
                    np.array([cv2.Rodrigues(R)[0].ravel() for R, _ in poses]),
                    np.array([t for _, t in poses]), X0 + rng.normal(0, 0.1, X0.shape))
     prob = _Problem(vi, pi, uv, rng.uniform(0.5, 1, len(vi)), m, n, cam_map, free, X0,
                     shape_precision(X0, 0.01, 2.0), 0.01)
+    return prob, state
+
+
+def test_dense_and_sparse_normal_equations_agree():
+    # the two ways of summing Jacobian products (dense view-point grid, per observation)
+    prob, state = _partial_problem(5, "rational")
+    prob.dense = True
+    dense = prob.normal_equations(state)
+    prob.dense = False
+    sparse = prob.normal_equations(state)
+    for a, b in zip(dense, sparse, strict=True):
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
+
+
+@pytest.mark.parametrize("seen_twice", [False, True])
+def test_view_products_are_the_pose_free_rows_products(seen_twice):
+    """``view_products`` (vectorised over corners) against ``Jt_v^T (Jt_v C)`` from each view's
+    explicit pose-free rows, on a partial pattern with some target coordinates fixed; also where
+    a view sees a point twice."""
+    prob, state = _partial_problem(6, "standard", seen_twice)
     assert prob.one_per_cell != seen_twice
     _, W, V, *_ = prob.normal_equations(state)
-    columns = rng.normal(size=(prob.nc + prob.nx, 5))
+    columns = np.random.default_rng(7).normal(size=(prob.nc + prob.nx, 5))
     rows = prob.pose_free_rows(state, W, V)
-    explicit = np.array([rows(v)[0].T @ (rows(v)[0] @ columns) for v in range(m)])
+    explicit = np.array([rows(v)[0].T @ (rows(v)[0] @ columns) for v in range(prob.m)])
     np.testing.assert_allclose(prob.view_products(state, W, V, columns), explicit,
                                rtol=0, atol=1e-10 * np.abs(explicit).max())
 
