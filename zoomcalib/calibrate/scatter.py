@@ -100,6 +100,13 @@ __all__ = ["ViewScatter", "view_scatter", "noise_share", "view_groups", "pooled_
 MIN_VIEWS = 4.0
 #: One-sided level of the chi-square test of ``F``.
 SIGNIFICANCE = 0.001
+#: Every checked sigma takes its moderated factor (at least 1) whether or not a test found the
+#: views disagreeing: the rule of taking the larger of the model's and the clustered sigma
+#: (Angrist & Pischke 2009, section 8.1). Off by default: it removes the under-coverage of a
+#: misfit too small for the test (``benchmarks/bench_scatter_power.py --untested``), but also
+#: widens the zoom-wide adjustment's long-end sigmas where the noise model holds (docs,
+#: calibration.md, "What the check cannot see").
+SCALE_UNTESTED = False
 #: Two views whose common corners lie closer than this fraction of the image diagonal (RMS) are
 #: one view for the check (:func:`view_groups`).
 SAME_VIEW_FRACTION = 0.01
@@ -232,9 +239,15 @@ class ViewScatter:
             return float("nan"), 0.0
         return shared_factor(*np.array(typical).T)
 
-    def _own(self) -> np.ndarray:
-        """(k,) bool: the parameters whose sigma takes their own factor."""
+    def _tested(self) -> np.ndarray:
+        """(k,) bool: the parameters whose sigma takes their own factor because a test found
+        the views disagreeing."""
         return self.significant | (self.fit_significant & np.isfinite(self.factor))
+
+    def _own(self) -> np.ndarray:
+        """(k,) bool: the parameters whose sigma takes their own factor (every checked one
+        under :data:`SCALE_UNTESTED`)."""
+        return self._tested() | (SCALE_UNTESTED & np.isfinite(self.factor))
 
     def _unchecked(self) -> np.ndarray:
         if self.unchecked_factor is None:
@@ -321,6 +334,8 @@ class ViewScatter:
         ``applied``: the factors used, if not :meth:`applied`'s."""
         checked = [q for q in range(len(self.names)) if np.isfinite(self.factor[q])]
         applied = self.applied() if applied is None else applied
+        # what a test found (under SCALE_UNTESTED the rest is only widened, not flagged)
+        tested = self._tested() if SCALE_UNTESTED else np.ones(len(self.names), bool)
         fit_factor, fit_views, fit_threshold = self.fit_test()
         shared, shared_views = self.shared_factor()
         free = [self.names[q] for q in range(len(self.names)) if self.free[q]]
@@ -337,9 +352,13 @@ class ViewScatter:
             "unchecked_factor": {self.names[q]: float(self._unchecked()[q])
                                  for q in range(len(self.names))
                                  if np.isfinite(self._unchecked()[q])},
-            "scaled": [self.names[q] for q in checked if applied[q] > 1.0],
+            "scaled": [self.names[q] for q in checked if applied[q] > 1.0 and tested[q]],
             "pooled": {self.names[q]: float(applied[q]) for q in range(len(self.names))
-                       if q not in checked and applied[q] != 1.0}}
+                       if q not in checked and applied[q] != 1.0 and tested.any()}} | ({
+            "widened": {self.names[q]: float(applied[q]) for q in range(len(self.names))
+                        if applied[q] > 1.0 and not (tested[q] if q in checked
+                                                     else tested.any())}}
+            if SCALE_UNTESTED else {})
 
 
 def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,

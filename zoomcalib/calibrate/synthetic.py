@@ -21,7 +21,7 @@ import numpy as np
 from ..targets import parse_pattern
 from .result import Observations
 
-__all__ = ["Sweep", "sweep_detections", "calibrated_run"]
+__all__ = ["Sweep", "sweep_detections", "with_view_fields", "calibrated_run"]
 
 
 @dataclass
@@ -80,6 +80,19 @@ def sweep_detections(rng: np.random.Generator, steps: int = 3, views: int = 10,
         zoom[name] = float(s + 1)
         truth[name] = {"fx": fx[s], "cx": cx, "cy": cy, "k1": k1, "poses": poses}
     return Sweep(obs, zoom, truth)
+
+
+def with_view_fields(obs: Observations, rng: np.random.Generator, size_px: float
+                     ) -> Observations:
+    """Each view's corners moved by its own random smooth field (quadratic and cubic in the
+    image position, ``size_px`` at 300 px from the view's centre): a lens misfit or a board
+    that bends differently in every view, which no pose or camera parameter absorbs."""
+    views = []
+    for ids, pts in obs.views:
+        q = (pts - pts.mean(axis=0)) / 300.0
+        basis = np.stack([q[:, 0]**2, q[:, 0] * q[:, 1], q[:, 1]**2, q[:, 0]**3, q[:, 1]**3], 1)
+        views.append((ids, pts + size_px * basis @ rng.normal(size=(5, 2))))
+    return Observations(obs.object_points, views, obs.image_size, obs.names)
 
 
 def calibrated_run(sweep: Sweep, backend: str = "opencv", cross_validate: bool = False):
