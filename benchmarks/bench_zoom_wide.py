@@ -4,7 +4,7 @@ its sigmas by Monte Carlo.
 ``python benchmarks/bench_zoom_wide.py [--steps 7] [--views 10] [--psf airy] [--wave 0.3]
 [--jpeg 85] [--pp-path bow|traced] [--pp-span 40] [--pp-runout 1] [--lens NAME]
 [--dist-centre DX DY] [--model angle2] [--compare prior2] [--oracle] [--centred] [--mc 20]
-[--mc-model angle2] [--workers 2] [--seed 0] [--untested] [--out DIR]``
+[--mc-model angle2] [--workers 2] [--seed 0] [--tested-only] [--out DIR]``
 
 1. Renders a sweep with :func:`zoomcalib.render.sweep.render_zoom_sweep` (1280 x 720, 22 x 15
    board, fx 2300 to 23000 px, a board bent by ``--wave`` mm, the chosen PSF, JPEG, the
@@ -33,9 +33,9 @@ its sigmas by Monte Carlo.
    draws do not redraw: the spread can then be below 1, and the RMS error with it where the
    path is smoother than the prior expects.
 
-``--untested``: every checked sigma takes its view-scatter factor, at least 1, whether or not
-a test fired (:data:`~zoomcalib.calibrate.scatter.SCALE_UNTESTED`), in the calibrate job and
-the Monte Carlo.
+``--tested-only``: a sigma takes its view-scatter factor only where a test fired (the rule before
+:data:`~zoomcalib.calibrate.scatter.SCALE_UNTESTED` became the default), in the calibrate job
+and the Monte Carlo.
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ def _detection_error(run, points: dict) -> float:
 
 
 def _one_draw(observations: dict, points: dict, noise: float, seed: np.random.SeedSequence,
-              model: str, untested: bool = False) -> dict[str, np.ndarray]:
+              model: str, untested: bool = True) -> dict[str, np.ndarray]:
     """One draw: the true image points plus Gaussian noise, adjusted zoom-wide; per step
     ``[[fx, cx, cy], [sd fx, sd cx, sd cy]]``."""
     scatter.SCALE_UNTESTED = untested          # in the worker process
@@ -269,15 +269,15 @@ def main() -> None:
     ap.add_argument("--centred", action="store_true",
                     help="also adjust with the distortion centred on the principal point "
                          "(calibrate_zoom_wide(decentring=False))")
-    ap.add_argument("--untested", action="store_true",
-                    help="every checked sigma takes its view-scatter factor (at least 1), "
-                         "tested or not (scatter.SCALE_UNTESTED)")
+    ap.add_argument("--tested-only", action="store_true",
+                    help="a sigma takes its view-scatter factor only where a test fired "
+                         "(scatter.SCALE_UNTESTED off)")
     ap.add_argument("--workers", type=int, default=2, help="processes for the Monte Carlo")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-zoom-wide")
     args = ap.parse_args()
     args.jpeg = args.jpeg or None
-    scatter.SCALE_UNTESTED = args.untested
+    scatter.SCALE_UNTESTED = not args.tested_only
     out = Path(args.out)
     print(f"# sweep: {args.steps} steps x {args.views} views, 1280x720, {PATTERN}, psf {args.psf}, "
           f"wave {args.wave} mm, jpeg {args.jpeg or 'none'}, seed {args.seed}, pp path "
