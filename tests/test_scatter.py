@@ -137,7 +137,10 @@ def test_many_fits_each_disagreeing_below_its_test_are_found_together():
     """Twelve fits of eight views each, every view sharing a part of its error (design effect
     2.5, a factor of 1.6): one parameter's test at d = 8 needs 1.8 and finds few; the test of
     the solution as a whole (d = 12 x 8 pooled) finds it, and each parameter takes its own
-    factor, right on average. With independent errors nothing is scaled."""
+    factor, right on average. With independent errors nothing is flagged, and the sigmas
+    every checked parameter is widened by (the larger of the model's and the views') stay near
+    1: ``F^2`` spreads like ``chi^2_8 / 8`` and ``max(F, 1)`` after moderation averages about
+    1.1 (1.6 is the design effect above)."""
     rng = np.random.default_rng(11)
     fits, views, k = 12, 8, 16
     names = tuple(f"s{f}:{q}" for f in range(fits) for q in ("fx", "cx", "cy"))
@@ -158,7 +161,8 @@ def test_many_fits_each_disagreeing_below_its_test_are_found_together():
             assert check.significant.sum() <= len(names) // 3
             assert np.sqrt(np.mean(applied**2)) == pytest.approx(expected, rel=0.15)
         else:
-            assert np.all(applied == 1.0)
+            assert check.to_dict()["scaled"] == []
+            assert np.all(applied >= 1.0) and np.sqrt(np.mean(applied**2)) < 1.25
 
 
 def test_moderated_factors_thin_the_tails_of_z():
@@ -417,17 +421,28 @@ def test_bundle_sigmas_cover_hidden_view_fields_that_the_noise_model_misses():
     assert flagged >= 10
 
 
-def test_nothing_is_scaled_where_the_corner_noise_is_all_there_is():
-    scaled = []
+def test_nothing_is_flagged_where_the_corner_noise_is_all_there_is():
+    """The bundle on 12 seeded sets of 20 views with independent corner noise: no test fires,
+    and each sigma is the noise model's times the factor it is widened by (the views' scatter
+    where larger), which with about 20 effective views stays below 1.5 (the test's threshold)
+    and averages about 1.1."""
+    scaled, widened = [], []
     for seed in range(12):
         sweep = sweep_detections(np.random.default_rng(200 + seed), steps=1, views=20,
                                  noise_px=0.2)
         (obs,) = sweep.observations.values()
         res = calibrate_bundle(obs)
-        scaled += res.info["view_scatter"]["scaled"]
-        assert res.sd == res.info["sd_noise_model"] or res.info["view_scatter"]["scaled"]
+        check = res.info["view_scatter"]
+        scaled += check["scaled"]
+        if not check["scaled"]:
+            for name, sd in res.sd.items():
+                factor = check["widened"].get(name, 1.0)
+                assert sd == pytest.approx(res.info["sd_noise_model"][name] * factor), name
+            widened += list(check["widened"].values())
     # 12 sets x up to 9 checked terms at a 0.1 % level: one by chance is already unlikely
     assert len(scaled) <= 1
+    assert np.all(np.array(widened) >= 1.0) and max(widened) < 1.5
+    assert np.sqrt(np.mean(np.square(widened))) < 1.2
 
 
 def test_the_check_averages_the_noise_model_with_ten_views():
@@ -476,11 +491,12 @@ def test_zoom_wide_sigmas_cover_hidden_view_fields():
 @pytest.mark.parametrize("field_px", [0.15, 0.0])
 def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px):
     """Per-step OpenCV on 6 seeded sweeps of 6 steps x 10 views, each view with a hidden
-    smooth error field of 0.15 px beside 0.1 px of corner noise: one step's own check scales
-    some of its sigmas and leaves RMS z against the truth near 1.4 over the 108 fx, cx, cy;
-    pooled over the steps, the test fires on every sweep and the RMS z comes near 1. With no
-    field the pooled test does not fire and no sigma changes."""
-    z_own, z_pooled, fired, flagged = [], [], 0, 0
+    smooth error field of 0.15 px beside 0.1 px of corner noise: one step's own test fires on
+    few steps (its sigmas, each the larger of the model's and its views' scatter, leave RMS z
+    against the truth near 1.06 over the 108 fx, cx, cy; 1.4 when only a fired test scales);
+    pooled over the steps, the test fires on every step, flags the views' disagreement and the
+    RMS z comes near 1. With no field neither test fires and nothing is flagged."""
+    z_own, z_pooled, fired, own_fired, flagged = [], [], 0, 0, 0
     for seed in range(6):
         rng = np.random.default_rng(500 + seed)
         sweep = sweep_detections(rng, steps=6, views=10, noise_px=0.1)
@@ -490,6 +506,7 @@ def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px
         for step, res in own.items():
             check = res.info["view_scatter"]
             assert np.all(ViewScatter.from_dict(check).applied() >= 1.0)
+            own_fired += check["fit"]["factor"] > check["fit"]["threshold"]
             test = pooled[step].info["view_scatter"]
             assert test["steps_pooled"] == 6
             fired += test["fit"]["factor"] > test["fit"]["threshold"]
@@ -503,11 +520,11 @@ def test_per_step_checks_pooled_over_a_sweep_find_what_each_step_misses(field_px
                            for f in conditioning_flags(pooled[step], (800, 600)))
     rms_own, rms_pooled = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_own, z_pooled))
     # 108 z values: an honest RMS lies within about +-18 % of 1 (chi-square, 99 %)
+    assert 0.82 < rms_own < 1.18 and 0.82 < rms_pooled < 1.18
     if field_px:
-        assert fired == 36 and rms_own > 1.25 and 0.82 < rms_pooled < 1.18 and flagged >= 18
+        assert fired == 36 and 2 * own_fired < fired and flagged >= 18
     else:
-        assert fired == 0 and flagged == 0 and np.array_equal(z_pooled, z_own)
-        assert 0.82 < rms_own < 1.18
+        assert fired == 0 and own_fired == 0 and flagged == 0
 
 
 def test_a_check_survives_its_record():
@@ -565,9 +582,10 @@ def test_real_halves_agree_once_the_views_scatter_is_counted(sample_views):
 def test_halves_pool_their_test_as_the_full_set_makes_it(field_px):
     """Per-step OpenCV on 100 seeded sets of 20 views, each view with a hidden smooth error
     field of 0.3 px beside 0.1 px of corner noise, split in halves of 10. Each half's own test
-    often misses the field, and its fx, cx, cy lie at an RMS z of about 1.15 from the truth;
-    pooled over both halves (``cross_validate(..., pool=True)``, as ``calibrate
-    --cross-validate`` does), near 1. Without a field pooling changes nothing that matters."""
+    often misses the field, and its fx, cx, cy lie at an RMS z of about 1.10 from the truth
+    (1.13 if only a fired test scales), 6 of 600 beyond 3; pooled over both halves
+    (``cross_validate(..., pool=True)``, as ``calibrate --cross-validate`` does), near 1 with
+    half as many beyond 3. Without a field pooling changes nothing that matters."""
     z_truth: dict[bool, list] = {False: [], True: []}
     for seed in range(100):
         rng = np.random.default_rng(2000 + seed)
@@ -590,7 +608,8 @@ def test_halves_pool_their_test_as_the_full_set_makes_it(field_px):
     # about +-8 % of 1
     assert 0.92 < rms_pooled < 1.08
     if field_px:
-        assert rms_own > 1.1 and (np.abs(pooled) > 3).sum() < (np.abs(own) > 3).sum()
+        assert rms_own > rms_pooled + 0.02
+        assert (np.abs(pooled) > 3).sum() < (np.abs(own) > 3).sum()
     else:
         assert rms_pooled > rms_own - 0.01
 
@@ -661,10 +680,11 @@ def test_frames_of_one_pose_count_once():
 @pytest.mark.parametrize("field_px", [0.1, 0.0])
 def test_untested_scaling_covers_what_the_test_cannot_see(field_px, monkeypatch):
     """Per-step OpenCV on 60 seeded sets of 20 views with a hidden smooth error field of 0.1 px
-    per view beside 0.1 px of noise: too small for the test (it fires in a set or two), so the
-    reported sigmas are the noise model's and fx, cx, cy lie at an RMS z of about 1.3 from the
-    truth. With ``SCALE_UNTESTED`` every checked sigma takes its moderated factor and the RMS z
-    comes near 1; without a field it stays near 1 (slightly below) and nothing is flagged."""
+    per view beside 0.1 px of noise: too small for the test (it fires in a set or two), so with
+    ``SCALE_UNTESTED`` off the reported sigmas are the noise model's and fx, cx, cy lie at an
+    RMS z of about 1.3 from the truth. With it (the default) every checked sigma takes its
+    moderated factor and the RMS z comes near 1; without a field it stays near 1 (slightly
+    below) and nothing is flagged."""
     z = {False: [], True: []}
     for untested in (False, True):
         monkeypatch.setattr(scatter, "SCALE_UNTESTED", untested)
