@@ -260,6 +260,20 @@ def test_calibrate_exit_codes_partial_and_nothing(tmp_path):
     assert "nothing usable: no step could be calibrated" in res.output
 
 
+def test_an_image_of_another_size_is_named_in_the_partial_result(tmp_path):
+    """An image left out because its size is not the step's is a partial result, named."""
+    import cv2
+
+    folder = linked_folder(tmp_path, ["left01.jpg", "left02.jpg", "left03.jpg", "left04.jpg"])
+    small = cv2.imread(str(SAMPLES / "left05.jpg"))
+    cv2.imwrite(str(folder / "left05.jpg"), cv2.resize(small, (320, 240)))
+    res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", CHESS, "--backend",
+                                    "opencv", "--workers", "1", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 3, res.output
+    assert "left out left05.jpg (320x240): not the step's image size 640x480" in res.output
+    assert "partial result: not calibrated or skipped: image left05.jpg" in res.output
+
+
 def test_help_documents_exit_codes():
     for command in WORK:
         res = CliRunner().invoke(main, [command, "--help"])

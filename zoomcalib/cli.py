@@ -676,11 +676,14 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, mode
     if not run.results:
         _exit_nothing("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")
-    # partial (exit 3): a step dropped, a backend the table needs failed, an image skipped;
-    # a per-step backend failing on a step the zoom-wide adjustment calibrated is only reported
+    # partial (exit 3): a step dropped, a backend the table needs failed, an image skipped or
+    # left out for its size; a per-step backend failing on a step the zoom-wide adjustment
+    # calibrated is only reported
     problems = ([f"step {s}" for s in run.dropped]
                 + [f"step {s} {', '.join(b)}" for s, b in run.backend_failures.items()]
-                + _calibration_problems([], messages))
+                + _calibration_problems([], messages)
+                + [f"image {name}" if s == "." else f"image {s}/{name}"
+                   for s, names in run.left_out.items() for name in names])
     _exit_if_partial(problems, "not calibrated or skipped")
 
 
