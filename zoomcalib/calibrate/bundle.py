@@ -1682,10 +1682,11 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         linearisation at ``tol=1e-7``.
     scatter_check : bool
         Check the camera's sigmas against the scatter between views
-        (:mod:`zoomcalib.calibrate.scatter`) and, where the views disagree beyond what the corner
-        noise explains, report the view-clustered sigma (``sd`` and ``info['sd_posterior']``;
-        the noise model's in ``info['sd_noise_model']``, the check in
-        ``info['view_scatter']``). False reports the noise model's sigmas, still checked.
+        (:mod:`zoomcalib.calibrate.scatter`) and report the larger of the noise model's and
+        the view-clustered sigma (``sd`` and ``info['sd_posterior']``; the noise model's in
+        ``info['sd_noise_model']``, the check in ``info['view_scatter']``, which flags views
+        that disagree beyond what the corner noise explains). False reports the noise model's
+        sigmas, still checked.
 
     Returns
     -------

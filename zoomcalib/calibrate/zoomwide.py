@@ -1272,7 +1272,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             inflation: list[tuple] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
     cov, scatter = _posterior_covariance(prob, state)
-    # where a step's views disagree beyond its corner noise, its sigmas are the views' scatter
+    # a step's sigmas are at least its views' scatter (scatter.SCALE_UNTESTED)
     scale = np.ones(len(cov))
     scale[:prob.n_cam] = scatter.applied()
     cov *= np.outer(scale, scale)
