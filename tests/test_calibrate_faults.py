@@ -105,6 +105,32 @@ def test_second_camera_in_the_same_output_folder_is_not_given_the_first_ones_det
     assert not any("reused" in m for m in log)
 
 
+def test_a_failure_from_outside_the_image_is_not_reused_from_the_cache(tmp_path, monkeypatch):
+    """A detection that failed for a reason outside the image (here every worker's call
+    raising, as when the system kills the pool) is recorded, and the next run detects that
+    image again instead of reusing the failure."""
+    import zoomcalib.detect.opencv as detect_opencv
+
+    cam = _camera_a(tmp_path / "a")
+    out = tmp_path / "out"
+    real = detect_opencv.detect_image
+
+    def crashing(path, *args, **kwargs):
+        if Path(path).name == "left03.jpg":
+            raise MemoryError("worker out of memory")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(detect_opencv, "detect_image", crashing)
+    _, log = _calibrate(cam, out)
+    assert any("left03.jpg: MemoryError: worker out of memory" in m for m in log), log
+    monkeypatch.setattr(detect_opencv, "detect_image", real)
+    run, log = _calibrate(cam, out)
+    meta = json.loads((out / "calibration.json").read_text())["meta"]
+    assert meta["detections"]["."]["detected"] == 1 and run.reused == {".": 12}
+    assert not any("left03.jpg" in m for m in log), log
+    assert not run.skipped_images
+
+
 # ----------------------------------------------------------------------------------------------
 # 2. step names that differ only outside ASCII get files of their own
 

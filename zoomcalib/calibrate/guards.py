@@ -166,7 +166,7 @@ def _cached(cache: Path, settings: dict) -> tuple[dict[tuple, Detection], list[s
         return {}, []
     try:
         keyed = {_fingerprint_key(fp): d for fp, d in zip(images, dets, strict=True)
-                 if fp.get("file") == d.file}
+                 if fp.get("file") == d.file and fp.get("reuse", True)}
     except (KeyError, TypeError, ValueError, AttributeError):
         return {}, []
     return keyed, [d.file for d in dets]
@@ -177,7 +177,9 @@ def detect_with_cache(cache: Path, files: list[Path], target: Target, settings: 
                       ) -> tuple[list[Detection], int, list[dict]]:
     """Detections of ``files``, reusing those of ``cache`` made from the same image content
     with the same ``settings`` (:func:`detection_settings`); the others are detected, and the
-    cache is rewritten when anything changed.
+    cache is rewritten when anything changed. A failure from outside the image (``transient``:
+    a worker killed, an unexpected exception) is written with ``"reuse": false`` in its
+    fingerprint and detected again next time.
 
     Returns
     -------
@@ -199,8 +201,10 @@ def detect_with_cache(cache: Path, files: list[Path], target: Target, settings: 
                                progress=progress, **settings["options"]) if todo else [])
     dets = [d if d is not None else next(fresh) for d in found]
     if todo or cached_names != [f.name for f in files]:
+        images = [fp | {"reuse": False} if d.transient else fp
+                  for fp, d in zip(prints, dets, strict=True)]
         write_detections(cache, dets, settings["pattern"],
-                         provenance={"settings": settings, "images": prints})
+                         provenance={"settings": settings, "images": images})
     return dets, reused, prints
 
 

@@ -133,6 +133,10 @@ class Detection:
     fallback : (K,) ndarray of bool
         True where the method's own refinement failed for that point and it holds the initial
         detector's position instead (``model`` only); calibration leaves such points out.
+    transient : bool
+        The image failed for a reason outside it (an unexpected exception, a worker killed by
+        the system): another run may succeed, so a cache must not reuse the failure. Not
+        written to a detections file.
     """
 
     file: str
@@ -142,6 +146,7 @@ class Detection:
     method: str = ""
     image_size: tuple[int, int] = (0, 0)
     fallback: np.ndarray | None = None
+    transient: bool = False
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
@@ -675,7 +680,7 @@ def _detect_safely(path: Path, target: Target, method: str, options: dict) -> De
     except Exception as exc:  # noqa: BLE001 - one image must never stop the others
         msg = " ".join(str(exc).split())
         return Detection(path.name, error=f"{path.name}: {type(exc).__name__}: {msg}",
-                         method=method)
+                         method=method, transient=True)
 
 
 def _worker_init() -> None:
@@ -757,7 +762,7 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
                 name = files[i].name
                 msg = " ".join(str(exc).split()) or "worker failed"
                 results[i] = Detection(name, error=f"{name}: {type(exc).__name__}: {msg}",
-                                       method=method)
+                                       method=method, transient=True)
             if progress is not None:
                 progress(1)
     return [r for r in results if r is not None]
