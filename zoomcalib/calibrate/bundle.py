@@ -1857,7 +1857,7 @@ def _camera_sigmas(prob: _Problem, state: _State, normal, cov: _Covariances,
                            groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
                            lambda: prob.camera_deletions(state, *normal[:3], groups),
                            prob.camera_noise_share(state, normal[1], normal[2], cov.Sinv,
-                                                   groups, prior))
+                                                   groups, prior), prob.pi)
     noise_model = dict(zip(names, camera_sd[:len(names)].tolist(), strict=True))
     posterior = dict(zip(names, cov.camera_sd(cam_map, "posterior")[:len(names)].tolist(),
                          strict=True))

@@ -12,7 +12,9 @@ a truncated distortion term alone is replaced there but not flagged: the radial 
 narrow field are nearly collinear, and their sum is what the views determine), when its views
 disagree beyond what the corner noise explains so that the sigma of fx, fy, cx or cy was
 scaled up (``info['view_scatter']``, :mod:`zoomcalib.calibrate.scatter`: a lens the model does
-not fit, a board that moves, correlated errors within a view), when one of fx, fy, cx, cy
+not fit, a board that moves, correlated errors within a view), when the corners of one board
+point disagree across views beyond that noise (``info['view_scatter']['board_point']``: a
+misprinted board, a paper shape the model does not follow), when one of fx, fy, cx, cy
 rests on fewer than 4 effective views so that its sigma cannot be checked that way (a few
 tilted views of many nearly fronto-parallel ones carry fx), when the choice between the
 rational model and five distortion terms was uncertain enough that the other model's spread
@@ -112,14 +114,25 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
             flags.append(f"views disagree beyond the corner noise{pooled}: sd {name} x"
                          f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
                          "a moving board)")
+    board = (scatter or {}).get("board_point", {}) if (scatter or {}).get("applied", True) else {}
+    misprint = {nm: board["factor"][nm] for nm in board.get("flagged", [])
+                if nm in ("fx", "fy", "cx", "cy")}
+    if misprint:
+        name = max(misprint, key=misprint.get)
+        flags.append(f"corners of one board point disagree across views beyond the corner "
+                     f"noise: sd {name} x{np.sqrt(1 + board['excess'][name]):.1f} from them "
+                     "(used; a misprinted or bent board)")
     flags += _model_choice_flags(res.info.get("model_choice"), res.sd)
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
     if few:
         name = next(nm for nm in ("fx", "fy", "cx", "cy") if nm in few)
-        used = scatter.get("pooled", {}).get(name, 1.0)
+        used = scatter.get("pooled", {}).get(name, scatter.get("widened", {}).get(name, 1.0))
+        # the views' part of it: what the board points add (board_point.excess) taken out
+        views_part = np.sqrt(max(used**2 - board.get("excess", {}).get(name, 0.0), 0.0))
+        jackknife = scatter.get("unchecked_factor", {}).get(name, np.nan)
         sized = (f"; x{used:.1f} from leaving views out (used)"
-                 if used > 1.0 and used == scatter.get("unchecked_factor", {}).get(name) else "")
+                 if used > 1.0 and np.isclose(views_part, jackknife, rtol=1e-9) else "")
         flags.append(f"{name} rests on {few[name]:.1f} effective views (fewer than "
                      f"{MIN_VIEWS:.0f}): its sigma cannot be checked against their scatter"
                      + sized)

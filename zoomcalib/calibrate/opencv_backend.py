@@ -432,18 +432,20 @@ def _camera_covariance(at_solution: _AtSolution
     return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var), S_inv
 
 
-def _view_scatter(at_solution: _AtSolution, covariance, groups: np.ndarray | None
-                  ) -> ViewScatter:
+def _view_scatter(at_solution: _AtSolution, covariance, groups: np.ndarray | None,
+                  point_ids: np.ndarray | None = None) -> ViewScatter:
     """The view-scatter check (:mod:`zoomcalib.calibrate.scatter`) at OpenCV's solution, from
     its :func:`_camera_covariance`; ``groups`` (m,) joins views of nearly one pose
-    (:func:`~zoomcalib.calibrate.scatter.view_groups`; None: none)."""
+    (:func:`~zoomcalib.calibrate.scatter.view_groups`; None: none); ``point_ids`` the board
+    point of each observation, views in order (None: the board points are not checked)."""
     prob, state, (U, W, V, *_) = at_solution.prob, at_solution.state, at_solution.blocks
     cov, _, S_inv = covariance
     groups = np.arange(prob.m) if groups is None else groups
     return view_scatter(prob.camera_influence(state, W, V, S_inv), groups[prob.vi],
                         int(groups.max()) + 1, CAMERA_NAMES, np.sqrt(np.diag(cov)),
                         lambda: prob.camera_deletions(state, U, W, V, groups),
-                        prob.camera_noise_share(state, W, V, S_inv, groups))
+                        prob.camera_noise_share(state, W, V, S_inv, groups),
+                        None if point_ids is None else point_ids[prob.order])
 
 
 #: OpenCV's 1-sigma of a camera parameter below this fraction of the full inverse's is taken
@@ -619,9 +621,10 @@ def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None
 
 def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, flags: int,
             n_dist: int, model: str, names: list[str], opencv_rms: float,
-            opencv_per_view, criteria, groups: np.ndarray | None = None
-            ) -> tuple[CalibrationResult, list[str]]:
-    """The result of one OpenCV calibration, and the names of its invalid 1-sigmas."""
+            opencv_per_view, criteria, groups: np.ndarray | None = None,
+            point_ids: np.ndarray | None = None) -> tuple[CalibrationResult, list[str]]:
+    """The result of one OpenCV calibration, and the names of its invalid 1-sigmas;
+    ``groups`` and ``point_ids`` as in :func:`_view_scatter`."""
     K = np.asarray(out_K, np.float64).reshape(3, 3)
     dist_all = np.asarray(out_dist, np.float64).ravel()
     dist = dist_all[:n_dist].copy()
@@ -644,7 +647,7 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
             sde = np.full((len(obj), 6), np.inf) if covariance is None else covariance[1]
         if covariance is not None:
             sd_noise_model = dict(sd)
-            scatter = _view_scatter(at_solution, covariance, groups)
+            scatter = _view_scatter(at_solution, covariance, groups, point_ids)
             sd = scatter.scaled(sd)
     sde = np.asarray(sde, np.float64).reshape(-1, 6)
     invalid = (_invalid_sd(list(sd.values()), list(sd))
@@ -743,7 +746,8 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
     rms, K, dist, rvecs, tvecs, sdi, sde, per_view = out
     res, invalid = _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist,
                            model, names, rms, per_view, _criteria(criteria),
-                           view_groups(obs.views, obs.image_size))
+                           view_groups(obs.views, obs.image_size),
+                           np.concatenate([np.asarray(ids) for ids, _ in obs.views]))
     _check_sd(res, invalid, 4 + n_dist)
     return res
 

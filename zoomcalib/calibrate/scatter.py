@@ -80,6 +80,20 @@ parameter is flagged (``scaled``), significant alone or not. With :data:`SCALE_U
 a flagged parameter takes its factor (moderated as above, at least 1) and the rest keep the
 noise model's sigma.
 
+*Errors a board point carries.* A board printed with its corners a few hundredths of a
+millimetre off, or a paper sheet whose shape the model does not follow, displaces a corner the
+same way in every view that sees it. Such errors are correlated across views, not within one:
+a view's share of the move is then much the same in every view, the views agree, and the
+clustered sum by view does not see them. Clustered by board point instead, ``V_point = sum_p
+b_pq^2`` with ``b_pq = sum_{i in p} a_iq`` does; the variance clustered both ways (Cameron,
+Gelbach & Miller 2011) is ``V_view + V_point - V_corner``, ``V_corner = sum_i a_iq^2`` being
+the part the two share (one corner is one view's and one point's). So each sigma takes the
+excess ``E = max(V_point - V_corner, 0) / var_model`` on top of its view factor:
+``sqrt(F^2 + E)`` (:func:`board_point_scatter`). The points are tested like the views:
+``V_point / V_corner`` against the 99.9 % point of ``chi^2_d / d``, ``d`` the effective
+number of points. A board whose points the fit estimates (the bundle, the zoom-wide
+adjustment's board modes) keeps only what its model of the board does not follow.
+
 "Views" are independent draws only if they are different views. Frames of a video where the
 board hardly moved see it through the same part of the lens and share their systematic errors;
 :func:`view_groups` joins them, and the check clusters (and deletes) by group.
@@ -99,8 +113,9 @@ import scipy.stats
 
 from .result import CalibrationResult
 
-__all__ = ["ViewScatter", "view_scatter", "noise_share", "view_groups", "pooled_over_fits",
-           "pooled_over_steps", "MIN_VIEWS", "SIGNIFICANCE", "SAME_VIEW_FRACTION"]
+__all__ = ["ViewScatter", "view_scatter", "board_point_scatter", "noise_share", "view_groups",
+           "pooled_over_fits", "pooled_over_steps", "MIN_VIEWS", "SIGNIFICANCE",
+           "SAME_VIEW_FRACTION"]
 
 #: Fewest effective views (``d``) for which the check is made.
 MIN_VIEWS = 4.0
@@ -113,6 +128,11 @@ SIGNIFICANCE = 0.001
 #: the price is a few percent of conservatism where the noise model holds (docs,
 #: calibration.md, "What the check cannot see"). False: only where a test fired.
 SCALE_UNTESTED = True
+#: Check the errors a board point carries across views where the backend gives the corners'
+#: board points (module docstring, "Errors a board point carries"); False: the views only.
+CHECK_BOARD_POINTS = True
+#: The :class:`ViewScatter` fields of the board-point check.
+POINT_FIELDS = ("point_factor", "point_count", "point_excess")
 #: Two views whose common corners lie closer than this fraction of the image diagonal (RMS) are
 #: one view for the check (:func:`view_groups`).
 SAME_VIEW_FRACTION = 0.01
@@ -181,6 +201,14 @@ class ViewScatter:
         The clustered sum's expectation under the noise model over the model variance
         (:func:`noise_share`, or ``(d - 1) / d``; NaN where not checked): ``test_factor^2`` is
         the clustered sum over this times the model variance.
+    point_factor : (k,) ndarray, optional
+        The sum clustered by board point over the one by corner, ``sqrt(V_point / V_corner)``
+        (module docstring, "Errors a board point carries"); NaN where not checked.
+    point_count : (k,) ndarray, optional
+        Effective number of board points behind it.
+    point_excess : (k,) ndarray, optional
+        ``max(V_point - V_corner, 0)`` over the model variance: the variance that errors shared
+        by a board point across views add (0 where not checked).
     """
 
     factor: np.ndarray
@@ -193,6 +221,9 @@ class ViewScatter:
     unchecked_factor: np.ndarray | None = None
     shared: tuple[float, float] | None = None
     null_share: np.ndarray | None = None
+    point_factor: np.ndarray | None = None
+    point_count: np.ndarray | None = None
+    point_excess: np.ndarray | None = None
 
     @property
     def significant(self) -> np.ndarray:
@@ -255,6 +286,21 @@ class ViewScatter:
         under :data:`SCALE_UNTESTED`)."""
         return self._tested() | (SCALE_UNTESTED & np.isfinite(self.factor))
 
+    @property
+    def point_significant(self) -> np.ndarray:
+        """(k,) bool: corners of one board point disagree across views beyond the corner
+        noise (:attr:`point_factor` above ``sqrt(chi2_{0.999, d} / d)``, ``d`` the effective
+        number of points)."""
+        factor, count = self._point("point_factor"), self._point("point_count")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(factor) & (count >= MIN_VIEWS)
+            dof = np.where(ok, count, 1.0)
+            return ok & (factor > np.sqrt(scipy.stats.chi2.ppf(1.0 - SIGNIFICANCE, dof) / dof))
+
+    def _point(self, key: str) -> np.ndarray:
+        value = getattr(self, key)
+        return np.full(len(self.names), np.nan) if value is None else value
+
     def _unchecked(self) -> np.ndarray:
         if self.unchecked_factor is None:
             return np.full(len(self.names), np.nan)
@@ -281,7 +327,18 @@ class ViewScatter:
         ``F_g^2 <- (d_g F_g^2 + d_0 F_0^2) / (d_g + d_0)``, ``d_g`` the fit's median effective
         views; then ``sqrt((d F^2 + d_g F_g^2) / (d + d_g))``. One significant on its own
         keeps at least its own ``F``. A free parameter with too few effective views to be
-        checked takes ``F_g``, or its :attr:`unchecked_factor` where larger. Else 1."""
+        checked takes ``F_g``, or its :attr:`unchecked_factor` where larger. Else 1.
+
+        Errors a board point carries across views add their variance (module docstring):
+        the factor becomes ``sqrt(F^2 + E)``, ``E`` the :attr:`point_excess` (under
+        :data:`SCALE_UNTESTED`, or where :attr:`point_significant`)."""
+        out = self._view_applied()
+        excess = np.nan_to_num(self._point("point_excess"))
+        use = (self.free & SCALE_UNTESTED) | self.point_significant
+        return np.where(use, np.sqrt(out**2 + excess), out)
+
+    def _view_applied(self) -> np.ndarray:
+        """(k,) the view part of :meth:`applied`."""
         own = self._own()
         out = np.ones(len(self.names))
         shared, shared_views = self.shared_factor()
@@ -312,10 +369,12 @@ class ViewScatter:
     def by_group(self) -> dict[str, ViewScatter]:
         """The check split by fit (``'step:cx'`` -> fit ``'step'``, parameter ``'cx'``)."""
         whole, shared = self.fit_test(), self.shared_factor()
+        points = {f: getattr(self, f) for f in POINT_FIELDS if getattr(self, f) is not None}
         return {g: ViewScatter(self.factor[q], self.test_factor[q], self.views[q],
                                self.threshold[q],
                                tuple(self.names[i].rsplit(":", 1)[-1] for i in q), self.free[q],
-                               whole, self._unchecked()[q], shared, self._null_share()[q])
+                               whole, self._unchecked()[q], shared, self._null_share()[q],
+                               **{f: a[q] for f, a in points.items()})
                 for g, q in ((g, np.array(q)) for g, q in self._groups().items())}
 
     @classmethod
@@ -328,8 +387,12 @@ class ViewScatter:
         unchecked, null_share = (np.array([saved.get(key, {}).get(nm, np.nan) for nm in names],
                                           dtype=float)
                                  for key in ("unchecked_factor", "null_share"))
+        board = saved.get("board_point")
+        points = {} if board is None else {
+            field: np.array([board[key].get(nm, np.nan) for nm in names], dtype=float)
+            for field, key in zip(POINT_FIELDS, ("factor", "points", "excess"), strict=True)}
         return cls(names=names, free=np.ones(len(names), bool), unchecked_factor=unchecked,
-                   null_share=null_share, **arrays)
+                   null_share=null_share, **arrays, **points)
 
     def to_dict(self, applied: np.ndarray | None = None) -> dict:
         """``info['view_scatter']`` (docs/conventions.md): per checked parameter ``factor``,
@@ -364,13 +427,27 @@ class ViewScatter:
             "widened": {self.names[q]: float(applied[q]) for q in range(len(self.names))
                         if applied[q] > 1.0 and not (tested[q] if q in checked
                                                      else tested.any())}}
-            if SCALE_UNTESTED else {})
+            if SCALE_UNTESTED else {}) | self._board_point_dict()
+
+    def _board_point_dict(self) -> dict:
+        """``{'board_point': {factor, points, excess, flagged}}`` where the points were
+        checked (module docstring, "Errors a board point carries"), else empty."""
+        if self.point_factor is None:
+            return {}
+        rows = [q for q in range(len(self.names)) if np.isfinite(self.point_factor[q])]
+        keys = (("factor", self.point_factor), ("points", self._point("point_count")),
+                ("excess", np.nan_to_num(self._point("point_excess"))))
+        flagged = self.point_significant
+        return {"board_point": {key: {self.names[q]: float(arr[q]) for q in rows}
+                                for key, arr in keys}
+                | {"flagged": [self.names[q] for q in rows if flagged[q]]}}
 
 
 def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                  names: tuple[str, ...], model_sd: np.ndarray,
                  deletions: Callable[[], np.ndarray | None] | None = None,
-                 null_share: np.ndarray | None = None) -> ViewScatter:
+                 null_share: np.ndarray | None = None,
+                 point_idx: np.ndarray | None = None) -> ViewScatter:
     """The view-scatter check (module docstring) from each corner's influence.
 
     Parameters
@@ -393,6 +470,10 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         The clustered sum's expectation under the noise model over the model variance
         (:func:`noise_share`), at most 1; ``(d - 1) / d`` (``d`` the effective views) where
         not given, not finite or not positive (the record's ``null_share`` says which).
+    point_idx : (N,) int ndarray, optional
+        The board point of each corner (one index per physical point, shared by every view
+        and step that sees it): errors a point carries across views are then checked too
+        (module docstring, "Errors a board point carries"; :func:`board_point_scatter`).
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
@@ -424,12 +505,50 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     moves = (deletions() if deletions is not None
              and (check.significant.any() or check.fit_significant) else None)
     jackknife = _jackknife_factor(moves, view_idx, n_views, model_sd)
+    points = ({} if point_idx is None or not CHECK_BOARD_POINTS else
+              dict(zip(POINT_FIELDS, board_point_scatter(a, point_idx, model_sd), strict=True)))
     return ViewScatter(factor=np.where(ok, np.where(np.isfinite(jackknife), jackknife,
                                                     test_factor), np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
                        threshold=threshold, names=tuple(names), free=used,
                        unchecked_factor=np.where(used & ~ok, jackknife, np.nan),
-                       null_share=np.where(ok, share, np.nan))
+                       null_share=np.where(ok, share, np.nan), **points)
+
+
+def board_point_scatter(influence: np.ndarray, point_idx: np.ndarray, model_sd: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The check of errors a board point carries across views (module docstring).
+
+    With ``a_i`` the corners' influences (N, k) and ``b_pq = sum_{i in p} a_iq`` their sums
+    by board point: ``V_point = sum_p b_pq^2``, ``V_corner = sum_i a_iq^2``.
+
+    Returns
+    -------
+    factor : (k,) ndarray
+        ``sqrt(V_point / V_corner)``; under independent corner errors spread about 1 like
+        ``chi^2_d / d`` (NaN where ``d`` < :data:`MIN_VIEWS` or nothing moves the parameter).
+    count : (k,) ndarray
+        ``d``, the effective number of points: ``(sum_p c_pq)^2 / sum_p c_pq^2``,
+        ``c_pq = sum_{i in p} a_iq^2``.
+    excess : (k,) ndarray
+        ``max(V_point - V_corner, 0) / model_sd^2``: the cross-view covariance of a point's
+        errors in the parameter, over the model variance (0 where not checked).
+    """
+    a = np.asarray(influence, dtype=float)
+    point_idx = np.asarray(point_idx)
+    if point_idx.shape != (len(a),):
+        raise ValueError(f"point_idx of shape {point_idx.shape} for {len(a)} corners")
+    n_points = int(point_idx.max()) + 1 if len(point_idx) else 0
+    per_point, corner_sq = np.zeros((n_points, a.shape[1])), np.zeros((n_points, a.shape[1]))
+    np.add.at(per_point, point_idx, a)
+    np.add.at(corner_sq, point_idx, a * a)
+    v_point, v_corner = np.sum(per_point**2, axis=0), np.sum(corner_sq, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        count = np.where(v_corner > 0, v_corner**2 / np.sum(corner_sq**2, axis=0), 0.0)
+        ok = (count >= MIN_VIEWS) & (model_sd > 0)
+        factor = np.where(ok, np.sqrt(v_point / v_corner), np.nan)
+        excess = np.where(ok, np.clip(v_point - v_corner, 0.0, None) / model_sd**2, 0.0)
+    return factor, count, excess
 
 
 def noise_share(columns: np.ndarray, blocks: np.ndarray, inverse: np.ndarray,
@@ -528,7 +647,9 @@ def pooled_over_fits(checks: Mapping[str, ViewScatter]) -> dict[str, ViewScatter
         names=tuple(f"{key}:{name}" for key, c in checks.items() for name in c.names),
         free=np.concatenate([c.free for c in parts]),
         unchecked_factor=np.concatenate([c._unchecked() for c in parts]),
-        null_share=np.concatenate([c._null_share() for c in parts]))
+        null_share=np.concatenate([c._null_share() for c in parts]),
+        **{f: np.concatenate([c._point(f) for c in parts]) for f in POINT_FIELDS
+           if any(getattr(c, f) is not None for c in parts)})
     return joined.by_group()
 
 

@@ -7,7 +7,10 @@ from ``fx_range[0]`` to ``fx_range[1]`` (px), a principal point drifting by up t
 from the image centre and ``k1`` shrinking as ``fx`` grows; each view is a pose drawn from the
 seeded generator (tilts up to ``max_tilt_deg`` about x and y, distance such that the board
 fills about half the image) and projected with ``cv2.projectPoints``, with Gaussian noise of
-``noise_px`` per coordinate. Pixels in OpenCV's convention; board in mm.
+``noise_px`` per coordinate. With ``misprint_mm`` the board projected is not the nominal one
+the observations carry: each corner is displaced in the board plane by its own Gaussian error
+of that 1-sigma, the same in every view and step (a board printed a little off). Pixels in
+OpenCV's convention; board in mm.
 """
 
 from __future__ import annotations
@@ -39,13 +42,18 @@ def sweep_detections(rng: np.random.Generator, steps: int = 3, views: int = 10,
                      fx_range: tuple[float, float] = (700.0, 2800.0),
                      max_tilt_deg: float = 35.0, drift_px: float = 12.0,
                      pattern: str = "chessboard:11x8:20",
-                     outliers: Mapping[tuple[int, int], float] | None = None) -> Sweep:
+                     outliers: Mapping[tuple[int, int], float] | None = None,
+                     misprint_mm: float = 0.0) -> Sweep:
     """A seeded synthetic sweep (module docstring).
 
     ``outliers`` maps ``(step index, view index)`` to a displacement (px) added to three of
-    that view's points, which a robust fit should reject.
+    that view's points, which a robust fit should reject. ``misprint_mm``: the 1-sigma of the
+    board's printing error (module docstring; drawn first, and only when positive).
     """
     board = parse_pattern(pattern).object_points.astype(float)
+    printed = board.copy()
+    if misprint_mm > 0:
+        printed[:, :2] += rng.normal(0.0, misprint_mm, (len(board), 2))
     centre = board.mean(axis=0)
     extent = float(np.ptp(board[:, 0]))
     w, h = image_size
@@ -67,7 +75,7 @@ def sweep_detections(rng: np.random.Generator, steps: int = 3, views: int = 10,
             t = np.array([*rng.uniform(-0.1, 0.1, 2) * extent,
                           distance * rng.uniform(0.9, 1.2)]) - R @ centre
             rvec = cv2.Rodrigues(R)[0].ravel()
-            pts = cv2.projectPoints(board, rvec, t, K, dist)[0].reshape(-1, 2)
+            pts = cv2.projectPoints(printed, rvec, t, K, dist)[0].reshape(-1, 2)
             pts = pts + rng.normal(0.0, noise_px, pts.shape)
             shift = (outliers or {}).get((s, v))
             if shift:

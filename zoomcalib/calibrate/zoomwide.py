@@ -1061,12 +1061,14 @@ def _model_shift(obs: Observations, res: CalibrationResult, term_sets: list[tupl
 
 def _prior_share(result: CalibrationResult, joint_cov, s: int) -> dict[str, float]:
     """Per cx, cy of step ``s``: the share of its precision that the smoothness prior gives,
-    ``1 - var / var_0`` (``var_0`` from the solve without the prior, ``var`` the adjustment's;
-    0: the step's own views decide it, near 1: its neighbours do)."""
+    ``1 - var / var_0`` (``var_0`` from the solve without the prior, ``var`` the adjustment's,
+    both the noise model's: the view-scatter factor of one is not the other's; 0: the step's
+    own views decide it, near 1: its neighbours do)."""
+    sd = result.info.get("sd_noise_model", result.sd)
     out = {}
     for q in SELECTED:
         var0 = float(joint_cov([s], PARAMS.index(q))[0, 0])
-        out[q] = float(np.clip(1.0 - result.sd[q] ** 2 / var0, 0.0, 1.0))
+        out[q] = float(np.clip(1.0 - sd[q] ** 2 / var0, 0.0, 1.0))
     return out
 
 
@@ -1264,8 +1266,9 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
     names = [f"{prob.steps[s].name}:{PARAMS[j]}" for s, j in zip(*np.nonzero(prob.free),
                                                                   strict=True)]
     model_sd = np.sqrt(np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
+    points = np.concatenate([step.point[step.inlier] for step in prob.steps])
     return view_scatter(np.asarray(influence), groups[_view_rows(prob)], int(groups.max()) + 1,
-                        tuple(names), model_sd, deletions, null_share)
+                        tuple(names), model_sd, deletions, null_share, points)
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
