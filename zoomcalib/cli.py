@@ -673,6 +673,8 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, mode
     if run.holdout:
         click.echo("zoom model, held-out interpolation error (RMS): " + ", ".join(
             f"{k} {v:.3g}" for k, v in run.holdout.items() if k in ("fx", "fy", "cx", "cy")))
+        for flag in run.zoom_model.flags():
+            click.echo(f"  flagged: {flag}")
     if not run.results:
         _exit_nothing("no step could be calibrated")
     click.echo(f"wrote {len(run.files)} files to {out}")

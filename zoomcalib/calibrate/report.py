@@ -272,6 +272,9 @@ def _holdout_text(run: CalibrateRun) -> str:
     if not run.holdout:
         return ("<p>No zoom model (it needs four or more steps of known zoom).</p>"
                 if run.zoom_model is None else "")
+    flags = run.zoom_model.flags() if run.zoom_model is not None else []
     return ("<p>Zoom model, held-out interpolation error (RMS, leave one step out): "
             + ", ".join(f"{_e(k)} {v:.3g}{' px' if k in ('fx', 'fy', 'cx', 'cy') else ''}"
-                        for k, v in run.holdout.items()) + ".</p>")
+                        for k, v in run.holdout.items()) + ".</p>"
+            + ("<ul class='bad'>" + "".join(f"<li>{_e(f)}</li>" for f in flags) + "</ul>"
+               if flags else ""))

@@ -412,7 +412,8 @@ def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
                 + " hold the rational model, the others five terms")
         run.holdout = run.zoom_model.holdout_error()
         doc = {"model": run.zoom_model.to_dict(),
-               "holdout_rms": {k: float(v) for k, v in run.holdout.items()}}
+               "holdout_rms": {k: float(v) for k, v in run.holdout.items()},
+               "flags": run.zoom_model.flags()}
         path = out / "zoom_model.json"
         path.write_text(json.dumps(doc, indent=1))
         run.files.append(path)

@@ -16,14 +16,19 @@ Each parameter ``p`` is fitted on its own, as ``g(p(z)) = b(z) . c`` with
   ``log_focal=None`` the choice is made by cross-validation, so it is checked, not assumed;
 * ``b(z)`` a Legendre polynomial basis on the zoom range mapped to ``[-1, 1]``
   (``kind="poly"``), or cubic B-splines with a second-difference roughness penalty
-  (a P-spline, ``kind="spline"``);
+  (a P-spline, ``kind="spline"``), in the zoom itself or in ``log zoom``: where the zoom is a
+  focal length or a zoom ratio, equal focal ratios are equal steps in ``log zoom``, and a path
+  that bends at the short end and flattens at the long one is a low-degree curve there and
+  needs a high degree in the zoom (``log_zoom=None`` tries both where every zoom is
+  positive);
 * weighted least squares with weights ``1 / sd^2`` (in log space ``p^2 / sd^2``, the same
   weights to first order); equal weights where no sd is given.
 
-The polynomial degree (or the spline's penalty) and, for fx, fy, the transform are chosen by
-leave-one-out cross-validation: the exact leave-one-out residual of a linear smoother is
-``r_i / (1 - h_ii)`` (``h`` the hat matrix), converted back to the parameter's units, and the
-candidate with the smallest weighted mean square of those residuals wins (ties: the simpler).
+The polynomial degree (or the spline's penalty), the abscissa and, for fx, fy, the transform
+are chosen by leave-one-out cross-validation: the exact leave-one-out residual of a linear
+smoother is ``r_i / (1 - h_ii)`` (``h`` the hat matrix), converted back to the parameter's
+units, and the candidate with the smallest weighted mean square of those residuals wins
+(ties: the simpler).
 
 Uncertainty: the covariance of ``c`` is the weighted least-squares one, scaled by the reduced
 chi-square of the fit when that exceeds 1 (per-step sds from OpenCV are often smaller than the
@@ -44,8 +49,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+import scipy.optimize
+import scipy.stats
 from numpy.polynomial import legendre
 from scipy.interpolate import BSpline
 
@@ -58,6 +66,15 @@ FOCAL_NAMES: tuple[str, ...] = ("fx", "fy")
 #: Curve families.
 KINDS: tuple[str, ...] = ("poly", "spline")
 _DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+#: The held-out test of a curve's misfit flags it at this significance level.
+MISFIT_P = 1e-3
+#: A misfit is added to the curve's 1-sigma where its held-out test has a p-value below this
+#: (1: always, the moment estimate as it comes).
+MISFIT_GATE = 1.0
+#: Choose one abscissa for every curve of a model (else per curve).
+POOL_ABSCISSA = True
+#: Fewest interior steps to estimate and test a misfit from.
+MIN_HELD_OUT = 3
 #: Penalty grid of the spline, relative to trace(B'WB) / trace(D'D).
 _LAM_GRID = tuple(float(v) for v in 10.0 ** np.linspace(-6.0, 6.0, 25))
 
@@ -90,12 +107,24 @@ class ParamFit:
         Weighted RMS of the leave-one-out residuals of the chosen candidate, parameter units.
     weighted : bool
         Whether per-step sds weighted the fit.
-    selection : list of [str, float, float]
-        Every candidate tried: ``[transform, degree or lam, loo_rms]``.
+    selection : list of [str, float, float, str]
+        Every candidate tried: ``[transform, degree or lam, loo_rms, abscissa]``.
     alternatives : list of dict
         The other candidates with a model-averaging weight of at least 1e-3: ``weight``,
-        ``transform``, ``degree``, ``lam``, ``coef``. Their spread around this curve is part of
-        the prediction's 1-sigma (module notes).
+        ``transform``, ``abscissa``, ``degree``, ``lam``, ``coef``. Their spread around this
+        curve is part of the prediction's 1-sigma (module notes).
+    abscissa : {'zoom', 'log zoom'}
+        The variable the curve is a polynomial (or spline) in.
+    misfit : float
+        1-sigma of the curve's misfit between the steps, in the transformed space (px, or
+        relative for ``transform='log'``), estimated from the held-out steps and added to
+        every prediction's variance; 0 where the held-out steps show none or fewer than 3
+        interior steps could be held out (module notes).
+    holdout_chi2 : float
+        Sum of the held-out errors squared over their predicted variance (the misfit left
+        out); NaN when not tested.
+    holdout_steps : int
+        Interior steps held out for it (0: not tested).
     """
 
     name: str
@@ -112,6 +141,17 @@ class ParamFit:
     weighted: bool
     selection: list = field(default_factory=list)
     alternatives: list = field(default_factory=list)
+    abscissa: str = "zoom"
+    misfit: float = 0.0
+    holdout_chi2: float = math.nan
+    holdout_steps: int = 0
+
+    @property
+    def misfit_flagged(self) -> bool:
+        """The held-out steps miss the curve beyond their predicted scatter (chi-square test at
+        :data:`MISFIT_P`)."""
+        return (self.holdout_steps >= MIN_HELD_OUT and math.isfinite(self.holdout_chi2)
+                and self.holdout_chi2 > scipy.stats.chi2.isf(MISFIT_P, self.holdout_steps))
 
     def to_dict(self) -> dict:
         return {"transform": self.transform, "kind": self.kind, "degree": self.degree,
@@ -120,10 +160,15 @@ class ParamFit:
                 "coef": _floats(self.coef), "cov": [_floats(r) for r in self.cov],
                 "chi2_red": _float(self.chi2_red), "dof": float(self.dof),
                 "loo_rms": _float(self.loo_rms), "weighted": bool(self.weighted),
-                "selection": [[s[0], float(s[1]), _float(s[2])] for s in self.selection],
+                "abscissa": self.abscissa, "misfit": float(self.misfit),
+                "holdout_chi2": _float(self.holdout_chi2),
+                "holdout_steps": int(self.holdout_steps),
+                "misfit_flagged": bool(self.misfit_flagged),
+                "selection": [[s[0], float(s[1]), _float(s[2]), s[3]] for s in self.selection],
                 "alternatives": [{"weight": float(a["weight"]), "transform": a["transform"],
-                                  "degree": a["degree"], "lam": a["lam"],
-                                  "coef": _floats(a["coef"])} for a in self.alternatives]}
+                                  "abscissa": a["abscissa"], "degree": a["degree"],
+                                  "lam": a["lam"], "coef": _floats(a["coef"])}
+                                 for a in self.alternatives]}
 
     @classmethod
     def from_dict(cls, name: str, d: Mapping) -> ParamFit:
@@ -135,9 +180,11 @@ class ParamFit:
                    np.asarray(d["coef"], float), _nan_array(d["cov"]),
                    _unfloat(d.get("chi2_red")), float(d.get("dof", 0.0)),
                    _unfloat(d.get("loo_rms")), bool(d.get("weighted", False)),
-                   [list(s) for s in d.get("selection", [])],
-                   [dict(a, coef=np.asarray(a["coef"], float))
-                    for a in d.get("alternatives", [])])
+                   [(list(s) + ["zoom"])[:4] for s in d.get("selection", [])],
+                   [{"abscissa": "zoom", **a, "coef": np.asarray(a["coef"], float)}
+                    for a in d.get("alternatives", [])],
+                   str(d.get("abscissa", "zoom")), float(d.get("misfit", 0.0)),
+                   _unfloat(d.get("holdout_chi2")), int(d.get("holdout_steps", 0)))
 
 
 def _float(v) -> float | None:
@@ -170,13 +217,21 @@ def _knots(lo: float, hi: float, n_points: int) -> np.ndarray:
     return lo + step * np.arange(-3, n_seg + 4)
 
 
+def _to_abscissa(z: np.ndarray | float, abscissa: str) -> np.ndarray:
+    """Zoom values as the curve's variable: themselves, or their log (``'log zoom'``)."""
+    return np.log(z) if abscissa == "log zoom" else np.asarray(z, float)
+
+
 def _basis(z: np.ndarray, kind: str, lo: float, hi: float, degree: int | None,
-           knots: np.ndarray | None) -> np.ndarray:
-    z = np.asarray(z, float).ravel()
+           n_points: int, abscissa: str = "zoom") -> np.ndarray:
+    """``(k, p)`` design matrix at zooms ``z`` of a curve over the zoom range ``[lo, hi]``, in
+    ``abscissa``: Legendre polynomials on the range mapped to [-1, 1], or cubic B-splines on
+    the knots :func:`_knots` places for ``n_points`` steps."""
+    x = _to_abscissa(np.asarray(z, float).ravel(), abscissa)
+    x_lo, x_hi = (float(v) for v in _to_abscissa(np.array([lo, hi]), abscissa))
     if kind == "poly":
-        t = 2.0 * (z - lo) / (hi - lo) - 1.0
-        return legendre.legvander(t, int(degree))
-    return BSpline.design_matrix(z, knots, 3, extrapolate=True).toarray()
+        return legendre.legvander(2.0 * (x - x_lo) / (x_hi - x_lo) - 1.0, int(degree))
+    return BSpline.design_matrix(x, _knots(x_lo, x_hi, n_points), 3, extrapolate=True).toarray()
 
 
 def _penalty(nb: int) -> np.ndarray:
@@ -224,12 +279,29 @@ def _weights_px(sd: np.ndarray | None, n: int) -> np.ndarray:
     return np.ones(n) if sd is None else 1.0 / sd**2
 
 
-def _candidates(name: str, v: np.ndarray, kind: str, n: int, degree: int | None,
-                lam: float | None, log_focal: bool | None, max_degree: int) -> list:
+class _Candidate(NamedTuple):
+    """One curve to try: value transform, abscissa and degree (poly) or penalty (spline)."""
+
+    transform: str
+    abscissa: str
+    setting: float
+
+
+def _candidates(name: str, z: np.ndarray, v: np.ndarray, kind: str, degree: int | None,
+                lam: float | None, log_focal: bool | None, log_zoom: bool | None,
+                max_degree: int) -> list[_Candidate]:
+    """Every candidate for one parameter; ``None`` options are chosen by held-out steps, a
+    log (of the value, of the zoom) only where every value is positive."""
+    n = len(z)
+    transforms = ("linear",)
     if name in FOCAL_NAMES and np.all(v > 0):
         transforms = {None: ("linear", "log"), True: ("log",), False: ("linear",)}[log_focal]
-    else:
-        transforms = ("linear",)
+    abscissae = ("zoom",)
+    if np.all(z > 0):
+        abscissae = {None: ("zoom", "log zoom"), True: ("log zoom",),
+                     False: ("zoom",)}[log_zoom]
+    elif log_zoom:
+        raise ValueError("log_zoom=True needs every zoom value positive")
     if kind == "poly":
         if degree is not None:
             settings = [int(degree)]
@@ -238,78 +310,200 @@ def _candidates(name: str, v: np.ndarray, kind: str, n: int, degree: int | None,
             settings = list(range(dmax + 1)) if dmax >= 1 else [min(1, n - 1)]
     else:
         settings = [float(lam)] if lam is not None else list(_LAM_GRID)
-    return [(t, s) for s in settings for t in transforms]
+    return [_Candidate(t, a, s) for s in settings for a in abscissae for t in transforms]
 
 
-def _fit_param(name: str, data: _Data, kind: str, lo: float, hi: float,
-               knots: np.ndarray | None, candidates: list) -> ParamFit:
-    z, v, sd = data.z, data.v, data.sd
-    n = len(z)
-    w_px = _weights_px(sd, n)
-    tried = []
-    selection = []
-    for transform, setting in candidates:
-        degree = int(setting) if kind == "poly" else None
-        lam_rel = float(setting) if kind == "spline" else None
-        A = _basis(z, kind, lo, hi, degree, knots)
-        y = _forward(v, transform)
-        w = w_px * v**2 if transform == "log" else w_px
-        coef, cov, h, r = _smoother(A, y, w, lam_rel)
-        mse = math.inf
-        if np.all(h < 1.0 - 1e-8):
-            pred_loo = _inverse(y - r / (1.0 - h), transform)
-            mse = float(np.sum(w_px * (v - pred_loo) ** 2) / np.sum(w_px))
-        complexity = float(degree) if kind == "poly" else -math.log10(lam_rel)
-        selection.append([transform, float(setting), math.sqrt(mse)])
-        tried.append((complexity, mse, transform, degree, lam_rel, coef, cov, h, r, w))
-    # The smallest leave-one-out mean square wins; ties go to the simpler candidate.
-    best_mse = min(t[1] for t in tried)
-    chosen = min(tried, key=lambda t: (t[1], t[0]))
-    _, mse, transform, degree, lam_rel, coef, cov, h, r, w = chosen
-    score = math.sqrt(mse) if len(tried) > 1 or math.isfinite(mse) else math.nan
-    dof = float(n - np.sum(h))
-    chi2 = float(np.sum(w * r**2))
+@dataclass
+class _Tried:
+    """A candidate fitted: its weighted leave-one-out squared errors ``loo_sq`` (S,), px^2
+    times the step's normalised weight (all ``inf`` when a step's leverage is 1)."""
+
+    candidate: _Candidate
+    complexity: float
+    loo_sq: np.ndarray
+    coef: np.ndarray
+    cov: np.ndarray
+    hat: np.ndarray
+    resid: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def mse(self) -> float:
+        return float(np.mean(self.loo_sq))
+
+
+def _try(c: _Candidate, data: _Data, kind: str, lo: float, hi: float, n_points: int) -> _Tried:
+    """Fit one candidate and its exact leave-one-out errors, ``r_i / (1 - h_ii)`` in the
+    transformed space, taken back to the parameter's units."""
+    z, v = data.z, data.v
+    w_px = _weights_px(data.sd, len(z))
+    degree = int(c.setting) if kind == "poly" else None
+    lam_rel = float(c.setting) if kind == "spline" else None
+    A = _basis(z, kind, lo, hi, degree, n_points, c.abscissa)
+    y = _forward(v, c.transform)
+    w = w_px * v**2 if c.transform == "log" else w_px
+    coef, cov, h, r = _smoother(A, y, w, lam_rel)
+    loo_sq = np.full(len(z), np.inf)
+    if np.all(h < 1.0 - 1e-8):
+        pred_loo = _inverse(y - r / (1.0 - h), c.transform)
+        loo_sq = w_px / np.mean(w_px) * (v - pred_loo) ** 2
+    complexity = float(degree) if kind == "poly" else -math.log10(lam_rel)
+    return _Tried(c, complexity, loo_sq, coef, cov, h, r, w)
+
+
+def _choose(tried: list[_Tried]) -> _Tried:
+    """The smallest held-out mean square wins; ties go to the simpler candidate. (The
+    one-standard-error rule, the simplest candidate within a standard error of the best, was
+    measured and is worse here: ``benchmarks/bench_zoom_curve.py``, docs/calibration.md.)"""
+    return min(tried, key=lambda t: (t.mse, t.complexity))
+
+
+def _degree_lam(c: _Candidate, kind: str) -> tuple[int | None, float | None]:
+    return (int(c.setting), None) if kind == "poly" else (None, float(c.setting))
+
+
+def _alternatives(tried: list[_Tried], chosen: _Tried, data: _Data, kind: str) -> list[dict]:
+    """The other candidates with their pseudo-Bayesian-model-averaging weights (at least
+    1e-3) from their leave-one-out scores (Yao et al. 2018): ``exp(-n (MSE_j - MSE_min) /
+    (2 MSE_ref))``, ``MSE_ref`` the stated noise variance or the best score, whichever is
+    larger. Their spread around the chosen curve is added to its variance at prediction."""
+    n = len(data.z)
+    best_mse = min(t.mse for t in tried)
+    mse_ref = best_mse if data.sd is None else max(n / float(np.sum(_weights_px(data.sd, n))),
+                                                   best_mse)
+    if not (math.isfinite(best_mse) and mse_ref > 0 and len(tried) > 1):
+        return []
+    logw = np.array([-0.5 * n * (t.mse - best_mse) / mse_ref if math.isfinite(t.mse)
+                     else -np.inf for t in tried])
+    wts = np.exp(logw - logw.max())
+    wts /= wts.sum()
+    out = []
+    for wt, t in zip(wts, tried, strict=True):
+        if wt >= 1e-3 and t is not chosen:
+            degree, lam = _degree_lam(t.candidate, kind)
+            out.append({"weight": float(wt), "transform": t.candidate.transform,
+                        "abscissa": t.candidate.abscissa, "degree": degree, "lam": lam,
+                        "coef": t.coef})
+    return out
+
+
+def _fit_param(name: str, data: _Data, kind: str, lo: float, hi: float, n_points: int,
+               candidates: list[_Candidate]) -> ParamFit:
+    """Every candidate fitted, one chosen (:func:`_choose`), its covariance scaled by the
+    reduced chi-square where the scatter exceeds the stated sds (module notes)."""
+    tried = [_try(c, data, kind, lo, hi, n_points) for c in candidates]
+    chosen = _choose(tried)
+    c = chosen.candidate
+    degree, lam = _degree_lam(c, kind)
+    score = math.sqrt(chosen.mse) if len(tried) > 1 or math.isfinite(chosen.mse) else math.nan
+    dof = float(len(data.z) - np.sum(chosen.hat))
+    chi2 = float(np.sum(chosen.weight * chosen.resid**2))
     chi2_red = chi2 / dof if dof > 0.5 else math.nan
-    if sd is not None:
+    if data.sd is not None:
         # Stated sds are kept unless the scatter shows them too small.
         scale = max(1.0, chi2_red) if math.isfinite(chi2_red) else 1.0
     else:
         scale = chi2_red
-    # Model-selection uncertainty: pseudo-Bayesian-model-averaging weights of every candidate
-    # from its leave-one-out score (Yao et al. 2018); the spread of the plausible candidates
-    # around the chosen curve is added to its variance at prediction time.
-    sum_w = float(np.sum(w_px))
-    mse_ref = best_mse if sd is None else max(n / sum_w, best_mse)
-    alternatives = []
-    if math.isfinite(best_mse) and mse_ref > 0 and len(tried) > 1:
-        logw = np.array([-0.5 * n * (t[1] - best_mse) / mse_ref if math.isfinite(t[1])
-                         else -np.inf for t in tried])
-        wts = np.exp(logw - logw.max())
-        wts /= wts.sum()
-        for wt, t in zip(wts, tried, strict=True):
-            if wt >= 1e-3 and t is not chosen:
-                alternatives.append({"weight": float(wt), "transform": t[2], "degree": t[3],
-                                     "lam": t[4], "coef": t[5]})
-    return ParamFit(name, transform, kind, degree, lam_rel, knots, coef, cov * scale, chi2_red,
-                    dof, score, sd is not None, selection, alternatives)
+    x_lo, x_hi = (float(v) for v in _to_abscissa(np.array([lo, hi]), c.abscissa))
+    knots = _knots(x_lo, x_hi, n_points) if kind == "spline" else None
+    selection = [[t.candidate.transform, float(t.candidate.setting), math.sqrt(t.mse),
+                  t.candidate.abscissa] for t in tried]
+    return ParamFit(name, c.transform, kind, degree, lam, knots, chosen.coef,
+                    chosen.cov * scale, chi2_red, dof, score, data.sd is not None, selection,
+                    _alternatives(tried, chosen, data, kind), c.abscissa)
 
 
-def _predict(fit: ParamFit, z: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    A = _basis(z, fit.kind, lo, hi, fit.degree, fit.knots)
+def _predict(fit: ParamFit, z: np.ndarray, lo: float, hi: float, n_points: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The curve and its 1-sigma at zooms ``z``, the plausible alternatives' spread included."""
+    A = _basis(z, fit.kind, lo, hi, fit.degree, n_points, fit.abscissa)
     y = A @ fit.coef
-    var = np.einsum("ij,jk,ik->i", A, fit.cov, A)
+    var = np.einsum("ij,jk,ik->i", A, fit.cov, A) + fit.misfit**2
     sd_y = np.sqrt(np.maximum(var, 0.0))
     value = _inverse(y, fit.transform)
     sd = value * sd_y if fit.transform == "log" else sd_y
     if fit.alternatives:
         spread = np.zeros_like(value)
         for alt in fit.alternatives:
-            B = _basis(z, fit.kind, lo, hi, alt["degree"], fit.knots)
+            B = _basis(z, fit.kind, lo, hi, alt["degree"], n_points, alt["abscissa"])
             other = _inverse(B @ np.asarray(alt["coef"], float), alt["transform"])
             spread += alt["weight"] * (other - value) ** 2
         sd = np.sqrt(sd**2 + spread)
     return value, sd
 
+
+def _pooled_abscissa(fits) -> str:
+    """``'zoom'`` or ``'log zoom'``: the abscissa whose best candidates have the smaller
+    product of held-out mean squares over the parameters (the sum of their logs; parameters
+    without a finite positive score in both are left out; ties: ``'zoom'``). One choice for
+    the lens, as its curves share one zoom mechanism; per parameter, 5-7 steps choose it at
+    random where both fit (``benchmarks/bench_zoom_curve.py``)."""
+    score = {"zoom": 0.0, "log zoom": 0.0}
+    for fit in fits:
+        best = {a: min((row[2] for row in fit.selection if row[3] == a), default=math.nan)
+                for a in score}
+        if all(math.isfinite(b) and b > 0 for b in best.values()):
+            for a, b in best.items():
+                score[a] += 2.0 * math.log(b)
+    return "log zoom" if score["log zoom"] < score["zoom"] else "zoom"
+
+
+@dataclass
+class _HeldOut:
+    """Leave-one-out of one parameter's interior (or all) steps, each fold fitted afresh:
+    ``error`` (k,) the held-out value less its prediction, ``sd_pred`` (k,) the prediction's
+    1-sigma and ``sd_step`` (k,) the held-out step's own (stated, or for an unweighted
+    parameter the fold's residual scatter), all in the parameter's units."""
+
+    index: np.ndarray
+    error: np.ndarray
+    sd_pred: np.ndarray
+    sd_step: np.ndarray
+
+
+def _held_out(name: str, data: _Data, kind: str, lo: float, hi: float, index: list[int],
+              candidates_of) -> _HeldOut:
+    """Each step of ``index`` predicted by a fit to the others; ``candidates_of(fold_data)``
+    gives the candidates of a fold (re-chosen, or the full fit's)."""
+    n = len(data.z)
+    error, sd_pred, sd_step = [], [], []
+    for i in index:
+        keep = np.arange(n) != i
+        fold = _Data(data.z[keep], data.v[keep], None if data.sd is None else data.sd[keep])
+        f = _fit_param(name, fold, kind, lo, hi, n, candidates_of(fold))
+        value, sd = _predict(f, data.z[i:i + 1], lo, hi, n)
+        error.append(data.v[i] - value[0])
+        sd_pred.append(sd[0])
+        own = data.sd[i] if data.sd is not None else math.sqrt(f.chi2_red)
+        if f.transform == "log" and data.sd is None:
+            own *= data.v[i]
+        sd_step.append(own)
+    return _HeldOut(np.asarray(index, int), np.asarray(error, float),
+                    np.asarray(sd_pred, float), np.asarray(sd_step, float))
+
+
+def _misfit(held: _HeldOut, values: np.ndarray, transform: str) -> tuple[float, float]:
+    """The curve's misfit ``m`` between the steps and the held-out chi-square without it.
+
+    In the transformed space (relative errors for ``log``) the held-out errors ``e_i`` are
+    taken as ``N(0, s_i^2 + p_i^2 + m^2)`` (``s_i`` the step's own 1-sigma, ``p_i`` the
+    prediction's); ``m^2`` solves ``sum e_i^2 / (s_i^2 + p_i^2 + m^2) = k``, the moment
+    estimator of a random effect (Paule & Mandel 1982), 0 where the sum without it is at most
+    ``k``. Returns ``(m, chi2)``; ``(0, nan)`` with fewer than :data:`MIN_HELD_OUT` steps or a
+    non-finite term."""
+    scale = values[held.index] if transform == "log" else 1.0
+    e = held.error / scale
+    var = (held.sd_step**2 + held.sd_pred**2) / scale**2
+    k = len(e)
+    if k < MIN_HELD_OUT or not (np.all(np.isfinite(e)) and np.all(np.isfinite(var))
+                                and np.all(var > 0)):
+        return 0.0, math.nan
+    chi2 = float(np.sum(e**2 / var))
+    if chi2 <= k or scipy.stats.chi2.sf(chi2, k) >= MISFIT_GATE:
+        return 0.0, chi2
+    m2 = scipy.optimize.brentq(lambda m2: float(np.sum(e**2 / (var + m2))) - k,
+                               0.0, float(np.sum(e**2)))
+    return math.sqrt(m2), chi2
 
 
 @dataclass(frozen=True)
@@ -376,7 +570,8 @@ class ZoomModel:
     sensor : Sensor or None
         Given to :meth:`camera`'s CameraModel (else CameraModel's default).
     options : dict
-        The fit options (``degree``, ``lam``, ``log_focal``, ``max_degree``), reused by
+        The fit options (``degree``, ``lam``, ``log_focal``, ``log_zoom``, ``max_degree``;
+        a model saved without ``log_zoom`` was fitted in zoom), reused by
         :meth:`holdout_error`.
     """
 
@@ -399,7 +594,8 @@ class ZoomModel:
     def fit(cls, zoom: Sequence[float] | np.ndarray, values: Mapping[str, Sequence[float]],
             sd: Mapping[str, Sequence[float] | None] | None = None,
             degree: int | Mapping[str, int] | None = None, kind: str = "poly", *,
-            lam: float | None = None, log_focal: bool | None = None, max_degree: int = 5,
+            lam: float | None = None, log_focal: bool | None = None,
+            log_zoom: bool | None = None, max_degree: int = 5,
             sensor: Sensor | None = None) -> ZoomModel:
         """Fit every parameter of ``values`` versus ``zoom``.
 
@@ -424,6 +620,9 @@ class ZoomModel:
         log_focal : bool or None
             Fit fx, fy in log space (True), linearly (False), or choose by cross-validation
             (None).
+        log_zoom : bool or None
+            Curves in ``log zoom`` (True), in zoom (False), or choose per parameter by
+            cross-validation (None; ``log zoom`` is tried only where every zoom is positive).
         max_degree : int
         sensor : Sensor, optional
 
@@ -450,8 +649,7 @@ class ZoomModel:
             raise ValueError(f"kind='spline' needs at least 4 zoom steps; got {n}")
         if kind == "spline" and degree is not None:
             raise ValueError("degree applies to kind='poly'; the spline's smoothness is lam")
-        vals, sds, fits = {}, {}, {}
-        knots = _knots(lo, hi, n) if kind == "spline" else None
+        vals, sds = {}, {}
         for name, v in values.items():
             v = np.asarray(v, float).ravel()
             if len(v) != n:
@@ -469,14 +667,43 @@ class ZoomModel:
             if d is not None and not 0 <= int(d) <= n - 1:
                 raise ValueError(f"{name}: degree {d} needs at least {int(d) + 1} zoom steps; "
                                  f"got {n}")
-            cands = _candidates(name, v, kind, n, d, lam, log_focal, max_degree)
             vals[name] = v
             if s is not None:
                 sds[name] = s
-            fits[name] = _fit_param(name, _Data(z, v, s), kind, lo, hi, knots, cands)
         options = {"degree": dict(degree) if isinstance(degree, Mapping) else degree,
-                   "lam": lam, "log_focal": log_focal, "max_degree": int(max_degree)}
-        return cls(kind, z, vals, sds, fits, (lo, hi), sensor, options)
+                   "lam": lam, "log_focal": log_focal, "log_zoom": log_zoom,
+                   "max_degree": int(max_degree)}
+        model = cls(kind, z, vals, sds, {}, (lo, hi), sensor, options)
+        model._fit_curves()
+        if log_zoom is None and POOL_ABSCISSA and np.all(z > 0):
+            # one abscissa for the whole lens, the one its curves predict held-out steps best in
+            model.options["log_zoom"] = _pooled_abscissa(model.fits.values()) == "log zoom"
+            model._fit_curves()
+        model.options["log_zoom_asked"] = log_zoom
+        model._estimate_misfits()
+        return model
+
+    def _fit_curves(self) -> None:
+        """Every parameter's curve, candidates as :attr:`options` give them."""
+        lo, hi = self.zoom_range
+        n = len(self.zoom)
+        self.fits = {name: _fit_param(name, _Data(self.zoom, v, self.sd.get(name)), self.kind,
+                                      lo, hi, n, self._candidates_of(name)(
+                                          _Data(self.zoom, v, None)))
+                     for name, v in self.values.items()}
+
+    def _estimate_misfits(self) -> None:
+        """Each curve's misfit between the steps from its interior steps held out, folds
+        re-chosen (:func:`_misfit`); set on the fits, so every prediction carries it."""
+        lo, hi = self.zoom_range
+        interior = [i for i in range(len(self.zoom)) if lo < self.zoom[i] < hi]
+        if len(interior) < MIN_HELD_OUT:
+            return
+        for name, fit in self.fits.items():
+            data = _Data(self.zoom, self.values[name], self.sd.get(name))
+            held = _held_out(name, data, self.kind, lo, hi, interior, self._candidates_of(name))
+            fit.misfit, fit.holdout_chi2 = _misfit(held, data.v, fit.transform)
+            fit.holdout_steps = len(interior)
 
     @classmethod
     def from_table(cls, rows: Sequence[Mapping], names: Sequence[str] | None = None,
@@ -535,7 +762,7 @@ class ZoomModel:
         z = np.atleast_1d(np.asarray(zoom, float))
         out = {}
         for name, fit in self.fits.items():
-            value, sd = _predict(fit, z, *self.zoom_range)
+            value, sd = _predict(fit, z, *self.zoom_range, len(self.zoom))
             out[name] = float(value[0]) if scalar else value
             out[f"sd_{name}"] = float(sd[0]) if scalar else sd
         return out
@@ -639,38 +866,51 @@ class ZoomModel:
         idx = [i for i in range(len(z)) if not interior_only or lo < z[i] < hi]
         out = {}
         for name, fit in self.fits.items():
-            v = self.values[name]
-            s = self.sd.get(name)
-            errs, sds = [], []
-            for i in idx:
-                keep = np.arange(len(z)) != i
-                data = _Data(z[keep], v[keep], None if s is None else s[keep])
-                if reselect:
-                    d = self.options.get("degree")
-                    d = d.get(name) if isinstance(d, Mapping) else d
-                    cands = _candidates(name, data.v, self.kind, len(data.z), d,
-                                        self.options.get("lam"), self.options.get("log_focal"),
-                                        int(self.options.get("max_degree", 5)))
-                else:
-                    cands = [(fit.transform, fit.degree if self.kind == "poly" else fit.lam)]
-                f = _fit_param(name, data, self.kind, lo, hi, fit.knots, cands)
-                value, sd = _predict(f, z[i:i + 1], lo, hi)
-                errs.append(v[i] - value[0])
-                sds.append(sd[0])
-            errs_a = np.asarray(errs, float)
-            rms = float(np.sqrt(np.mean(errs_a**2))) if len(errs_a) else math.nan
-            out[name] = {"rms": rms, "zoom": z[idx].copy(), "error": errs_a,
-                         "sd_pred": np.asarray(sds, float)} if details else rms
+            data = _Data(z, self.values[name], self.sd.get(name))
+            held = _held_out(name, data, self.kind, lo, hi, idx,
+                             self._candidates_of(name) if reselect else
+                             lambda fold, fit=fit: [_Candidate(
+                                 fit.transform, fit.abscissa,
+                                 fit.degree if self.kind == "poly" else fit.lam)])
+            rms = float(np.sqrt(np.mean(held.error**2))) if len(idx) else math.nan
+            out[name] = {"rms": rms, "zoom": z[idx].copy(), "error": held.error,
+                         "sd_pred": held.sd_pred} if details else rms
         return out
 
+    def _candidates_of(self, name: str):
+        """The candidates of a fold of ``name``, as :meth:`fit` chose them."""
+        d = self.options.get("degree")
+        d = d.get(name) if isinstance(d, Mapping) else d
+        return lambda fold: _candidates(
+            name, fold.z, fold.v, self.kind, d, self.options.get("lam"),
+            self.options.get("log_focal"), self.options.get("log_zoom", False),
+            int(self.options.get("max_degree", 5)))
+
     def summary(self) -> str:
-        """One line per parameter: curve, transform, leave-one-out RMS, reduced chi-square."""
+        """One line per parameter: curve, transform, abscissa, leave-one-out RMS, reduced
+        chi-square, and a misfit where the held-out steps showed one."""
         lines = []
         for name, f in self.fits.items():
             what = f"degree {f.degree}" if f.kind == "poly" else f"spline lam {f.lam:.3g}"
-            lines.append(f"{name}: {what}, {f.transform}, loo rms {f.loo_rms:.4g}, "
-                         f"chi2/dof {f.chi2_red:.3g}{'' if f.weighted else ' (unweighted)'}")
+            misfit = (f", misfit {f.misfit:.3g}{' (flagged)' if f.misfit_flagged else ''}"
+                      if f.misfit > 0 else "")
+            lines.append(f"{name}: {what} in {f.abscissa}, {f.transform}, "
+                         f"loo rms {f.loo_rms:.4g}, chi2/dof {f.chi2_red:.3g}"
+                         f"{'' if f.weighted else ' (unweighted)'}{misfit}")
         return "\n".join(lines)
+
+    def flags(self) -> list[str]:
+        """One line per curve whose held-out steps miss it beyond their scatter: its 1-sigma
+        carries the misfit, but the curve does not follow the zoom between the steps."""
+        out = []
+        for name, f in self.fits.items():
+            if f.misfit_flagged:
+                unit = (" (relative)" if f.transform == "log"
+                        else " px" if name in ("fx", "fy", "cx", "cy") else "")
+                out.append(f"{name}: held-out steps miss the curve (chi2 {f.holdout_chi2:.1f} "
+                           f"for {f.holdout_steps} steps); its 1-sigma includes a misfit of "
+                           f"{f.misfit:.3g}{unit} between the steps; more steps would pin it")
+        return out
 
     # -- saving ----------------------------------------------------------------------------
 
