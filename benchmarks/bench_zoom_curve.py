@@ -20,6 +20,10 @@ the chosen degree of cx, cy is 4 or more, and how often a curve is flagged. Rule
     ``log zoom`` tried as well (one abscissa for all curves), no misfit term;
 ``per curve``
     the abscissa chosen per curve (``POOL_ABSCISSA = False``), the misfit added;
+``one-SE``
+    as the default, the degree by the one-standard-error rule (the simplest candidate whose
+    held-out mean square is within one standard error of the paired per-step differences from
+    the best's; Hastie, Tibshirani & Friedman 2009, section 7.10);
 ``gate P``
     the misfit added where its held-out test has p < P (``MISFIT_GATE``; 1: always);
 ``default``
@@ -47,9 +51,24 @@ def keyed(s: np.ndarray, key: str) -> np.ndarray:
     return FX_RANGE[0] * (FX_RANGE[1] / FX_RANGE[0]) ** s if key == "fx" else 100.0 + 900.0 * s
 
 
+def one_standard_error(tried):
+    """The simplest candidate within one standard error of the best held-out mean square."""
+    best = min(tried, key=lambda t: (t.mse, t.complexity))
+    if not np.isfinite(best.mse) or len(best.loo_sq) < 3:
+        return best
+
+    def within(t) -> bool:
+        diff = t.loo_sq - best.loo_sq
+        return bool(np.all(np.isfinite(diff))
+                    and np.mean(diff) <= np.std(diff, ddof=1) / np.sqrt(len(diff)))
+
+    return min((t for t in tried if t is best or within(t)), key=lambda t: (t.complexity, t.mse))
+
+
 RULES = {"old": {"log_zoom": False, "MIN_HELD_OUT": 10**9},
          "no misfit": {"MIN_HELD_OUT": 10**9},
          "per curve": {"POOL_ABSCISSA": False},
+         "one-SE": {"_choose": None},
          "gate 1": {"MISFIT_GATE": 1.0}, "gate 0.05": {"MISFIT_GATE": 0.05},
          "gate 0.001": {"MISFIT_GATE": 0.001}, "default": {}}
 
@@ -58,6 +77,8 @@ def one_fit(rule: str, zoom: np.ndarray, values: dict, sd: dict, zoom_between: n
             truth_between: dict) -> dict:
     settings = dict(RULES[rule])
     log_zoom = settings.pop("log_zoom", None)
+    if "_choose" in settings:
+        settings["_choose"] = one_standard_error
     saved = {k: getattr(zoom_model, k) for k in settings}
     for k, v in settings.items():
         setattr(zoom_model, k, v)
