@@ -2,7 +2,7 @@
 
 ``python benchmarks/bench_scatter_power.py [--sets 100] [--views 20] [--backend opencv|bundle]
 [--fields 0 0.05 0.1 0.15 0.2 0.3 0.5 | --misprints 0 0.01 0.02 0.05] [--tested-only]
-[--no-board-points]``
+[--no-board-points] [--target-sigma MM|none|flat]``
 
 The check of :mod:`zoomcalib.calibrate.scatter` flags a sigma only where its test finds the
 views disagreeing beyond the corner noise (0.1 % significance), so that a set the noise model
@@ -22,7 +22,9 @@ and in how many sets the whole-solution test fired.
 ``--misprints``: instead of view fields, boards printed with each corner off by its own
 Gaussian error of the given 1-sigma (mm, in the board plane; ``sweep_detections(misprint_mm=)``),
 the same in every view, which the views' scatter cannot show and the board points' can
-(``--no-board-points`` leaves that check out, ``scatter.CHECK_BOARD_POINTS``).
+(``--no-board-points`` leaves that check out, ``scatter.CHECK_BOARD_POINTS``). With the bundle,
+``--target-sigma`` sets its shape prior (default 0.01 mm; ``none``: the target points free
+but for the gauge; ``flat``: the nominal target, not refined).
 
 ``--tested-only``: a sigma takes its factor only where a test fired (``SCALE_UNTESTED`` off,
 the rule before it became the default), which shows what the test alone misses.
@@ -88,19 +90,30 @@ def main() -> None:
                          "(1-sigma in the plane, the same in every view)")
     ap.add_argument("--no-board-points", action="store_true",
                     help="leave the board-point check out (the view check alone)")
+    ap.add_argument("--target-sigma", default="0.01",
+                    help="bundle: the shape prior's target_sigma_mm ('none': no prior, "
+                         "'flat': the target not refined)")
     a = ap.parse_args()
     warnings.simplefilter("ignore")
     scatter.SCALE_UNTESTED = not a.tested_only
     scatter.CHECK_BOARD_POINTS = not a.no_board_points
     misprint = a.misprints is not None
-    rule = (", factors only where a test fired (--tested-only)" if a.tested_only else "") + (
+    calibrate = BACKENDS[a.backend]
+    if a.backend == "bundle" and a.target_sigma != "0.01":
+        options = ({"refine_target": False} if a.target_sigma == "flat" else
+                   {"target_sigma_mm": None if a.target_sigma == "none"
+                    else float(a.target_sigma)})
+
+        def calibrate(obs, options=options):
+            return calibrate_bundle(obs, **options)
+    rule = (f", target_sigma {a.target_sigma}" if a.backend == "bundle" else "") + (
+        ", factors only where a test fired (--tested-only)" if a.tested_only else "") + (
         ", views only (--no-board-points)" if a.no_board_points else "")
     print(f"# {a.backend}, {a.sets} sets of {a.views} views, 0.1 px corner noise{rule}; "
           f"RMS z of {'/'.join(COMPARED)} against the truth")
     for size in a.misprints if misprint else a.fields:
         t0 = time.time()
-        z_model, z_reported, fired = errors(BACKENDS[a.backend], size, a.sets, a.views,
-                                            misprint)
+        z_model, z_reported, fired = errors(calibrate, size, a.sets, a.views, misprint)
         what = f"misprint {size:5.3f} mm" if misprint else f"field {size:4.2f} px"
         print(f"{what}  noise model RMS z {np.sqrt(np.mean(z_model**2)):5.2f}"
               f"  reported RMS z {np.sqrt(np.mean(z_reported**2)):5.2f} ("
