@@ -734,17 +734,27 @@ class _Problem:
             Jx *= w
         return r, Jc, Jp, Jx
 
+    def prior_gradient(self, s: _State) -> tuple[np.ndarray, float, np.ndarray]:
+        """The shape prior's gradient over every target coordinate ``(3n,)``, in the units of
+        ``g_x = J_x^T r`` (``sig2 / s R Lam d`` per point, :meth:`shape_deviation`), with
+        ``s`` and ``R``."""
+        d, sc, Rs = self.shape_deviation(s.X)
+        g = (self.sig2 / sc) * (self.Lam.matvec(d.ravel()).reshape(self.n, 3) @ Rs.T)
+        return g.ravel(), sc, Rs
+
     def camera_influence(self, s: _State, W: np.ndarray, V: np.ndarray,
-                         camera_rows: np.ndarray) -> np.ndarray:
+                         camera_rows: np.ndarray, hold_points: bool = False) -> np.ndarray:
         """Each corner's share of the camera's move, ``a_i = S^-1[cam, :] Jt_i^T r_i`` (N, 12)
         over ``CAMERA_NAMES`` (observation order; zero columns for fixed parameters), with
         ``Jt_i = J_y,i - J_p,i V_v^-1 W_v^T`` the corner's Jacobian with its view's pose projected
         out (:mod:`zoomcalib.calibrate.scatter`). ``W`` (m, ny, 6), ``V`` (m, 6, 6): blocks of
-        :meth:`normal_equations` at ``s``; ``camera_rows``: ``S^-1[:nc, :]`` (nc, ny)."""
+        :meth:`normal_equations` at ``s``; ``camera_rows``: ``S^-1[:nc, :]`` (nc, ny).
+        ``hold_points``: leave out the term through the corner's own point coordinates,
+        ``S^-1[cam, x_p] J_x,i^T r_i`` (the board-point check's influence)."""
         r, Jc, Jp, Jx = self.jacobians(s)
         nc = self.nc
         influence = np.einsum("nkc,nk->nc", Jc, r) @ camera_rows[:, :nc].T
-        if self.nx:
+        if self.nx and not hold_points:
             o, a, row = self.wx_obs, self.wx_a, self.wx_row
             point_score = np.einsum("nka,nk->na", Jx, r)[o, a]
             np.add.at(influence, o, point_score[:, None] * camera_rows[:, row].T)
@@ -878,9 +888,8 @@ class _Problem:
         if nx:
             gx = gx.ravel()
             if self.Lam is not None:
-                d, sc, Rs = self.shape_deviation(s.X)
-                gx += (self.sig2 / sc) * ((self.Lam.matvec(d.ravel())).reshape(n, 3)
-                                          @ Rs.T).ravel()
+                prior_gx, sc, Rs = self.prior_gradient(s)
+                gx += prior_gx
                 U[nc:, nc:] = (self.sig2 / sc**2) * self.Lam.rotated(Rs, self.free_idx)
             U.ravel()[self.ux_dst] += Uxx.ravel()[self.ux_src]
             f = self.free_idx
@@ -1857,7 +1866,10 @@ def _camera_sigmas(prob: _Problem, state: _State, normal, cov: _Covariances,
                            groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
                            lambda: prob.camera_deletions(state, *normal[:3], groups),
                            prob.camera_noise_share(state, normal[1], normal[2], cov.Sinv,
-                                                   groups, prior), prob.pi)
+                                                   groups, prior), prob.pi,
+                           None if cov.Urf is None else prob.camera_influence(
+                               state, normal[1], normal[2], cov.Sinv[:prob.nc],
+                               hold_points=True))
     noise_model = dict(zip(names, camera_sd[:len(names)].tolist(), strict=True))
     posterior = dict(zip(names, cov.camera_sd(cam_map, "posterior")[:len(names)].tolist(),
                          strict=True))

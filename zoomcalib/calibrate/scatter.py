@@ -447,7 +447,8 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
                  names: tuple[str, ...], model_sd: np.ndarray,
                  deletions: Callable[[], np.ndarray | None] | None = None,
                  null_share: np.ndarray | None = None,
-                 point_idx: np.ndarray | None = None) -> ViewScatter:
+                 point_idx: np.ndarray | None = None,
+                 point_influence: np.ndarray | None = None) -> ViewScatter:
     """The view-scatter check (module docstring) from each corner's influence.
 
     Parameters
@@ -474,6 +475,13 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
         The board point of each corner (one index per physical point, shared by every view
         and step that sees it): errors a point carries across views are then checked too
         (module docstring, "Errors a board point carries"; :func:`board_point_scatter`).
+    point_influence : (N, k) ndarray, optional
+        The influences the board points are checked with, where they differ from
+        ``influence``: a fit that refines the board points under a shape prior passes each
+        corner's share with its own point's coordinates held (``a_i`` less
+        ``S^-1[q, x_p] J_x,i^T r_i``). Its residuals keep only the part of a point's error the
+        point did not absorb, and this is the camera's response to that part; with the point's
+        term in, the point would be counted as absorbing it twice.
     """
     a = np.asarray(influence, dtype=float)
     model_sd = np.asarray(model_sd, dtype=float)
@@ -506,7 +514,9 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
              and (check.significant.any() or check.fit_significant) else None)
     jackknife = _jackknife_factor(moves, view_idx, n_views, model_sd)
     points = ({} if point_idx is None or not CHECK_BOARD_POINTS else
-              dict(zip(POINT_FIELDS, board_point_scatter(a, point_idx, model_sd), strict=True)))
+              dict(zip(POINT_FIELDS, board_point_scatter(
+                  a if point_influence is None else np.asarray(point_influence, dtype=float),
+                  point_idx, model_sd), strict=True)))
     return ViewScatter(factor=np.where(ok, np.where(np.isfinite(jackknife), jackknife,
                                                     test_factor), np.nan),
                        test_factor=np.where(ok, test_factor, np.nan), views=views,
