@@ -92,7 +92,12 @@ excess ``E = max(V_point - V_corner, 0) / var_model`` on top of its view factor:
 ``sqrt(F^2 + E)`` (:func:`board_point_scatter`). The points are tested like the views:
 ``V_point / V_corner`` against the 99.9 % point of ``chi^2_d / d``, ``d`` the effective
 number of points. A board whose points the fit estimates (the bundle, the zoom-wide
-adjustment's board modes) keeps only what its model of the board does not follow.
+adjustment's board modes) keeps only what its model of the board does not follow. Where each
+point has coordinates of its own under a prior (the bundle), its corners' residuals keep the
+part of its error the point did not absorb, and the points are checked with each corner's
+influence with its own point's coordinates held (``point_influence``): the full influence
+would take that part through the point once more and count about half of what the prior
+leaves in the camera.
 
 "Views" are independent draws only if they are different views. Frames of a video where the
 board hardly moved see it through the same part of the lens and share their systematic errors;
