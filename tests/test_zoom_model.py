@@ -244,6 +244,27 @@ def test_a_path_the_steps_cannot_resolve_widens_the_sigma_and_is_flagged(rng):
     np.testing.assert_allclose(back.predict(4.0)["sd_cx"], m.predict(4.0)["sd_cx"], rtol=1e-12)
 
 
+def test_a_flagged_curve_reaches_the_files_and_the_report(tmp_path):
+    # The calibrate run's zoom model (run._zoom_model) on table rows whose cx wiggles more
+    # than 7 steps can follow (the path of the test above, no noise): zoom_model.json lists
+    # the flag and the report's zoom-range text shows it.
+    from zoomcalib.calibrate.report import _holdout_text
+    from zoomcalib.calibrate.run import CalibrateRun, _zoom_model
+
+    t = np.linspace(0.0, 1.0, 7)
+    cx = 640.0 + 20.0 * t + 5.0 * np.sin(2.0 * np.pi * 2.3 * t)
+    rows = [{"step": f"s{i}", "zoom": 1.0 + 6.0 * t[i], "fx": 1000.0 * (1.0 + t[i]),
+             "fy": 1000.0 * (1.0 + t[i]), "cx": cx[i], "cy": 360.0 + 2.0 * t[i],
+             "sd_fx": 1.0, "sd_fy": 1.0, "sd_cx": 0.2, "sd_cy": 0.2} for i in range(7)]
+    run = CalibrateRun()
+    _zoom_model(run, rows, tmp_path, lambda message: None)
+    doc = json.loads((tmp_path / "zoom_model.json").read_text())
+    assert [f.split(":")[0] for f in doc["flags"]] == ["cx"]
+    assert doc["model"]["params"]["cx"]["misfit_flagged"] is True
+    assert doc["model"]["params"]["cx"]["misfit"] > 1.0      # px: the wiggle is 5 px
+    assert "cx: held-out steps miss the curve" in _holdout_text(run)
+
+
 def test_a_smooth_path_gets_no_misfit_flag(rng):
     # The null: a quadratic path with 0.5 px of noise per step and 9 steps. Over these 40
     # tables the held-out test flags none (p < 0.001 each: 0.04 expected). A misfit is
