@@ -300,3 +300,47 @@ def test_calibrate_refuses_a_camera_name_ros_would_not_accept(tmp_path):
     assert res.exit_code == 2
     assert "'zoom cam': ROS camera names are letters, digits and _" in res.output
     assert not (tmp_path / "o").exists()
+
+
+def test_an_unusable_step_is_listed_but_not_exported_as_a_camera(tmp_path):
+    from zoomcalib.calibrate.status import sensor_aspect, step_status
+
+    rng = np.random.default_rng(13)
+    run = CalibrateRun(stems=step_file_stems(["1x", "5x", "9x"]))
+    for i, step in enumerate(("1x", "5x", "9x")):
+        res = _made_up_result(rng, "zoom-wide", 5)
+        res.dist[:] = 0.0
+        res.info["converged"] = True
+        run.results[step] = {"zoom-wide": res}
+        run.observations[step] = Observations(np.zeros((1, 3)), [], SIZE)
+        run.zoom[step] = float(1 + 4 * i)
+        run.table_backend[step] = "zoom-wide"
+    hidden = str(rng.choice(["5x", "9x"]))  # which step leaves the image: not told below
+    run.results[hidden]["zoom-wide"].K[1, 2] = -float(rng.uniform(100, 600))
+    table = {s: r["zoom-wide"] for s, r in run.results.items()}
+    aspect = sensor_aspect(table)
+    run.status = {s: step_status(r, SIZE, aspect) for s, r in table.items()}
+    files = write_exports(tmp_path, run, "cam", log=lambda m: None)
+    index = yaml.safe_load((tmp_path / "ros" / "camera_info_index.yaml").read_text())
+    by_step = {e["step"]: e for e in index["steps"]}
+    assert set(by_step) == {"1x", "5x", "9x"}
+    for step, e in by_step.items():
+        stem = run.stems[step]
+        mrcal = tmp_path / "mrcal" / f"{stem}.cameramodel"
+        if step == hidden:
+            assert e["status"] == "unusable" and e["file"] is None
+            assert any("outside the" in r for r in e["reasons"])
+            assert not mrcal.exists() and not list((tmp_path / "ros").glob(f"{stem}_*"))
+        else:
+            assert e["status"] == "ok" and (tmp_path / "ros" / e["file"]) in files
+            assert "# status: ok" in (tmp_path / "ros" / e["file"]).read_text()
+            assert "# status: ok" in mrcal.read_text()
+        fs = cv2.FileStorage(str(tmp_path / "opencv" / f"{stem}_zoom_wide.yml"),
+                             cv2.FILE_STORAGE_READ)
+        try:
+            assert fs.getNode("status").string() == e["status"]
+            node = fs.getNode("status_reasons")
+            reasons = [node.at(i).string() for i in range(node.size())]
+            assert bool(reasons) == (step == hidden)
+        finally:
+            fs.release()

@@ -718,6 +718,18 @@ def _print_calibration(run) -> None:
                            f"({r.info.get('stop_reason', 'no reason reported')})")
     for step, reasons in run.flags.items():
         click.echo(f"FLAGGED step {step}: " + "; ".join(reasons))
+    _print_status(run)
+
+
+def _print_status(run) -> None:
+    """Each step's status, and for the others than ``ok`` the reasons and what to do."""
+    if not run.status:
+        return
+    click.echo("status: " + ", ".join(f"{s} {st.status}" for s, st in run.status.items()))
+    for step, st in run.status.items():
+        if st.status != "ok":
+            click.echo(f"{st.status.upper()} step {step}: " + "; ".join(st.reasons))
+            click.echo("  to do: " + "; ".join(st.remedies))
 
 
 @main.command(epilog=EXIT_CODES)

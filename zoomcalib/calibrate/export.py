@@ -10,7 +10,9 @@ in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``, 5 terms (standard model)
     Nx1, ``avg_reprojection_error``, ``nr_of_frames``, ``per_view_reprojection_errors``) and
     ours: ``step``, ``zoom`` (absent when unknown), ``backend``, ``mode``, ``lens_model``,
     ``sigmas`` (1-sigma by parameter name), ``sd_kind``, ``converged`` (0/1) and
-    ``quality_flags`` (the reasons the step's zoom-table row is flagged; empty when none).
+    ``quality_flags`` (the reasons the step's zoom-table row is flagged; empty when none);
+    the zoom table's backend's file also ``status`` (``ok``, ``imprecise``, ``unusable``:
+    :mod:`zoomcalib.calibrate.status`), ``status_reasons`` and ``status_remedies``.
 ``ros/<stem>_zoom_<zoom>.yaml`` and ``ros/camera_info_index.yaml``
     One ROS ``camera_info`` calibration YAML per step (the zoom table's backend), as
     ``camera_calibration_parsers`` reads them: ``camera_name``, ``image_width``,
@@ -18,10 +20,11 @@ in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``, 5 terms (standard model)
     ``rational_polynomial`` for 8), ``distortion_coefficients`` (D), ``rectification_matrix``
     (R = I, a monocular camera) and ``projection_matrix`` (P = [K | 0]: the rectified image
     keeps the camera's intrinsics); matrices as ``{rows, cols, data}``, data row-major. The
-    index lists the files sorted by zoom (``steps: [{zoom, step, file}, ...]``; steps of
-    unknown zoom last, with ``zoom: null``).
+    index lists the files sorted by zoom (``steps: [{zoom, step, file, status}, ...]``; steps
+    of unknown zoom last, with ``zoom: null``). An ``unusable`` step has no file
+    (``file: null``) and its ``reasons``; the other files say their status in a comment.
 ``mrcal/<stem>.cameramodel``
-    One mrcal camera model per step (the zoom table's backend): a Python-literal dict with
+    One mrcal camera model per usable step (the zoom table's backend): a Python-literal dict with
     ``#`` comments, ``lensmodel`` ``LENSMODEL_OPENCV5`` or ``LENSMODEL_OPENCV8``, ``intrinsics``
     ``[fx, fy, cx, cy, k1, k2, p1, p2, k3(, k4, k5, k6)]``, ``extrinsics`` at identity
     (``rt_fromref`` = 0: the camera is the reference frame) and ``imagersize`` ``[w, h]``.
@@ -108,7 +111,7 @@ def _zoom_text(zoom: float) -> str:
 
 def write_opencv_yaml(path: str | os.PathLike, res: CalibrationResult,
                       image_size: tuple[int, int], step: str, zoom: float | None = None,
-                      quality_flags: Sequence[str] = ()) -> Path:
+                      quality_flags: Sequence[str] = (), status=None) -> Path:
     """Write one result as an OpenCV FileStorage YAML with the calibration sample's names.
 
     Parameters
@@ -124,6 +127,9 @@ def write_opencv_yaml(path: str | os.PathLike, res: CalibrationResult,
         Written as ``zoom`` when known.
     quality_flags : sequence of str
         Why the step's zoom-table row is not to be trusted.
+    status : StepStatus, optional
+        The step's status (:mod:`zoomcalib.calibrate.status`), written as ``status``,
+        ``status_reasons`` and ``status_remedies`` (the zoom table's result only).
 
     Returns
     -------
@@ -147,6 +153,8 @@ def write_opencv_yaml(path: str | os.PathLike, res: CalibrationResult,
         if per_view.size:
             fs.write("per_view_reprojection_errors", per_view)
         _write_opencv_extras(fs, res, step, zoom, quality_flags, len(dist))
+        if status is not None:
+            _write_status(fs, status)
     finally:
         fs.release()
     os.replace(tmp, path)
@@ -171,6 +179,15 @@ def _write_opencv_extras(fs: cv2.FileStorage, res: CalibrationResult, step: str,
     for reason in quality_flags:
         fs.write("", str(reason))
     fs.endWriteStruct()
+
+
+def _write_status(fs: cv2.FileStorage, status) -> None:
+    fs.write("status", str(status.status))
+    for key, lines in (("status_reasons", status.reasons), ("status_remedies", status.remedies)):
+        fs.startWriteStruct(key, cv2.FileNode_SEQ)
+        for line in lines:
+            fs.write("", str(line))
+        fs.endWriteStruct()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -230,15 +247,21 @@ def write_ros_camera_info(path: str | os.PathLike, info: Mapping,
 def write_ros_index(path: str | os.PathLike, camera_name: str,
                     entries: Sequence[Mapping]) -> Path:
     """Write ``ros/camera_info_index.yaml``: ``camera_name`` and ``steps``, the entries
-    (``zoom`` (None when unknown), ``step``, ``file`` relative to the index) sorted by zoom,
+    (``zoom`` (None when unknown), ``step``, ``file`` relative to the index, None for an
+    unusable step, ``status``, and for an unusable step its ``reasons``) sorted by zoom,
     unknown zooms last."""
     ordered = sorted(entries, key=lambda e: (e["zoom"] is None, e["zoom"] or 0.0))
     doc = {"camera_name": str(camera_name),
            "steps": [{"zoom": None if e["zoom"] is None else float(e["zoom"]),
-                      "step": str(e["step"]), "file": str(e["file"])} for e in ordered]}
+                      "step": str(e["step"]),
+                      "file": None if e.get("file") is None else str(e["file"]),
+                      "status": str(e.get("status", "ok"))}
+                     | ({"reasons": [str(r) for r in e["reasons"]]} if e.get("reasons") else {})
+                     for e in ordered]}
     notes = ["ROS camera_info files of one zoom camera, one per calibrated zoom step, sorted",
              "by zoom: for a zoom between two entries, interpolate the parameters of the two",
-             "files around it (docs/commands.md, 'Exports')."]
+             "files around it (docs/commands.md, 'Exports'). A step whose status is",
+             "'unusable' has no file (file: null); 'imprecise' ones are to be used with care."]
     _atomic_write(Path(path), _comment(notes) + yaml.safe_dump(
         doc, sort_keys=False, default_flow_style=None, allow_unicode=True, width=1000))
     return Path(path)
@@ -315,29 +338,41 @@ def write_zoom_model_grid(path: str | os.PathLike, model: ZoomModel,
 # the calibrate job's exports
 
 
-def _notes(step: str, zoom: float | None, res: CalibrationResult) -> list[str]:
+def _notes(step: str, zoom: float | None, res: CalibrationResult, status=None) -> list[str]:
     sd = ", ".join(f"{k} {v:.4g}" for k, v in res.sd.items() if k in ("fx", "fy", "cx", "cy"))
-    return [f"zoomcalib calibration of step {json.dumps(step, ensure_ascii=False)}, zoom "
-            f"{'unknown' if zoom is None else repr(float(zoom))}, backend {res.backend}, "
-            f"rms {res.rms_px:.4g} px",
-            f"1-sigma ({res.info.get('sd_kind', 'unstated')}): {sd}"]
+    notes = [f"zoomcalib calibration of step {json.dumps(step, ensure_ascii=False)}, zoom "
+             f"{'unknown' if zoom is None else repr(float(zoom))}, backend {res.backend}, "
+             f"rms {res.rms_px:.4g} px",
+             f"1-sigma ({res.info.get('sd_kind', 'unstated')}): {sd}"]
+    if status is not None:
+        notes.append(f"status: {status.summary()}")
+    return notes
 
 
 def _export_step(out: Path, run: CalibrateRun, step: str, camera_name: str,
                  ros_entries: list[dict]) -> list[Path]:
-    """The OpenCV files (every backend), the ROS file and the mrcal model of one step."""
+    """The OpenCV files (every backend), the ROS file and the mrcal model of one step; an
+    unusable step (:mod:`zoomcalib.calibrate.status`) gets its OpenCV files, which carry the
+    status, and an entry without a file in the ROS index, but no ROS or mrcal file."""
     stem, size = run.stems[step], run.observations[step].image_size
     zoom = run.zoom.get(step)
     zoom = None if zoom is None or not np.isfinite(zoom) else float(zoom)
+    status = run.status.get(step)
     files = [write_opencv_yaml(out / "opencv" / f"{stem}_{_safe_name(b)}.yml", res, size, step,
-                               zoom, run.flags.get(step, []))
+                               zoom, run.flags.get(step, []),
+                               status if b == run.table_backend[step] else None)
              for b, res in run.results[step].items()]
+    entry = {"zoom": zoom, "step": step, "file": None,
+             "status": "ok" if status is None else status.status}
+    if status is not None and not status.usable:
+        ros_entries.append(entry | {"reasons": list(status.reasons)})
+        return files
     best = run.results[step][run.table_backend[step]]
-    notes = _notes(step, zoom, best)
+    notes = _notes(step, zoom, best, status)
     name = f"{stem}.yaml" if zoom is None else f"{stem}_zoom_{_zoom_text(zoom)}.yaml"
     info = ros_camera_info(best.K, best.dist, size, camera_name)
     files.append(write_ros_camera_info(out / "ros" / name, info, notes))
-    ros_entries.append({"zoom": zoom, "step": step, "file": name})
+    ros_entries.append(entry | {"file": name})
     files.append(write_mrcal_model(out / "mrcal" / f"{stem}.cameramodel", best.K, best.dist,
                                    size, notes))
     return files

@@ -105,13 +105,15 @@ ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
 #: Columns written after those when any row knows them.
 ZOOM_TABLE_OPTIONAL: tuple[str, ...] = (
     "direction", "sequence", "focus", "temperature", "backend", "mode", "converged", "flags",
+    "status", "status_reasons",
     "k4", "k5", "k6",
     "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6",
     *KEYSTONE_COLUMNS)
 #: Columns :func:`read_zoom_table` cannot do without.
 ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
 
-_TEXT_COLUMNS = ("step", "direction", "backend", "mode", "converged", "flags")
+_TEXT_COLUMNS = ("step", "direction", "backend", "mode", "converged", "flags", "status",
+                 "status_reasons")
 _INT_COLUMNS = ("n_views", "sequence")
 
 

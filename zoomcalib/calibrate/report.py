@@ -119,15 +119,26 @@ def _summary(run: CalibrateRun, steps: list[str]) -> str:
         r = run.results[s][run.table_backend[s]]
         flags = run.flags.get(s, [])
         zoom = run.zoom.get(s)
+        st = run.status.get(s)
+        status = "" if st is None else (
+            f"<td class='text {'ok' if st.status == 'ok' else 'bad'}'><b>{_e(st.status)}</b>"
+            + (f"<details><summary>why, what to do</summary>{_e('; '.join(st.reasons))}. "
+               f"<i>To do:</i> {_e('; '.join(st.remedies))}</details>" if st.reasons else "")
+            + "</td>")
         rows.append(
             f"<tr><td class='text'><a href='#step-{_e(run.stems[s])}'>{_e(s)}</a></td>"
             f"<td>{'' if zoom is None else f'{zoom:g}'}</td><td class='text'>{_e(r.backend)}</td>"
-            f"<td>{r.fx:.2f}</td><td>{r.cx:.2f} &plusmn; {r.sd.get('cx', np.nan):.2f}</td>"
+            + status +
+            f"<td>{r.fx:.2f} &plusmn; {r.sd.get('fx', np.nan):.2f}</td>"
+            f"<td>{r.fy:.2f} &plusmn; {r.sd.get('fy', np.nan):.2f}</td>"
+            f"<td>{r.cx:.2f} &plusmn; {r.sd.get('cx', np.nan):.2f}</td>"
             f"<td>{r.cy:.2f} &plusmn; {r.sd.get('cy', np.nan):.2f}</td><td>{r.rms_px:.3f}</td>"
             f"<td>{len(r.per_view_rms_px)}</td>"
             f"<td class='text {'bad' if flags else 'ok'}'>{_e('; '.join(flags) or 'none')}</td>"
             "</tr>")
-    return ("<table><tr><th>step</th><th>zoom</th><th>backend</th><th>fx [px]</th>"
+    head = "<th>status</th>" if run.status else ""
+    return ("<table><tr><th>step</th><th>zoom</th><th>backend</th>" + head +
+            "<th>fx [px]</th><th>fy [px]</th>"
             "<th>cx [px]</th><th>cy [px]</th><th>RMS [px]</th><th>views</th><th>flags</th></tr>"
             + "".join(rows) + "</table>")
 

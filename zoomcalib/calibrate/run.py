@@ -63,6 +63,7 @@ from .opencv_backend import (
 )
 from .result import DIST_NAMES, CalibrationResult, Observations
 from .scatter import pooled_over_steps
+from .status import StepStatus, sensor_aspect, step_status
 
 __all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "step_file_stems", "BACKENDS"]
 
@@ -84,7 +85,9 @@ class CalibrateRun:
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
     step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
     ``skipped_images`` the one-line errors of the images whose detection failed, per step;
-    ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``).
+    ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``);
+    ``status`` each step's :class:`~zoomcalib.calibrate.status.StepStatus` (``ok``,
+    ``imprecise``, ``unusable``, with reasons and remedies).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -106,6 +109,12 @@ class CalibrateRun:
     flags: dict[str, list[str]] = field(default_factory=dict)
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
+    status: dict[str, StepStatus] = field(default_factory=dict)
+
+    def usable_steps(self) -> list[str]:
+        """The calibrated steps whose status is not ``unusable``."""
+        return [s for s in self.results
+                if s not in self.status or self.status[s].usable]
 
     @property
     def partial(self) -> bool:
@@ -302,9 +311,16 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target, pp_model)
     run.flags = _step_flags(run)
+    run.status = _step_statuses(run)
+    for step, st in run.status.items():
+        if not st.usable:
+            log(f"step {step}: unusable ({'; '.join(st.reasons)}): kept in the table and "
+                "calibration.json with its status, not exported and not in the zoom model")
     rows = [_table_row(step, run.zoom[step], extras_of[step],
                        run.results[step][run.table_backend[step]]) | {
-                           "flags": "; ".join(run.flags.get(step, []))}
+                           "flags": "; ".join(run.flags.get(step, [])),
+                           "status": run.status[step].status,
+                           "status_reasons": "; ".join(run.status[step].reasons)}
             for step in run.results]
 
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
@@ -315,7 +331,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
     if zoom_set and rows:
         run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
-        _zoom_model(run, rows, out, log)
+        _zoom_model(run, [r for r in rows if r["status"] != "unusable"], out, log)
     if run.results:
         run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
                                    log)
@@ -378,7 +394,8 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
         "detections": {s: {k: v for k, v in p.items() if k != "images"}
                        for s, p in provenance.items()},
         "left_out": run.left_out, "ignored_images": run.ignored,
-        "table_backend": run.table_backend, "flags": run.flags}
+        "table_backend": run.table_backend, "flags": run.flags,
+        "status": {s: st.to_dict() for s, st in run.status.items()}}
     if run.cross_validation is not None:
         meta["cross_validation"] = run.cross_validation.to_dict()
     if run.zoom_wide is not None:
@@ -580,6 +597,21 @@ def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
         if reasons:
             flags[step] = reasons
     return flags
+
+
+def _step_statuses(run: CalibrateRun) -> dict[str, StepStatus]:
+    """Each calibrated step's status (:func:`~zoomcalib.calibrate.status.step_status`): the
+    sensor's aspect ratio from every table row, and for zoom-wide rows the step's own per-step
+    OpenCV result as the reference a joint shift is measured against."""
+    table = {s: run.results[s][run.table_backend[s]] for s in run.results}
+    aspect = sensor_aspect(table) if len(table) > 1 else None
+    cv = run.cross_validation
+    out = {}
+    for step, res in table.items():
+        own = run.results[step].get("opencv") if res.backend == "zoom-wide" else None
+        out[step] = step_status(res, run.observations[step].image_size, aspect, own,
+                                cv.z.get(step) if cv is not None else None)
+    return out
 
 
 def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, str]:
