@@ -35,12 +35,14 @@ SIZE = (1280, 720)
 
 def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
                        pattern="chessboard:22x15:20", fx_range=(2300.0, 23000.0),
-                       shift_odd_cx=0.0, pp=None, dist=None, dist_centre=(0.0, 0.0)):
+                       shift_odd_cx=0.0, pp=None, dist=None, dist_centre=(0.0, 0.0),
+                       aspect=1.0):
     """A zoom sweep's detections and its truth (see the module docstring); ``pp(u)`` (steps, 2)
     px replaces the principal-point path, ``u = log(fx / fx_0)``, and ``dist(u)`` (5,) the
     distortion, centred ``dist_centre`` px from the principal point (OpenCV's model about a
     principal point moved by it, seen along rays shifted by ``-dist_centre / fx``). The views'
-    tilt follows the focal length (35 deg at 2300 px, near 3 deg at the long end)."""
+    tilt follows the focal length (35 deg at 2300 px, near 3 deg at the long end); the pixels'
+    aspect ratio ``fy / fx`` is ``aspect`` at every step."""
     target = parse_pattern(pattern)
     X0 = target.object_points.astype(float)
     centre = X0.mean(axis=0)
@@ -68,7 +70,7 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
         vlist = []
         for v in range(views):
             K = np.array([[fx[s], 0, cx + (shift_odd_cx if v % 2 else 0.0)],
-                          [0, fx[s], cy], [0, 0, 1]])
+                          [0, fx[s] * aspect, cy], [0, 0, 1]])
             ang = np.deg2rad([*rng.uniform(-tilt, tilt, 2), rng.uniform(-10, 10)])
             R = cv2.Rodrigues(ang)[0]
             t = np.array([*rng.uniform(-15, 15, 2), fx[s] * 0.5 * rng.uniform(1.15, 1.4)])
@@ -507,3 +509,20 @@ def test_a_lens_model_choice_that_widens_a_sigma_is_flagged():
         failed | {"weight": 0.7}, {})[0]
     assert _model_choice_flags(failed | {"weight": 0.3}, {}) == []
     assert _model_choice_flags(None, {}) == []
+
+
+def test_one_aspect_ratio_is_estimated_for_every_step():
+    # a sensor of non-square pixels, the same at every step (drawn, not told to the fit)
+    rng = np.random.default_rng(8)
+    aspect = 1.0 + rng.uniform(0.01, 0.04) * rng.choice([-1, 1])
+    obs, truth, _ = sweep_observations(rng, steps=6, views=10, aspect=aspect)
+    zw = calibrate_zoom_wide(obs)
+    z = (zw.aspect - aspect) / zw.aspect_sd
+    assert abs(z) < 4, (zw.aspect, aspect, zw.aspect_sd)
+    assert 0 < zw.aspect_sd < 2e-4
+    for name, r in zw.results.items():
+        assert r.fy / r.fx == pytest.approx(zw.aspect, rel=1e-12)
+        assert "fy" not in r.info["fixed"] and r.info["aspect_shared"]
+        # fy's sigma carries fx's and the aspect's
+        assert r.sd["fy"] >= 0.99 * zw.aspect * r.sd["fx"]
+        assert abs(r.fy / (truth[name]["fx"] * aspect) - 1) < 0.003

@@ -46,8 +46,12 @@ then marginalised (:func:`~zoomcalib.calibrate.zoommodel.marginal_tau`): the adj
 its posterior median (REML likelihood, half-Cauchy prior at the noise's own roughness), and
 the covariance of each step's cx, cy gains what the spread of ``tau``'s posterior moves them by.
 With 7 steps REML has 4-5 differences to go on and can sit at its lower bound on a path whose
-long-end bend the noise hides; the plug-in sigma then misses. ``fx`` and ``fy`` are
-free per step. Steps reached from different zoom directions (backlash) form separate chains,
+long-end bend the noise hides; the plug-in sigma then misses. ``fx`` is
+free per step; ``fy = a fx`` with one aspect ratio ``a`` for every step (``shared_aspect``):
+pixels do not change shape with the zoom, and a long-end step's own views, nearly
+fronto-parallel, trade ``fy / fx`` against the principal point and the poses (1.17 on a real
+PTZ camera's 9x step). OpenCV's pinhole has no skew, so that is shared at zero. Steps
+reached from different zoom directions (backlash) form separate chains,
 and neighbours closer than 0.1 % in focal length are not differenced: a lens state met twice
 is two measurements, not a curvature.
 
@@ -430,16 +434,20 @@ class _Step:
 @dataclass
 class _State:
     """Unknowns: ``cams`` (S, 12) in ``PARAMS`` order, ``modes`` (M,) mm, ``rvecs``/``tvecs``
-    (V, 3) for the views of all steps, step after step."""
+    (V, 3) for the views of all steps, step after step; ``aspect`` the sensor's ``fy / fx``
+    shared by every step (NaN: each step has its own ``fy``; when shared, ``cams[:, 1]`` is
+    kept at ``aspect * cams[:, 0]``)."""
 
     cams: np.ndarray
     modes: np.ndarray
     rvecs: np.ndarray
     tvecs: np.ndarray
+    aspect: float = float("nan")
 
     def vector(self, free: np.ndarray) -> np.ndarray:
         """The unknowns in column order (``free`` (S, 12) selects the free intrinsics)."""
-        return np.concatenate([self.cams[free], self.modes,
+        shared = [] if np.isnan(self.aspect) else [self.aspect]
+        return np.concatenate([self.cams[free], self.modes, shared,
                                np.column_stack([self.rvecs, self.tvecs]).ravel()])
 
 
@@ -473,15 +481,16 @@ class _ZoomProblem:
     """Residuals and sparse Jacobian of the zoom-wide cost (module docstring).
 
     Columns: the free intrinsics of every step (``free`` (S, 12) bool), then the board modes,
-    then six pose columns per view. Rows: two per inlier observation (scaled by ``1/sigma_s``),
-    then the smoothness rows ``D q / tau_q``, then ``a / board_prior``.
+    then the shared aspect ratio (``shared_aspect``; ``fy`` is then not free at any step),
+    then six pose columns per view (from ``n_glob``). Rows: two per inlier observation
+    (scaled by ``1/sigma_s``), then the smoothness rows ``D q / tau_q``, then ``a / board_prior``.
     """
 
     def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
                  free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                  tau: dict[str, float],
                  board_prior_mm: float, order: dict[str, int] | None = None,
-                 forms: dict[str, _Form] | None = None):
+                 forms: dict[str, _Form] | None = None, shared_aspect: bool = False):
         self.steps, self.board, self.phi = steps, board, modes_basis
         self.free, self.chains, self.u, self.tau = free, chains, u, tau
         self.order, self.forms = order or {}, forms or {}
@@ -490,8 +499,11 @@ class _ZoomProblem:
         self.cam_col[free] = np.arange(int(free.sum()))
         self.n_cam = int(free.sum())
         self.n_modes = modes_basis.shape[1]
+        self.shared_aspect = shared_aspect
+        self.aspect_col = self.n_cam + self.n_modes if shared_aspect else -1
+        self.n_glob = self.n_cam + self.n_modes + int(shared_aspect)
         self.view_start = np.cumsum([0] + [s.n_views for s in steps])
-        self.n_unknowns = self.n_cam + self.n_modes + 6 * int(self.view_start[-1])
+        self.n_unknowns = self.n_glob + 6 * int(self.view_start[-1])
         self.prior_rows = self._prior_rows()
 
     def _prior_rows(self) -> scipy.sparse.csr_matrix:
@@ -537,7 +549,7 @@ class _ZoomProblem:
             uv = out[0] if jacobian else out
             res.append(((uv - step.uv[sel]) / step.sigma).ravel())
             if jacobian:
-                self._jacobian_entries(s, step, out[1:], row0, rows, cols, vals)
+                self._jacobian_entries(s, step, out[1:], row0, rows, cols, vals, state)
             row0 += 2 * int(sel.sum())
         r = np.concatenate(res)
         x = state.vector(self.free)
@@ -549,16 +561,22 @@ class _ZoomProblem:
                                      np.concatenate(cols))), shape=(row0, self.n_unknowns))
         return r, scipy.sparse.vstack([J, self.prior_rows], format="csr")
 
-    def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals):
+    def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals, state: _State):
         Jc, Jp, Jx = jac
         sel = step.inlier
         n = int(sel.sum())
         row = row0 + np.arange(2 * n).reshape(n, 2)
         w = 1.0 / step.sigma
         free = np.flatnonzero(self.free[s])
-        pose_col = (self.n_cam + self.n_modes + 6 * (self.view_start[s] + step.view[sel]))
+        pose_col = self.n_glob + 6 * (self.view_start[s] + step.view[sel])
+        if self.shared_aspect:  # fy = aspect fx: fx moves fy too; the aspect column
+            Jc = Jc.copy()
+            Jc[:, :, 0] += state.aspect * Jc[:, :, 1]
         blocks = [(Jc[:, :, free], np.broadcast_to(self.cam_col[s, free], (n, len(free)))),
                   (Jp, pose_col[:, None] + np.arange(6))]
+        if self.shared_aspect:
+            blocks.append((state.cams[s, 0] * Jc[:, :, 1:2],
+                           np.full((n, 1), self.aspect_col)))
         if self.n_modes:
             blocks.append((Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :],
                            np.broadcast_to(self.n_cam + np.arange(self.n_modes),
@@ -573,8 +591,13 @@ class _ZoomProblem:
         cams = state.cams.copy()
         cams[self.free] += delta[:self.n_cam]
         modes = state.modes + delta[self.n_cam:self.n_cam + self.n_modes]
-        pose = delta[self.n_cam + self.n_modes:].reshape(-1, 6)
-        return _State(cams, modes, state.rvecs + pose[:, :3], state.tvecs + pose[:, 3:])
+        aspect = state.aspect
+        if self.shared_aspect:
+            aspect = float(aspect + delta[self.aspect_col])
+            cams[:, 1] = aspect * cams[:, 0]
+        pose = delta[self.n_glob:].reshape(-1, 6)
+        return _State(cams, modes, state.rvecs + pose[:, :3], state.tvecs + pose[:, 3:],
+                      aspect)
 
 
 @dataclass
@@ -590,7 +613,7 @@ def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
     """``J^T J`` split into the global block ``U`` (intrinsics and board, dense), the coupling
     ``W`` (global x poses, dense) and the per-view 6 x 6 pose blocks ``V`` (views, 6, 6); and
     ``J^T r`` split likewise."""
-    n_glob = prob.n_cam + prob.n_modes
+    n_glob = prob.n_glob
     A = (J.T @ J).tocsr()
     g = J.T @ r
     V = scipy.sparse.bsr_matrix(A[n_glob:, n_glob:], blocksize=(6, 6))
@@ -691,6 +714,9 @@ class ZoomWideResult:
     iterations : int
     skipped : dict of str to str
         Steps left out (no starting calibration), with the reason.
+    aspect, aspect_sd : float
+        The sensor's aspect ratio ``fy / fx`` shared by every step, and its posterior 1-sigma
+        (NaN when each step has its own ``fy``).
     """
 
     results: dict[str, CalibrationResult]
@@ -707,6 +733,8 @@ class ZoomWideResult:
     skipped: dict[str, str] = field(default_factory=dict)
     tau_source: str = ""
     zoom_models: dict[str, dict] = field(default_factory=dict)
+    aspect: float = float("nan")
+    aspect_sd: float = float("nan")
 
 
 def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool):
@@ -896,7 +924,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
                         pp_model: str = "angle2",
                         prior_strength: Mapping[str, float] | None = None,
-                        decentring: bool = True) -> ZoomWideResult:
+                        decentring: bool = True, shared_aspect: bool = True
+                        ) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -932,6 +961,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         same lens), used as it is instead of being estimated; units of the prior: radians per
         ``u^2`` for cx, cy under ``angle2``, px per ``u^2`` under ``prior2``, a fraction of the
         half-diagonal per ``u^2`` for the distortion terms (module docstring).
+    shared_aspect : bool
+        One aspect ratio ``fy / fx`` for every step (the sensor's pixels); False gives each
+        step its own ``fy``.
 
     Returns
     -------
@@ -951,6 +983,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
                          + "; ".join(skipped.values()))
     state, free, sds = _start(init, terms)
+    if shared_aspect:  # started at the median of the steps' own ratios
+        state.aspect = float(np.median(state.cams[:, 1] / state.cams[:, 0]))
+        state.cams[:, 1] = state.aspect * state.cams[:, 0]
+        free[:, 1] = False
     u = np.log(state.cams[:, 0])
     chain_idx = _chains(u, [str((chains or {}).get(n, "")) for n in names])
     phi = (board_height_modes(board, board_degree) if board_degree >= 2
@@ -962,7 +998,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
         return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
-                            order, forms)
+                            order, forms, shared_aspect)
 
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations = _solve_unsmoothed(
@@ -1114,6 +1150,7 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
             observations, init, unsmoothed.points(solve.state.modes), terms, held,
             decentring):
         free = _free_mask(list(init), terms)
+        free[:, 1] = not unsmoothed.shared_aspect
         state = solve.state
         state.cams[:, 4:][~free[:, 4:]] = 0.0
         unsmoothed = problem(free)
@@ -1227,7 +1264,7 @@ def _view_blocks(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.nda
     a view's rows over the intrinsics and board modes, its pose projected out
     (:mod:`zoomcalib.calibrate.scatter`); ``W3`` (n_glob, views, 6). The intrinsics' move
     when a group is left out is ``(S - A_g)^-1 g_g``."""
-    n_glob, n_views = prob.n_cam + prob.n_modes, len(V)
+    n_glob, n_views = prob.n_glob, len(V)
     row_view = np.repeat(_view_rows(prob), 2)
     order = np.argsort(row_view, kind="stable")
     bounds = np.searchsorted(row_view[order], np.arange(n_views + 1))
@@ -1255,7 +1292,7 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
     clustered sum's expectation under the noise model over the posterior variance
     (:func:`~zoomcalib.calibrate.scatter.noise_share`, the smoothness prior part of the noise
     model)."""
-    n_glob = prob.n_cam + prob.n_modes
+    n_glob = prob.n_glob
     n_rows = sum(2 * int(step.inlier.sum()) for step in prob.steps)
     corner = scipy.sparse.csr_matrix((np.ones(n_rows), (np.arange(n_rows) // 2,
                                                          np.arange(n_rows))))
@@ -1301,9 +1338,12 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
         })
     modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
+    aspect_sd = (float(np.sqrt(cov[prob.aspect_col, prob.aspect_col])) if prob.shared_aspect
+                 else float("nan"))
     return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
                           tau, terms, held, solve.converged, solve.stop_reason, iterations,
-                          zoom_models={k: m.to_dict() for k, m in models.items()})
+                          zoom_models={k: m.to_dict() for k, m in models.items()},
+                          aspect=float(state.aspect), aspect_sd=aspect_sd)
 
 
 def _step_scale(prob: _ZoomProblem, s: int, scale: np.ndarray) -> np.ndarray:
@@ -1324,6 +1364,11 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
     dist = dist[:len(reported) - 4]
     sd = {p: float(np.sqrt(cov[cols[j], cols[j]])) if cols[j] >= 0 else 0.0
           for j, p in enumerate(reported)}
+    shared = prob.shared_aspect and cols[0] >= 0
+    if shared:  # fy = a fx: var = a^2 var fx + fx^2 var a + 2 a fx cov(fx, a)
+        i, k, a = cols[0], prob.aspect_col, state.aspect
+        sd["fy"] = float(np.sqrt(max(a * a * cov[i, i] + fx * fx * cov[k, k]
+                                     + 2 * a * fx * cov[i, k], 0.0)))
     cam = state.cams[s]
     uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
                           step.point, jacobian=False)
@@ -1336,7 +1381,9 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
     sub = cov[np.ix_(intr, intr)]
     corr = sub / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))
     info = {"mode": "zoom-wide", "distortion_terms": list(terms[step.name]),
-            "fixed": [p for j, p in enumerate(reported) if cols[j] < 0],
+            "fixed": [p for j, p in enumerate(reported) if cols[j] < 0
+                      and not (shared and p == "fy")],
+            "aspect_shared": bool(shared),
             "noise_sigma_px": step.sigma, "tau": {k: float(v) for k, v in tau.items()},
             "correlation": corr,
             "correlation_names": [PARAMS[j] for j in np.flatnonzero(cols >= 0)],
