@@ -359,13 +359,37 @@ def test_zoom_steps_from_steps_csv(tmp_path):
     for name in ("wide", "mid", "tele"):
         _touch_images(tmp_path / name)
     (tmp_path / "steps.csv").write_text(
-        "step,zoom,direction,sequence,focus,temperature\n"
-        "wide,0.0,in,1,,21.5\nmid,0.5,out,3,0.2,\ntele,1.0,in,2,,\n")
+        "step,zoom,direction,sequence,focus,temperature,session\n"
+        "wide,0.0,in,1,,21.5,\nmid,0.5,out,3,0.2,,day 2\ntele,1.0,in,2,,,\n")
     steps = {s[0]: s for s in zoom_steps(tmp_path)}
     assert steps["mid"][2] == 0.5
     assert steps["mid"][3] == {"zoom_source": "steps.csv", "direction": "out", "sequence": 3,
-                               "focus": 0.2}
+                               "focus": 0.2, "session": "day 2"}
     assert steps["wide"][3]["temperature"] == 21.5
+
+
+def test_board_sessions_from_steps_csv_or_the_capture_dates_in_the_names():
+    from zoomcalib.calibrate.result import Observations
+    from zoomcalib.calibrate.run import CalibrateRun, _board_sessions
+
+    rng = np.random.default_rng(4)
+    days = rng.choice(["20250805", "20250814", "20250819"], size=5)
+    run = CalibrateRun()
+    for i, day in enumerate(days):
+        names = [f"live_ch0_{day}{rng.integers(0, 235959):06d}.png" for _ in range(4)]
+        if i == 2:  # one frame of another day and one without a date
+            names += ["live_ch0_20250701120000.png", "1x_zoom_1.png"]
+        run.observations[f"s{i}"] = Observations(np.zeros((1, 3)), [], (64, 48), names)
+    logged = []
+    got = _board_sessions(run, {s: {} for s in run.observations}, logged.append)
+    assert got == {f"s{i}": f"{d[:4]}-{d[4:6]}-{d[6:]}" for i, d in enumerate(days)}
+    assert "s2 2" in logged[0]
+    # a session column overrides the names; given for some steps only, it is refused
+    given = {s: {"session": "A" if i < 2 else "B"} for i, s in enumerate(run.observations)}
+    assert set(_board_sessions(run, given, logged.append).values()) == {"A", "B"}
+    given["s4"] = {}
+    assert _board_sessions(run, given, logged.append) == {}
+    assert "some steps only" in logged[-1]
 
 
 @pytest.mark.parametrize("text, message", [

@@ -82,6 +82,7 @@ __all__ = [
     "ZOOM_TABLE_COLUMNS",
     "ZOOM_TABLE_OPTIONAL",
     "ZOOM_TABLE_REQUIRED",
+    "capture_date",
     "exif_focal_length",
     "read_calibration",
     "read_zoom_table",
@@ -504,7 +505,12 @@ def _natural_key(name: str):
             for t in re.split(r"(\d+)", name) if t]
 
 
-_STEPS_OPTIONAL = {"direction": str, "sequence": int, "focus": float, "temperature": float}
+_STEPS_OPTIONAL = {"direction": str, "sequence": int, "focus": float, "temperature": float,
+                   "session": str}
+#: A capture date in a file name: ``YYYYMMDD`` (2000-2099), not inside a longer number
+#: (``live_ch0_20250805092246.png``, ``IMG_20250805_092246.jpg``).
+_NAME_DATE = re.compile(r"(?<!\d)(20\d{2})(0[1-9]|1[0-2])(0[1-9]|[12]\d|3[01])"
+                        r"(?=\d{6}(?!\d)|(?!\d))")
 
 
 def _csv_reader(path: Path) -> tuple[csv.DictReader, list[str]]:
@@ -524,7 +530,7 @@ def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
     if missing:
         raise ValueError(f"{path}: missing column{'s' if len(missing) > 1 else ''} "
                          f"{', '.join(missing)} (needs step, zoom; optional direction, sequence, "
-                         "focus, temperature)")
+                         "focus, temperature, session)")
     reader.fieldnames = header
     out: dict[str, tuple[float, dict]] = {}
     for k, raw in enumerate(reader, start=1):
@@ -553,6 +559,9 @@ def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
                     raise ValueError(f"{where}: direction {cell!r} must be 'in' or 'out'")
                 extras[col] = cell.lower()
                 continue
+            if col == "session":
+                extras[col] = cell
+                continue
             try:
                 v = float(cell)
             except ValueError:
@@ -564,6 +573,27 @@ def _read_steps_csv(path: Path) -> dict[str, tuple[float, dict]]:
             extras[col] = v
         out[step] = (zoom, extras)
     return out
+
+
+def capture_date(names: list[str]) -> tuple[str | None, int]:
+    """The capture date most of ``names`` (image file names) carry, ``YYYY-MM-DD``, and how
+    many names carry another date or none; ``(None, len(names))`` when no name has one.
+
+    Examples
+    --------
+    >>> capture_date(["live_ch0_20250805092246.png", "live_ch0_20250805102314.png",
+    ...               "1x_zoom_1.png"])
+    ('2025-08-05', 1)
+    >>> capture_date(["frame_00012345.png"])
+    (None, 1)
+    """
+    dates = [m.group(1) + "-" + m.group(2) + "-" + m.group(3) if m else None
+             for m in (_NAME_DATE.search(n) for n in names)]
+    known = [d for d in dates if d]
+    if not known:
+        return None, len(names)
+    best = max(dict.fromkeys(known), key=known.count)
+    return best, len(names) - known.count(best)
 
 
 def _is_output_folder(folder: Path) -> bool:
@@ -595,7 +625,8 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
       folders skipped): every such subfolder is a step, named after
       the subfolder, in natural name order (``zoom_2`` before ``zoom_10``). Its zoom comes from
       ``DIR/steps.csv`` (columns ``step`` = subfolder name, ``zoom``; optional ``direction``
-      ``in``/``out``, ``sequence``, ``focus``, ``temperature``), else from the one number in the
+      ``in``/``out``, ``sequence``, ``focus``, ``temperature``, ``session``), else from the one
+      number in the
       folder name (``zoom_3x`` -> 3, ``zoom_07`` -> 7), else from the median EXIF FocalLength
       (mm) of its images, else None. Images directly in ``DIR`` are then not calibrated (a
       printed target or a preview next to the steps); :func:`ignored_top_images` lists them.

@@ -52,6 +52,7 @@ from .guards import (
 )
 from .io import (
     KEYSTONE_COLUMNS,
+    capture_date,
     ignored_top_images,
     write_calibration,
     write_zoom_table,
@@ -300,16 +301,17 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         run.results[step] = step_results  # empty: left to the zoom-wide adjustment
         extras_of[step] = extras
     _pool_view_scatter(run, backends)
+    sessions = _board_sessions(run, extras_of, log) if zoom_wide else {}
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
-                                             extras_of.items()}, pp_model)
+                                             extras_of.items()}, pp_model, sessions)
     for step in [s for s, r in run.results.items() if not r]:
         del run.results[step]
         run.backend_failures.pop(step, None)
         run.dropped.append(step)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
-        run.cross_validation = _cross_validate(run, model, target, pp_model)
+        run.cross_validation = _cross_validate(run, model, target, pp_model, sessions)
     run.flags = _step_flags(run)
     run.status = _step_statuses(run)
     for step, st in run.status.items():
@@ -401,9 +403,11 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
     if run.zoom_wide is not None:
         zw = run.zoom_wide
         meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
+                             "aspect": zw.aspect, "aspect_sd": zw.aspect_sd,
                              "iterations": zw.iterations, "tau": zw.tau,
                              "tau_source": zw.tau_source, "zoom_model": zw.zoom_models,
                              "board_modes_mm": zw.board_modes.tolist(),
+                             "board_sessions": zw.board_sessions,
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
                              "skipped": zw.skipped,
@@ -518,8 +522,42 @@ def _pool_view_scatter(run: CalibrateRun, backends: Sequence[str]) -> None:
             run.results[step][backend] = res
 
 
+def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
+                    log: Callable[[str], None]) -> dict[str, str]:
+    """Each step's capture session for the zoom-wide board shape: the ``session`` column of
+    steps.csv where given, else the capture date most of the step's image names carry
+    (:func:`~zoomcalib.calibrate.io.capture_date`); one session when neither tells. Logged
+    when there is more than one."""
+    given = {s: str(e["session"]) for s, e in extras_of.items() if e.get("session")}
+    if given:
+        if len(given) < len(extras_of):
+            log("steps.csv gives a session to some steps only: one board shape for all")
+            return {}
+        source = "steps.csv"
+        sessions = given
+    else:
+        source = "the capture dates in the image names"
+        sessions, odd = {}, {}
+        for step in extras_of:
+            date, others = capture_date(list(run.observations[step].names))
+            if date is None:
+                return {}
+            sessions[step] = date
+            if others:
+                odd[step] = others
+        if odd:
+            log("images of another capture date than most of their step's (modelled with "
+                "their step's board shape): " + ", ".join(f"{s} {n}" for s, n in odd.items()))
+    if len(set(sessions.values())) > 1:
+        log(f"zoom-wide: one board shape per capture session, from {source}: "
+            + "; ".join(f"{lab} ({', '.join(s for s in sessions if sessions[s] == lab)})"
+                        for lab in dict.fromkeys(sessions.values())))
+    return sessions
+
+
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
-               directions: dict[str, str], pp_model: str = "angle2") -> None:
+               directions: dict[str, str], pp_model: str = "angle2",
+               sessions: dict[str, str] | None = None) -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -536,7 +574,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
                if run.results.get(s) else o for s, o in obs.items()}
     try:
-        zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model)
+        zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -555,8 +593,10 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     run.zoom_wide = zw
 
 
-def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2"):
-    """Two-halves check with the backend (and mode) of the zoom table."""
+def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2",
+                    sessions: dict[str, str] | None = None):
+    """Two-halves check with the backend (and mode) of the zoom table (zoom-wide: with the
+    board sessions of the full set)."""
     from .checks import cross_validate
 
     backend = next(iter(run.table_backend.values()))
@@ -564,7 +604,8 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
         from .zoomwide import calibrate_zoom_wide
 
         return cross_validate(run.observations,
-                              lambda o: calibrate_zoom_wide(o, pp_model=pp_model).results,
+                              lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
+                                                            sessions=sessions).results,
                               backend)
 
     def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:

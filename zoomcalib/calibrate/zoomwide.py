@@ -24,6 +24,10 @@ where its held-out views choose them (:func:`select_distortion`); each view ``v`
 the nominal flat points ``X^0`` plus a smooth height (paper waviness) in Legendre products of
 the normalised board coordinates (degree 0 and 1 are left out: a piston and a tilt are a change
 of pose). The amplitudes ``a_m`` (mm) carry a weak zero-mean prior of sd ``board_prior_mm``.
+Steps captured in different sessions (``sessions``: a paper board taped to a wall is re-taped,
+and bends otherwise, each time) each have their session's amplitudes; the steps of one
+session share them. On a real PTZ sweep of four capture days, one shape for all moved the
+first day's 1x step by 9 of its own sigmas in fx (docs/calibration.md).
 
 The smoothness prior ties each parameter ``q`` of ``cx, cy, k1, k2, p1, p2, k3`` across zoom:
 with ``u_s = log fx_s`` (from the per-step start) and the steps sorted by ``u``, the second
@@ -490,15 +494,20 @@ class _ZoomProblem:
                  free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
                  tau: dict[str, float],
                  board_prior_mm: float, order: dict[str, int] | None = None,
-                 forms: dict[str, _Form] | None = None, shared_aspect: bool = False):
+                 forms: dict[str, _Form] | None = None, shared_aspect: bool = False,
+                 session: np.ndarray | None = None):
         self.steps, self.board, self.phi = steps, board, modes_basis
+        # each step's board session: its own height amplitudes (``n_basis`` per session)
+        self.session = (np.zeros(len(steps), int) if session is None
+                        else np.asarray(session, int))
         self.free, self.chains, self.u, self.tau = free, chains, u, tau
         self.order, self.forms = order or {}, forms or {}
         self.board_prior = board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
         self.n_cam = int(free.sum())
-        self.n_modes = modes_basis.shape[1]
+        self.n_basis = modes_basis.shape[1]
+        self.n_modes = self.n_basis * (int(self.session.max()) + 1)
         self.shared_aspect = shared_aspect
         self.aspect_col = self.n_cam + self.n_modes if shared_aspect else -1
         self.n_glob = self.n_cam + self.n_modes + int(shared_aspect)
@@ -529,18 +538,20 @@ class _ZoomProblem:
             return scipy.sparse.csr_matrix((0, self.n_unknowns))
         return scipy.sparse.csr_matrix(np.vstack(rows))
 
-    def points(self, modes: np.ndarray) -> np.ndarray:
-        """The board's 3-D points (n, 3) for height amplitudes ``modes``."""
+    def points(self, modes: np.ndarray, s: int = 0) -> np.ndarray:
+        """The board's 3-D points (n, 3) seen by step ``s`` for height amplitudes ``modes``
+        (those of the step's session)."""
+        first = self.n_basis * int(self.session[s])
         X = self.board.copy()
-        X[:, 2] += self.phi @ modes
+        X[:, 2] += self.phi @ modes[first:first + self.n_basis]
         return X
 
     def evaluate(self, state: _State, jacobian: bool = True):
         """Weighted residuals (model minus observed, over sigma) and, optionally, the Jacobian."""
-        X = self.points(state.modes)
         res, rows, cols, vals = [], [], [], []
         row0 = 0
         for s, step in enumerate(self.steps):
+            X = self.points(state.modes, s)
             v0, v1 = self.view_start[s], self.view_start[s + 1]
             sel = step.inlier
             cam = state.cams[s]
@@ -577,10 +588,11 @@ class _ZoomProblem:
         if self.shared_aspect:
             blocks.append((state.cams[s, 0] * Jc[:, :, 1:2],
                            np.full((n, 1), self.aspect_col)))
-        if self.n_modes:
+        if self.n_basis:
+            first = self.n_cam + self.n_basis * int(self.session[s])
             blocks.append((Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :],
-                           np.broadcast_to(self.n_cam + np.arange(self.n_modes),
-                                           (n, self.n_modes))))
+                           np.broadcast_to(first + np.arange(self.n_basis),
+                                           (n, self.n_basis))))
         for block, col in blocks:
             k = block.shape[2]
             rows.append(np.repeat(row, k, axis=1).ravel())
@@ -693,7 +705,10 @@ class ZoomWideResult:
     columns : list of (str, str)
         ``(step, parameter)`` of each row of ``covariance``.
     board_modes, board_modes_sd : (M,) ndarray
-        Height amplitudes of the board (mm) and their sigmas.
+        Height amplitudes of the board (mm) and their sigmas, session after session
+        (``board_sessions``), each session's in the order of :func:`board_height_modes`.
+    board_sessions : list of str
+        The capture sessions, in the order of their amplitudes (``[""]``: one session).
     tau : dict of str to float
         Estimated prior strength per smoothed parameter (per ``u^2``, in the units that
         ``prior_strength`` of :func:`calibrate_zoom_wide` lists); ``inf`` = none.
@@ -735,6 +750,7 @@ class ZoomWideResult:
     zoom_models: dict[str, dict] = field(default_factory=dict)
     aspect: float = float("nan")
     aspect_sd: float = float("nan")
+    board_sessions: list[str] = field(default_factory=lambda: [""])
 
 
 def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool):
@@ -902,9 +918,9 @@ def _chains(u: np.ndarray, labels: list[str], min_gap: float = 1e-3) -> list[np.
 
 def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
     """Re-estimate each step's noise sigma and its inliers; True when anything changed."""
-    X = prob.points(state.modes)
     changed = False
     for s, step in enumerate(prob.steps):
+        X = prob.points(state.modes, s)
         v0, v1 = prob.view_start[s], prob.view_start[s + 1]
         cam = state.cams[s]
         uv = project_jacobian(cam, state.rvecs[v0:v1], state.tvecs[v0:v1], X, step.view,
@@ -924,8 +940,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         max_rounds: int = 4, chains: Mapping[str, str] | None = None,
                         pp_model: str = "angle2",
                         prior_strength: Mapping[str, float] | None = None,
-                        decentring: bool = True, shared_aspect: bool = True
-                        ) -> ZoomWideResult:
+                        decentring: bool = True, shared_aspect: bool = True,
+                        sessions: Mapping[str, str] | None = None) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -964,6 +980,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     shared_aspect : bool
         One aspect ratio ``fy / fx`` for every step (the sensor's pixels); False gives each
         step its own ``fy``.
+    sessions : mapping of step name to str, optional
+        The capture session of each step: steps of different sessions see boards of their
+        own shape (a paper board re-taped between sessions), steps of one session share
+        it. Default: one session.
 
     Returns
     -------
@@ -991,14 +1011,17 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     chain_idx = _chains(u, [str((chains or {}).get(n, "")) for n in names])
     phi = (board_height_modes(board, board_degree) if board_degree >= 2
            else np.zeros((len(board), 0)))
-    state.modes = np.zeros(phi.shape[1])
+    labels = [str((sessions or {}).get(n, "")) for n in names]
+    session_names = list(dict.fromkeys(labels))
+    session = np.array([session_names.index(lab) for lab in labels])
+    state.modes = np.zeros(phi.shape[1] * len(session_names))
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
              for n in names]
 
     def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
         return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
-                            order, forms, shared_aspect)
+                            order, forms, shared_aspect, session)
 
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations = _solve_unsmoothed(
@@ -1022,7 +1045,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     result = _finish(prob, solve, solve.state, init, terms, held, models, iterations + more,
                      inflation)
     result.skipped, result.tau_source = skipped, tau_source
+    result.board_sessions = session_names
     for s, r in enumerate(result.results.values()):
+        r.info["board_session"] = labels[s]
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
@@ -1147,8 +1172,8 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
     unsmoothed = problem(free)
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
     if observations is not None and _select_on_board(
-            observations, init, unsmoothed.points(solve.state.modes), terms, held,
-            decentring):
+            observations, init, [unsmoothed.points(solve.state.modes, s)
+                                 for s in range(len(init))], terms, held, decentring):
         free = _free_mask(list(init), terms)
         free[:, 1] = not unsmoothed.shared_aspect
         state = solve.state
@@ -1191,15 +1216,16 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
 
 
 def _select_on_board(observations: Mapping[str, Observations],
-                     init: Mapping[str, CalibrationResult], board_points: np.ndarray,
+                     init: Mapping[str, CalibrationResult], board_points: list[np.ndarray],
                      terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice],
                      decentring: bool = True) -> bool:
     """Choose each started step's distortion terms again, by held-out views on the board's
-    estimated shape (:func:`select_distortion`); ``terms`` and ``held`` are updated in place.
-    True when a step's terms changed."""
+    estimated shape (``board_points``, one (n, 3) array per step of ``init``, in its order;
+    :func:`select_distortion`); ``terms`` and ``held`` are updated in place. True when a
+    step's terms changed."""
     changed = False
-    for name, start in init.items():
-        choice = select_distortion(observations[name], board_points=board_points, start=start)
+    for (name, start), points in zip(init.items(), board_points, strict=True):
+        choice = select_distortion(observations[name], board_points=points, start=start)
         if not choice.excess_se_px2:
             continue  # too few views, or no set could be fitted: keep the flat-board choice
         held[name] = choice
@@ -1321,14 +1347,14 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
         cov[np.ix_(col, col)] += extra
     if np.any(np.diag(cov) <= 0):
         raise RuntimeError("zoom-wide covariance is not positive definite")
-    X = prob.points(state.modes)
     n_cam, n_modes = prob.n_cam, prob.n_modes
     columns = [(prob.steps[s].name, PARAMS[j]) for s, j in zip(*np.nonzero(prob.free),
                                                                strict=True)]
     results = {}
     step_scatter = scatter.by_group()
     for s, step in enumerate(prob.steps):
-        results[step.name] = _step_result(prob, s, state, cov, X, init[step.name], terms, tau)
+        results[step.name] = _step_result(prob, s, state, cov, prob.points(state.modes, s),
+                                          init[step.name], terms, tau)
         results[step.name].info.update({
             "view_scatter": step_scatter[step.name].to_dict() | {"applied": True},
             "sd_noise_model": {p: float(v / f) for (p, v), f in zip(
