@@ -730,6 +730,8 @@ def _print_status(run) -> None:
         if st.status != "ok":
             click.echo(f"{st.status.upper()} step {step}: " + "; ".join(st.reasons))
             click.echo("  to do: " + "; ".join(st.remedies))
+            if st.advice:
+                click.echo("  capture advice: " + st.advice["text"])
 
 
 @main.command(epilog=EXIT_CODES)

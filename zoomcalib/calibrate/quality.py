@@ -65,7 +65,8 @@ from .bundle import scaled_inverse
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",
-           "intrinsics_covariance", "projection_uncertainty", "projection_difference",
+           "intrinsics_covariance", "view_information", "projection_uncertainty",
+           "projection_difference",
            "pixel_grid", "observed_region", "MIN_TILT_DEG", "MIN_REACH", "MIN_CELLS", "GRID",
            "MIN_DISTANCE_RATIO"]
 
@@ -207,6 +208,18 @@ def _fit_blocks(result: CalibrationResult, obs: Observations, free: np.ndarray) 
     S = U - np.einsum("vki,vij,vlj->kl", W, np.linalg.inv(V), W)
     dof = max(n_obs - len(free) - 6 * len(V), 1)
     return _FitBlocks(V, W, S, sq / dof)
+
+
+def view_information(result: CalibrationResult, obs: Observations
+                     ) -> tuple[list[str], np.ndarray, np.ndarray, float]:
+    """What the step's own views tell about its free intrinsics under the noise model: their
+    names, their indices into :func:`intrinsic_names` (the columns of ``cv2.projectPoints``'
+    Jacobian after the six pose columns), the Schur complement ``S`` (poses marginalised,
+    unit noise) and the residual variance per coordinate ``s2`` (px^2); the noise model's
+    covariance is ``s2 S^-1``."""
+    free = _free(result)
+    blocks = _fit_blocks(result, obs, free)
+    return [intrinsic_names(result)[i] for i in free], free, blocks.S, blocks.s2
 
 
 def intrinsics_covariance(result: CalibrationResult, obs: Observations,

@@ -123,7 +123,9 @@ def _summary(run: CalibrateRun, steps: list[str]) -> str:
         status = "" if st is None else (
             f"<td class='text {'ok' if st.status == 'ok' else 'bad'}'><b>{_e(st.status)}</b>"
             + (f"<details><summary>why, what to do</summary>{_e('; '.join(st.reasons))}. "
-               f"<i>To do:</i> {_e('; '.join(st.remedies))}</details>" if st.reasons else "")
+               f"<i>To do:</i> {_e('; '.join(st.remedies))}."
+               + (f" <i>Capture advice:</i> {_e(st.advice['text'])}." if st.advice else "")
+               + "</details>" if st.reasons else "")
             + "</td>")
         rows.append(
             f"<tr><td class='text'><a href='#step-{_e(run.stems[s])}'>{_e(s)}</a></td>"

@@ -41,6 +41,7 @@ import numpy as np
 
 from ..detect import image_files
 from ..targets import Target, parse_pattern
+from .advice import advise
 from .export import write_exports
 from .guards import (
     clear_previous_outputs,
@@ -643,7 +644,8 @@ def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
 def _step_statuses(run: CalibrateRun) -> dict[str, StepStatus]:
     """Each calibrated step's status (:func:`~zoomcalib.calibrate.status.step_status`): the
     sensor's aspect ratio from every table row, and for zoom-wide rows the step's own per-step
-    OpenCV result as the reference a joint shift is measured against."""
+    OpenCV result as the reference a joint shift is measured against; a step that is not
+    ``ok`` gets its capture advice (:func:`~zoomcalib.calibrate.advice.advise`)."""
     table = {s: run.results[s][run.table_backend[s]] for s in run.results}
     aspect = sensor_aspect(table) if len(table) > 1 else None
     cv = run.cross_validation
@@ -652,6 +654,9 @@ def _step_statuses(run: CalibrateRun) -> dict[str, StepStatus]:
         own = run.results[step].get("opencv") if res.backend == "zoom-wide" else None
         out[step] = step_status(res, run.observations[step].image_size, aspect, own,
                                 cv.z.get(step) if cv is not None else None)
+        if out[step].status != "ok" and res.fx > 0:
+            advice = advise(res, run.observations[step])
+            out[step].advice = None if advice is None else advice.to_dict()
     return out
 
 

@@ -83,12 +83,14 @@ _REMEDY = {
 
 @dataclass
 class StepStatus:
-    """A step's status (``ok``, ``imprecise`` or ``unusable``) with one reason and one remedy
-    per finding (``reasons[i]`` goes with ``remedies[i]``)."""
+    """A step's status (``ok``, ``imprecise`` or ``unusable``) with its reasons, the remedies
+    (one per kind of finding) and, where the calibrate job made it, the capture advice
+    (:meth:`zoomcalib.calibrate.advice.CaptureAdvice.to_dict`)."""
 
     status: str = "ok"
     reasons: list[str] = field(default_factory=list)
     remedies: list[str] = field(default_factory=list)
+    advice: dict | None = None
 
     def add(self, status: str, reason: str, remedy_key: str) -> None:
         """Record one finding; the status becomes the worse of the two."""
@@ -109,7 +111,7 @@ class StepStatus:
 
     def to_dict(self) -> dict:
         return {"status": self.status, "reasons": list(self.reasons),
-                "remedies": list(self.remedies)}
+                "remedies": list(self.remedies), "advice": self.advice}
 
 
 def sensor_aspect(results: Mapping[str, CalibrationResult]) -> tuple[float, float] | None:

@@ -1,0 +1,159 @@
+"""A real PTZ camera's zoom sweep, calibrated as a user would, and its halves.
+
+``python benchmarks/bench_real_ptz.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
+[--splits 5] [--seed 0] [--one-session] [--free-aspect]``
+
+``FOLDER`` is an image folder of zoom-step subfolders, e.g. the ``calibration_images`` folder
+of the public set ``e-cagan/camera-calibration`` (10 steps ``zoom_1x`` .. ``zoom_10x`` of a
+PTZ camera, 1280 x 720 frames of its H.264 stream, a paper chessboard of 22 x 15 inner corners
+taped to a wall, four capture days). The set has no licence: nothing of it is kept in this
+repository; this script reads it where it lies and writes to ``--out`` (default
+``bench-real-ptz`` in the current folder).
+
+1. **The default run.** ``calibrate_folder`` as ``zoomcalib calibrate FOLDER --pattern ...``
+   runs it (detections cached in ``OUT/detections``, so a rerun times the calibration alone),
+   timed, beside plain per-step OpenCV on the same detections in the same run (the peer). It
+   prints the 10-step table: zoom-wide fx, fy / fx, cx, cy with their sigmas, the RMS, the
+   status and its reasons.
+2. **Halves.** ``--splits`` splits of every step's views (the even and odd groups of views of
+   nearly one pose, then random splits of the groups, :func:`random_halves`), each half
+   calibrated zoom-wide with the full run's sessions; per step and split
+   ``z_q = (q_a - q_b) / sqrt(sd_a^2 + sd_b^2)`` for fx, cx, cy. Honest sigmas give ``|z|``
+   within 3 and a pooled RMS near 1 (the bar: 0.6-1.4). The steps' statuses in the halves
+   are counted too.
+
+``--one-session`` calibrates with one board shape for all steps, ``--free-aspect`` with a
+``fy`` per step: the settings before they became the default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # benchmark this checkout
+
+from zoomcalib.calibrate.checks import random_halves  # noqa: E402
+from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
+from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.status import sensor_aspect, step_status  # noqa: E402
+from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+
+COMPARED = ("fx", "cx", "cy")
+
+
+def _table(results: dict, run) -> None:
+    """The zoom-wide rows with their statuses (the own per-step OpenCV as the reference)."""
+    aspect = sensor_aspect(results)
+    print(f"{'step':>9} {'fx':>14} {'fy/fx':>7} {'cx':>13} {'cy':>13} {'rms':>6}  status")
+    for step, r in results.items():
+        st = step_status(r, run.observations[step].image_size, aspect,
+                         run.results[step].get("opencv"))
+        print(f"{step:>9} {r.fx:8.1f}±{r.sd['fx']:5.1f} {r.fy / r.fx:7.4f} "
+              f"{r.cx:7.1f}±{r.sd['cx']:5.1f} {r.cy:7.1f}±{r.sd['cy']:5.1f} {r.rms_px:6.3f}  "
+              f"{st.summary()}")
+
+
+def _per_step_opencv(run) -> float:
+    """Seconds plain per-step OpenCV takes on the run's detections (the peer)."""
+    t = time.perf_counter()
+    for obs in run.observations.values():
+        try:
+            calibrate_opencv_robust(obs)
+        except (ValueError, RuntimeError):
+            pass
+    return time.perf_counter() - t
+
+
+def _halves(run, sessions, splits: int, seed: int, kwargs: dict) -> None:
+    rng = np.random.default_rng(seed)
+    pairs = {s: random_halves(o, splits, rng) for s, o in run.observations.items()}
+    z = {s: [] for s in run.observations}
+    statuses = {"ok": 0, "imprecise": 0, "unusable": 0}
+    for k in range(splits):
+        halves = []
+        for side in (0, 1):
+            obs = {s: p[k][side] for s, p in pairs.items()}
+            t = time.perf_counter()
+            res = calibrate_zoom_wide(obs, sessions=sessions, **kwargs).results
+            aspect = sensor_aspect(res)
+            for s, r in res.items():
+                statuses[step_status(r, r_size(run, s), aspect).status] += 1
+            halves.append(res)
+            print(f"  split {k} half {'ab'[side]}: {time.perf_counter() - t:.0f} s", flush=True)
+        a, b = halves
+        for s in run.observations:
+            if s in a and s in b:
+                z[s].append([(getattr(a[s], q) - getattr(b[s], q))
+                             / np.hypot(a[s].sd[q], b[s].sd[q]) for q in COMPARED])
+    print(f"halves ({splits} splits; z = difference / combined sigma):")
+    print(f"{'step':>9} " + " ".join(f"{'max|z_' + q + '|':>10} {'rms':>5}" for q in COMPARED))
+    every = []
+    for s, rows in z.items():
+        arr = np.array(rows)
+        every.append(arr)
+        print(f"{s:>9} " + " ".join(f"{np.abs(arr[:, i]).max():10.2f} "
+                                    f"{np.sqrt(np.mean(arr[:, i] ** 2)):5.2f}"
+                                    for i in range(len(COMPARED))))
+    allz = np.concatenate(every)
+    print("pooled RMS z " + ", ".join(f"{q} {np.sqrt(np.mean(allz[:, i] ** 2)):.2f}"
+                                      for i, q in enumerate(COMPARED))
+          + f"; all {np.sqrt(np.mean(allz ** 2)):.2f}; largest |z| {np.abs(allz).max():.2f}; "
+          f"beyond 3: {int((np.abs(allz) > 3).sum())} of {allz.size}")
+    print("halves' statuses: " + ", ".join(f"{k} {v}" for k, v in statuses.items()))
+
+
+def r_size(run, step: str) -> tuple[int, int]:
+    return run.observations[step].image_size
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("bench-real-ptz"))
+    ap.add_argument("--pattern", default="chessboard:22x15:25")
+    ap.add_argument("--splits", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--one-session", action="store_true")
+    ap.add_argument("--free-aspect", action="store_true")
+    args = ap.parse_args()
+    warnings.simplefilter("ignore", RuntimeWarning)
+    t = time.perf_counter()
+    messages: list[str] = []
+    run = calibrate_folder(args.folder, args.pattern, args.out, ("opencv",), workers=2,
+                           log=messages.append, report=False)
+    wall = time.perf_counter() - t
+    peer = _per_step_opencv(run)
+    for m in messages:
+        if "session" in m or "unusable" in m:
+            print(m)
+    print(f"default run: {wall:.0f} s wall (detections reused: {sum(run.reused.values())} of "
+          f"{sum(len(o.names) for o in run.observations.values())} images); plain per-step "
+          f"OpenCV on the same detections {peer:.1f} s (ratio {wall / peer:.1f})")
+    sessions = {s: r["zoom-wide"].info.get("board_session", "")
+                for s, r in run.results.items() if "zoom-wide" in r}
+    kwargs = {"shared_aspect": not args.free_aspect}
+    zw = run.zoom_wide
+    if args.one_session or args.free_aspect:
+        sessions = None if args.one_session else sessions
+        zw = calibrate_zoom_wide(run.observations, sessions=sessions, **kwargs)
+        print(f"zoom-wide with {'one board shape' if args.one_session else 'sessions'}, "
+              f"{'fy per step' if args.free_aspect else 'one aspect ratio'}:")
+    if zw is None:
+        print("no zoom-wide adjustment")
+        return
+    print(f"aspect fy/fx {zw.aspect:.5f} ± {zw.aspect_sd:.5f}; board sessions "
+          f"{zw.board_sessions}")
+    _table(zw.results, run)
+    if args.splits:
+        _halves(run, sessions, args.splits, args.seed, kwargs)
+
+
+if __name__ == "__main__":
+    main()
