@@ -130,3 +130,24 @@ def test_a_shared_aspect_ratio_is_read_through_faulty_steps():
     assert statuses[6] == statuses[8] == "unusable"
     assert statuses.count("ok") == 7
     assert ASPECT_TOLERANCE <= 0.02
+
+
+def test_diagnose_leaves_out_an_unusable_row(tmp_path):
+    from zoomcalib.calibrate.io import write_zoom_table
+    from zoomcalib.diagnose.run import load_zoom_table
+
+    rng = np.random.default_rng(2)
+    rows = []
+    for i, zoom in enumerate(np.linspace(0, 1, 6)):
+        fx = 1200 * (1 + 9 * zoom)
+        rows.append({"step": f"s{i}", "zoom": zoom, "fx": fx, "fy": fx,
+                     "cx": 640 + rng.normal(0, 2), "cy": 360 + rng.normal(0, 2),
+                     "sd_fx": 1.0, "sd_fy": 1.0, "sd_cx": 1.0, "sd_cy": 1.0, "rms_px": 0.2,
+                     "n_views": 20, "backend": "opencv", "mode": "per-step", "status": "ok"})
+    bad = int(rng.integers(1, 5))
+    rows[bad] |= {"cy": -663.0, "status": "unusable",
+                  "status_reasons": "principal point (650, -663) outside the 1280x720 image"}
+    path = write_zoom_table(tmp_path / "zoom_calibration.csv", rows)
+    table = load_zoom_table(path)
+    assert table.step == [r["step"] for r in rows if r["status"] == "ok"]
+    assert np.all(table.cy > 0)

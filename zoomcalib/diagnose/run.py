@@ -108,10 +108,20 @@ def check_table_size(zoom: np.ndarray, fx: np.ndarray | None, source: str,
                 f"{ONE_STATE_SPREAD:.1%}); the diagnosis needs rows across the zoom range")
 
 
+def usable_rows(path: str | Path) -> tuple[list[dict], list[str]]:
+    """The rows of a ``zoom_calibration.csv`` whose ``status`` is not ``unusable`` (a step the
+    calibration could not determine is no measurement of the lens), and the steps left out."""
+    rows = read_zoom_table(Path(path))
+    kept = [r for r in rows if str(r.get("status") or "").strip() != "unusable"]
+    return kept, [str(r.get("step")) for r in rows if str(r.get("status") or "").strip()
+                  == "unusable"]
+
+
 def load_zoom_table(path: str | Path) -> ZoomTable:
-    """Read and check a ``zoom_calibration.csv``; errors name the file and row."""
+    """Read and check a ``zoom_calibration.csv`` (its usable rows, :func:`usable_rows`);
+    errors name the file and row."""
     path = Path(path)
-    return ZoomTable.from_rows(read_zoom_table(path), str(path))
+    return ZoomTable.from_rows(usable_rows(path)[0], str(path))
 
 
 def _row_calibrations(table: ZoomTable, cal) -> list[RowCalibration] | None:
@@ -219,6 +229,10 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     else:
         raise FileNotFoundError(f"{source}: no such file or folder")
     table = load_zoom_table(table_path)
+    left_out = usable_rows(table_path)[1]
+    if left_out:
+        log(f"{table_path}: left out the unusable step{'s' if len(left_out) > 1 else ''} "
+            f"{', '.join(left_out)} (status column)")
     if source.is_dir():
         table.calibrations = _row_calibrations(table, cal)
     elif lens is not None:
@@ -236,7 +250,7 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     diag = diagnose_table(table, response, tolerances, fit_pitch=fit_pitch)
     if response is not None:
         diag = resolve_with_distortion(
-            diag, read_zoom_table(table_path),
+            diag, usable_rows(table_path)[0],
             lambda **changes: diagnose_table(table, response, tolerances, fit_pitch=fit_pitch,
                                              **changes))
     files = write_diagnosis(diag, out)
