@@ -151,3 +151,25 @@ def test_diagnose_leaves_out_an_unusable_row(tmp_path):
     table = load_zoom_table(path)
     assert table.step == [r["step"] for r in rows if r["status"] == "ok"]
     assert np.all(table.cy > 0)
+
+
+def test_long_statuses_and_advice_do_not_stop_calibration_yml(tmp_path):
+    import json
+
+    import cv2
+
+    from zoomcalib.calibrate.io import write_calibration
+
+    rng = np.random.default_rng(9)
+    results = {f"zoom_{k}x": {"zoom-wide": _camera(rng, "pp_imprecise")} for k in range(1, 11)}
+    long = "add 24 views with the board tilted 45 degrees " * 6
+    meta = {"status": {s: {"status": "imprecise", "reasons": ["sd cy 30.0 px > 1 %"] * 3,
+                           "remedies": [long], "advice": {"text": long}} for s in results}}
+    json_path, yml_path = write_calibration(tmp_path, results, meta)
+    assert json.loads(json_path.read_text())["meta"]["status"]["zoom_3x"]["advice"]["text"]
+    fs = cv2.FileStorage(str(yml_path), cv2.FILE_STORAGE_READ)
+    try:
+        brief = json.loads(fs.getNode("meta_json").string())
+    finally:
+        fs.release()
+    assert brief["status"] == {s: "imprecise" for s in results}

@@ -158,7 +158,8 @@ def _entry(res: CalibrationResult) -> dict:
     return d
 
 
-#: ``meta`` entries too long for one YAML string (OpenCV's limit); calibration.json has them.
+#: ``meta`` entries too long for one YAML string (OpenCV's limit); calibration.json has them
+#: (of ``status`` the YAML keeps each step's status word).
 _JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags")
 
 
@@ -173,6 +174,9 @@ def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult
         fs.write("version", 1)
         # the YAML keeps the run's settings; the long reports live in calibration.json
         brief = {k: v for k, v in meta.items() if k not in _JSON_ONLY_META}
+        if isinstance(meta.get("status"), Mapping):  # the statuses; reasons and advice: JSON
+            brief["status"] = {s: v.get("status") if isinstance(v, Mapping) else v
+                               for s, v in meta["status"].items()}
         fs.write("meta_json", json.dumps(brief, default=_plain))
         prefixes = _yaml_prefixes(results)
         fs.startWriteStruct("entries", cv2.FileNode_SEQ)
