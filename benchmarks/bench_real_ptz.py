@@ -133,8 +133,9 @@ def main() -> None:
     for m in messages:
         if "session" in m or "unusable" in m:
             print(m)
-    print(f"default run: {wall:.0f} s wall (detections reused: {sum(run.reused.values())} of "
-          f"{sum(len(o.names) for o in run.observations.values())} images); plain per-step "
+    print(f"default run: {wall:.0f} s wall ({sum(run.reused.values())} images' detections "
+          f"reused from {args.out / 'detections'}; "
+          f"{sum(len(o.names) for o in run.observations.values())} views); plain per-step "
           f"OpenCV on the same detections {peer:.1f} s (ratio {wall / peer:.1f})")
     sessions = {s: r["zoom-wide"].info.get("board_session", "")
                 for s, r in run.results.items() if "zoom-wide" in r}
@@ -151,6 +152,10 @@ def main() -> None:
     print(f"aspect fy/fx {zw.aspect:.5f} ± {zw.aspect_sd:.5f}; board sessions "
           f"{zw.board_sessions}")
     _table(zw.results, run)
+    if zw is run.zoom_wide:
+        for step, st in run.status.items():
+            if st.advice:
+                print(f"advice {step}: {st.advice['text']}")
     if args.splits:
         _halves(run, sessions, args.splits, args.seed, kwargs)
 

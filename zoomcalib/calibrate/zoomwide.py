@@ -514,6 +514,7 @@ class _ZoomProblem:
         self.view_start = np.cumsum([0] + [s.n_views for s in steps])
         self.n_unknowns = self.n_glob + 6 * int(self.view_start[-1])
         self.prior_rows = self._prior_rows()
+        self.covariance_ridge = 0.0  # set by the posterior covariance (_inverse_or_ridge)
 
     def _prior_rows(self) -> scipy.sparse.csr_matrix:
         rows = []
@@ -1258,7 +1259,7 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     W3 = W.reshape(len(U), len(V), 6)
     through_pose = np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V))        # W_v V_v^-1
     S = U - np.einsum("gvj,hvj->gh", through_pose, W3)
-    cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), np.eye(len(S)))
+    cov = _inverse_or_ridge(S, prob)
     if not check:
         return cov, None
     camera_rows = cov[:prob.n_cam]
@@ -1268,6 +1269,27 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
                               camera_rows, lambda: _deletion_steps(S, A, g)[:, :prob.n_cam],
                               share)
+
+
+#: Ridge (relative to each column's information) added to a posterior information that
+#: rounding left indefinite: a direction the data do not determine (the rational model's
+#: k1..k6 of a step of a dozen views) then gets a variance of 1e6 times its conditional one.
+_COVARIANCE_RIDGE = 1e-6
+
+
+def _inverse_or_ridge(S: np.ndarray, prob: _ZoomProblem) -> np.ndarray:
+    """``S^-1`` by Cholesky on the unit-diagonal scaling of ``S``; where rounding leaves ``S``
+    indefinite, ``(S + r diag S)^-1`` with ``r =`` :data:`_COVARIANCE_RIDGE`, recorded in
+    ``prob.covariance_ridge`` (0 otherwise). LinAlgError if that fails too."""
+    d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
+    scaled = d[:, None] * S * d
+    prob.covariance_ridge = 0.0
+    try:
+        factor = scipy.linalg.cho_factor(scaled)
+    except np.linalg.LinAlgError:
+        prob.covariance_ridge = _COVARIANCE_RIDGE
+        factor = scipy.linalg.cho_factor(scaled + _COVARIANCE_RIDGE * np.eye(len(S)))
+    return d[:, None] * scipy.linalg.cho_solve(factor, np.eye(len(S))) * d
 
 
 def _view_rows(prob: _ZoomProblem) -> np.ndarray:
@@ -1362,6 +1384,7 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "distortion_choice": held[step.name].to_dict() if step.name in held else {},
             "tau_at_lower_bound": {k: m.tau_at_bound for k, m in models.items()},
+            "covariance_ridge": prob.covariance_ridge,
         })
     modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
     aspect_sd = (float(np.sqrt(cov[prob.aspect_col, prob.aspect_col])) if prob.shared_aspect
