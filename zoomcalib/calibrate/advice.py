@@ -11,20 +11,22 @@ the step's own views, the poses marginalised view by view:
 .. math::
 
     A_v = \frac{1}{s^2}\left(J_q^T J_q - J_q^T J_p (J_p^T J_p)^{-1} J_p^T J_q\right),\qquad
-    C_{new} = \left(S/s^2 + \sum_v A_v\right)^{-1},
+    C_{new} = \left(C^{-1} + \sum_v A_v / F^2\right)^{-1},
 
 ``J_q``, ``J_p`` a view's Jacobians with respect to the free intrinsics and its pose
-(``cv2.projectPoints``), over the board points that land inside the image; ``S`` the step's own
-Schur complement and ``s^2`` its residual variance per coordinate
-(:func:`~zoomcalib.calibrate.quality.view_information`). Both are taken at the step's camera
-with the distortion terms its views do not determine (``|k| < 2 sd``) set to zero: in a nearly
-singular step those terms are fitted noise, and linearised at them the predicted
-principal-point sigma changed 3-fold between noise draws of one set of views (1.65 times too small
-against the spread of 40 redrawn calibrations; 1.18 times with them zeroed). A reported sigma
-that is wider than the step's noise model (view scatter, the tie to other steps) is taken to
-stay wider by the same factor: the prediction is ``sqrt(C_new)`` times ``sd_reported /
-sd_noise_model``, so the extra views are assumed to carry the errors the step's own views
-carry.
+(``cv2.projectPoints``), over the board points that land inside the image, ``s^2`` the step's
+residual variance per coordinate (:func:`~zoomcalib.calibrate.quality.view_information`), and
+``C`` the step's reported covariance (:func:`~zoomcalib.calibrate.quality.intrinsics_covariance`:
+what its own views, and for the zoom-wide adjustment its neighbours through the prior, tell).
+Where the step's views disagree beyond the corner noise (its sigmas widened by a factor ``F``,
+the median over fx, cx, cy of reported over noise-model sigma), the new views are taken to
+carry the same excess: their information is divided by ``F^2``.
+
+The Jacobians are taken at the step's camera with the distortion terms its views do not
+determine (``|k| < 2 sd``) set to zero: in a nearly singular step those terms are fitted
+noise, and linearised at them the predicted principal-point sigma changed 3-fold between noise
+draws of one set of views (1.65 times too small against the spread of 40 redrawn
+calibrations; 1.18 times with them zeroed).
 
 At a zoom's long end the principal point trades with the distortion terms and the poses
 whatever the tilt; there a closer board, which fills more of the narrow field, is what helps
@@ -45,7 +47,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from .quality import view_information
+from .quality import intrinsics_covariance, view_information
 from .result import DIST_NAMES, CalibrationResult, Observations
 from .status import FX_SD_LIMIT, PP_SD_LIMIT
 
@@ -165,21 +167,28 @@ def _determined(result: CalibrationResult) -> CalibrationResult:
     return replace(result, dist=dist)
 
 
+def _scatter_factor(result: CalibrationResult) -> float:
+    """How far the step's views disagree beyond the corner noise: the median over fx, cx, cy
+    of the reported sigma over the noise model's (``info['sd_noise_model']``), at least 1."""
+    model = result.info.get("sd_noise_model") or {}
+    ratios = [result.sd[q] / model[q] for q in ("fx", "cx", "cy")
+              if model.get(q, 0) > 0 and np.isfinite(result.sd.get(q, np.nan))]
+    return max(float(np.median(ratios)), 1.0) if ratios else 1.0
+
+
 def predicted_sd(result: CalibrationResult, obs: Observations,
                  poses: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
     """1-sigma of fx, cx, cy (px) once the views of ``poses`` are added (module docstring)."""
+    names, current = intrinsics_covariance(result, obs)
     _, _, _, s2 = view_information(result, obs)
-    result = _determined(result)
-    names, free, S, _ = view_information(result, obs)
-    own = np.linalg.pinv(S)
-    new = np.linalg.pinv(S + _added_information(result, obs, poses, free))
-    out = {}
-    for q in ("fx", "cx", "cy"):
-        i = names.index(q)
-        noise_model = np.sqrt(s2 * own[i, i])
-        factor = result.sd[q] / noise_model if noise_model > 0 else 1.0
-        out[q] = float(factor * np.sqrt(s2 * new[i, i]))
-    return out
+    linear = _determined(result)
+    _, free, _, _ = view_information(linear, obs)
+    added = _added_information(linear, obs, poses, free) / (s2 * _scatter_factor(result) ** 2)
+    scale = np.sqrt(np.diag(current))
+    info = np.linalg.pinv(current / np.outer(scale, scale)) / np.outer(scale, scale)
+    new = np.linalg.pinv(info + added)
+    return {q: float(np.sqrt(max(new[names.index(q), names.index(q)], 0.0)))
+            for q in ("fx", "cx", "cy")}
 
 
 def _meets(sd: dict[str, float], result: CalibrationResult, image_size) -> bool:
