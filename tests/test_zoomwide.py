@@ -159,14 +159,21 @@ def test_distortion_choice_on_the_board_shape_is_stable(rng, k1):
 def test_zoom_wide_recovers_every_step(sweep):
     obs, truth, _, zw = sweep
     assert zw.converged and zw.stop_reason == "tolerance"
+    z = []
     for name, t in truth.items():
         r = zw.results[name]
         assert abs(r.fx / t["fx"] - 1) < 0.003, (name, r.fx, t["fx"])
+        z.append((r.fx - t["fx"]) / r.sd["fx"])
         for q in ("cx", "cy"):
             # 4 sigma: a 1-in-16000 event per value for honest Gaussian sigmas
             err = getattr(r, q) - t[q]
             assert abs(err) < 4 * r.sd[q], (name, q, err, r.sd[q])
             assert r.sd[q] < 5.0
+            z.append(err / r.sd[q])
+    # both ways: 21 z of honest sigmas have an RMS in 0.70-1.30 (95 %); 0.5 and 1.6 leave room
+    # for the prior's known conservatism and catch sigmas 2x too wide or 1.6x too narrow
+    rms = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.5 < rms < 1.6, (rms, np.round(z, 2))
 
 
 @pytest.mark.parametrize("pp_model", ["angle2", "prior2"])
