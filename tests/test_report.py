@@ -262,3 +262,29 @@ def test_calibrate_writes_the_report_unless_told_not_to(rendered, tmp_path):
     assert res.exit_code == 0, res.output
     assert not (tmp_path / "b" / "report.html").exists()
     assert (tmp_path / "b" / "calibration.json").exists()
+
+
+def test_every_step_status_reaches_the_summary_the_files_and_the_report(rendered, tmp_path):
+    import csv
+    import json
+
+    import yaml
+
+    out = tmp_path / "s"
+    res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern", "chessboard:9x6:25",
+                                    "--per-step", "--backend", "opencv", "--workers", "1",
+                                    "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    meta = json.loads((out / "calibration.json").read_text())["meta"]
+    status = {s: v["status"] for s, v in meta["status"].items()}
+    assert set(status) == {"zoom_00", "zoom_01"}
+    assert all(v in ("ok", "imprecise", "unusable") for v in status.values())
+    line = next(t for t in res.output.splitlines() if t.startswith("status: "))
+    assert all(f"{s} {v}" in line for s, v in status.items())
+    with open(out / "zoom_calibration.csv", newline="") as f:
+        assert {r["step"]: r["status"] for r in csv.DictReader(f)} == status
+    index = yaml.safe_load((out / "ros" / "camera_info_index.yaml").read_text())
+    assert {e["step"]: e["status"] for e in index["steps"]} == status
+    text = (out / "report.html").read_text(encoding="utf-8")
+    assert "<th>status</th>" in text
+    assert all(f"<b>{v}</b>" in text for v in status.values())
