@@ -113,11 +113,6 @@ class CalibrateRun:
     zoom_source: dict[str, str | None] = field(default_factory=dict)
     status: dict[str, StepStatus] = field(default_factory=dict)
 
-    def usable_steps(self) -> list[str]:
-        """The calibrated steps whose status is not ``unusable``."""
-        return [s for s in self.results
-                if s not in self.status or self.status[s].usable]
-
     @property
     def partial(self) -> bool:
         """True when a step was dropped or a backend failed on a step."""
