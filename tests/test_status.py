@@ -173,3 +173,18 @@ def test_long_statuses_and_advice_do_not_stop_calibration_yml(tmp_path):
     finally:
         fs.release()
     assert brief["status"] == {s: "imprecise" for s in results}
+
+
+def test_a_result_without_sigmas_is_called_so_and_gets_no_advice():
+    from zoomcalib.calibrate.advice import advise
+    from zoomcalib.calibrate.result import Observations
+
+    rng = np.random.default_rng(17)
+    res = _camera(rng, "none")
+    res.sd = {k: float("nan") for k in res.sd}
+    st = step_status(res, SIZE)
+    assert st.status == "unusable"
+    assert any("sd cx not known" in r for r in st.reasons)
+    assert any("sd fx not known" in r for r in st.reasons)
+    # no views to build the information on: no advice, and no error
+    assert advise(res, Observations(np.zeros((4, 3)), [], SIZE)) is None

@@ -223,9 +223,14 @@ def advise(result: CalibrationResult, obs: Observations, tilts=TILTS_DEG, counts
     (4, 20.0, True)
     """
     try:
-        names, *_ = view_information(result, obs)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
+        return _advise(result, obs, tilts, counts, distances)
+    except (ValueError, np.linalg.LinAlgError, cv2.error):
+        return None  # no information to build on (a camera OpenCV cannot project with)
+
+
+def _advise(result: CalibrationResult, obs: Observations, tilts, counts, distances
+            ) -> CaptureAdvice | None:
+    names, *_ = view_information(result, obs)
     if not obs.views or not {"fx", "cx", "cy"} <= set(names):
         return None
     median = median_distance(result, obs)

@@ -236,7 +236,9 @@ def step_status(res: CalibrationResult, image_size: tuple[int, int],
                    f"{w}x{h} image", "pp_outside")
     sd = {q: res.sd.get(q, np.nan) for q in ("fx", "fy", "cx", "cy")}
     for q, extent in (("cx", w), ("cy", h)):
-        if not np.isfinite(sd[q]) or sd[q] > extent / 4.0:
+        if not np.isfinite(sd[q]):
+            status.add("unusable", f"sd {q} not known: the fit gave no finite sigma", "pp_sd")
+        elif sd[q] > extent / 4.0:
             status.add("unusable", f"sd {q} {sd[q]:.0f} px > a quarter of the image "
                        f"({extent / 4.0:.0f} px): not determined", "pp_sd")
     if aspect is not None:
@@ -257,7 +259,9 @@ def step_status(res: CalibrationResult, image_size: tuple[int, int],
         if PP_SD_LIMIT * diagonal < sd[q] <= (w if q == "cx" else h) / 4.0:
             status.add("imprecise", f"sd {q} {sd[q]:.1f} px > {100 * PP_SD_LIMIT:.0f} % of "
                        f"the image diagonal", "pp_sd")
-    if not sd["fx"] <= FX_SD_LIMIT * fx:
+    if not np.isfinite(sd["fx"]):
+        status.add("imprecise", "sd fx not known: the fit gave no finite sigma", "fx_sd")
+    elif sd["fx"] > FX_SD_LIMIT * fx:
         status.add("imprecise", f"sd fx {100 * sd['fx'] / fx:.2f} % > "
                    f"{100 * FX_SD_LIMIT:.0f} %", "fx_sd")
     if not res.converged:
