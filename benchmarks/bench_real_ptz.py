@@ -23,7 +23,10 @@ repository; this script reads it where it lies and writes to ``--out`` (default
    are counted too.
 
 ``--one-session`` calibrates with one board shape for all steps, ``--free-aspect`` with a
-``fy`` per step: the settings before they became the default.
+``fy`` per step: the settings before they became the default. ``--halves-steps S ...``
+calibrates the halves of those steps alone (the splits drawn as for all steps, so split ``k``
+is the same as in a run over all steps): what the long end's own frames determine without the
+short end to anchor it.
 """
 
 from __future__ import annotations
@@ -71,10 +74,12 @@ def _per_step_opencv(run) -> float:
     return time.perf_counter() - t
 
 
-def _halves(run, sessions, splits: int, seed: int, kwargs: dict) -> None:
+def _halves(run, sessions, splits: int, seed: int, kwargs: dict,
+            only: list[str] | None = None) -> None:
     rng = np.random.default_rng(seed)
     pairs = {s: random_halves(o, splits, rng) for s, o in run.observations.items()}
-    z = {s: [] for s in run.observations}
+    pairs = {s: p for s, p in pairs.items() if not only or s in only}
+    z = {s: [] for s in pairs}
     statuses = {"ok": 0, "imprecise": 0, "unusable": 0}
     for k in range(splits):
         halves = []
@@ -85,10 +90,13 @@ def _halves(run, sessions, splits: int, seed: int, kwargs: dict) -> None:
             aspect = sensor_aspect(res)
             for s, r in res.items():
                 statuses[step_status(r, r_size(run, s), aspect).status] += 1
+            if only:
+                print(f"  split {k} half {'ab'[side]}: " + ", ".join(
+                    f"{s} cy {r.cy:.0f}±{r.sd['cy']:.0f}" for s, r in res.items()))
             halves.append(res)
             print(f"  split {k} half {'ab'[side]}: {time.perf_counter() - t:.0f} s", flush=True)
         a, b = halves
-        for s in run.observations:
+        for s in pairs:
             if s in a and s in b:
                 z[s].append([(getattr(a[s], q) - getattr(b[s], q))
                              / np.hypot(a[s].sd[q], b[s].sd[q]) for q in COMPARED])
@@ -122,6 +130,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--one-session", action="store_true")
     ap.add_argument("--free-aspect", action="store_true")
+    ap.add_argument("--halves-steps", nargs="+", default=None,
+                    help="calibrate the halves of these steps alone")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     t = time.perf_counter()
@@ -157,7 +167,7 @@ def main() -> None:
             if st.advice:
                 print(f"advice {step}: {st.advice['text']}")
     if args.splits:
-        _halves(run, sessions, args.splits, args.seed, kwargs)
+        _halves(run, sessions, args.splits, args.seed, kwargs, args.halves_steps)
 
 
 if __name__ == "__main__":
