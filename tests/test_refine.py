@@ -259,6 +259,44 @@ def test_noisy_corners_unbiased_and_efficient(rng):
     assert rms < cv_rms  # 0.005 vs 0.03 px here: robust
 
 
+def test_a_fit_that_cannot_match_the_image_stops_where_more_work_would_not_move_it(
+        rng, monkeypatch):
+    # Sharpened corners (a PSF with a negative lobe, (1 + lam) G_0.6 - lam G_1.6, as a camera's
+    # unsharp mask makes) and 12/255 noise: the Gaussian-blur model cannot match them, so each
+    # position sd is a few hundredths of a pixel. The default ends such fits early (on the
+    # Gaussian pixel model, with steps below 5 % of each parameter's sd); the reference runs
+    # every corner to the quadrature model and the 1e-5 px step. They must agree to a small
+    # fraction of the sd, with fewer iterations.
+    import zoomcalib.detect.refine as refine
+
+    n, lam = 120, 0.4
+    cols = 11
+    img = np.zeros((11 * PATCH, cols * PATCH))
+    init = np.empty((n, 2))
+    for i in range(n):
+        r, c = divmod(i, cols)
+        local = CENTRE + rng.uniform(-0.5, 0.5, 2)
+        a1 = rng.uniform(0.0, np.pi)
+        ang = (a1, a1 + rng.uniform(np.deg2rad(45.0), np.deg2rad(135.0)))
+        patch = (1 + lam) * render_corner(local, ang, 0.6) - lam * render_corner(local, ang, 1.6)
+        img[r * PATCH:(r + 1) * PATCH, c * PATCH:(c + 1) * PATCH] = 0.1 + 0.7 * patch
+        init[i] = local + (c * PATCH, r * PATCH) + rng.uniform(-1.0, 1.0, 2)
+    img += rng.normal(0.0, 12.0 / 255.0, img.shape)
+    early = refine_corners(img, init, sigma="shared")
+    monkeypatch.setattr(refine, "_FINAL_FRACTION", 0.0)
+    monkeypatch.setattr(refine, "_REL_TOL", 0.0)
+    full = refine_corners(img, init, sigma="shared")
+    ok = early.converged & full.converged
+    assert ok.mean() > 0.95
+    sd = np.sqrt(np.minimum(full.cov[ok, 0, 0], full.cov[ok, 1, 1]))
+    moved = np.linalg.norm(early.points[ok] - full.points[ok], axis=1) / sd
+    print(f"\nsd median {np.median(sd):.4f} px; moved / sd: median {np.median(moved):.4f}, "
+          f"max {moved.max():.4f}; iterations {early.n_iter.mean():.1f} vs {full.n_iter.mean():.1f}")
+    assert np.median(sd) > 0.02  # the case this rule is for
+    assert np.percentile(moved, 95) < 0.1 and moved.max() < 0.25
+    assert early.n_iter.mean() < full.n_iter.mean()
+
+
 def test_uint8_corners_and_sigma_options(rng):
     img, truth, init, angles, contrast = corner_mosaic(rng, 150, noise=NOISE)
     img8 = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)

@@ -584,6 +584,7 @@ def _batched_lm(
     *,
     max_iter: int | np.ndarray,
     tol: float,
+    rel_tol: float = 0.0,
     valid: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> _LMOut:
     """Levenberg-Marquardt on K independent least-squares problems at once.
@@ -591,11 +592,17 @@ def _batched_lm(
     Minimises ``sum_m w_km (d_km - f_m(p_k))^2`` for every ``k``. Each iteration solves, per
     problem, ``(J^T W J + lambda diag(J^T W J)) delta = J^T W (d - f)`` (Marquardt's scaling),
     accepts the step if the cost does not increase (``lambda /= 3``), else rejects it
-    (``lambda *= 8``). A problem has converged when a step moves the position (first two
-    parameters) by less than ``tol`` and every other parameter by less than the equivalent
-    (``|delta_j| sqrt(A_jj) < tol max(sqrt(A_00), sqrt(A_11))``) while ``lambda <= 0.01``;
-    that last step is taken without re-evaluating the model. A problem whose ``lambda``
-    exceeds 1e10 has stalled (not converged).
+    (``lambda *= 8``). A problem has converged when, while ``lambda <= 0.01``, every parameter's
+    step is below ``tol`` px of position equivalent or below ``rel_tol`` of its conditional
+    standard deviation ``s / sqrt(A_jj)`` (``s^2 = cost / (M - P)``), whichever is larger::
+
+        |delta_j| sqrt(A_jj) < max(tol max(sqrt(A_00), sqrt(A_11)), rel_tol s)
+
+    (and the position, the first two parameters, by less than ``tol`` unless the second term
+    applies); that last step is taken without re-evaluating the model. ``rel_tol`` ends fits
+    whose residual is large (a model that does not describe the image exactly) where further
+    steps cannot move the result by anything that matters against its own uncertainty. A
+    problem whose ``lambda`` exceeds 1e10 has stalled (not converged).
 
     Parameters
     ----------
@@ -637,11 +644,14 @@ def _batched_lm(
             step = np.einsum("kpq,kq->kp", np.linalg.pinv(M), g)  # a singular problem
         # a step this small cannot change the cost materially: take it without re-evaluating
         scale = np.sqrt(np.maximum(dg, 1e-300))  # parameter scale for the stopping test
-        tiny = (
-            (np.max(np.abs(step[:, :2]), axis=1) < tol)
-            & (np.max(np.abs(step) * scale, axis=1) < tol * np.max(scale[:, :2], axis=1))
-            & (lam[idx] <= 1e-2)  # a near Gauss-Newton step, not one shrunk by damping
-        )
+        # |delta_j| sqrt(A_jj) / s is the step in units of the parameter's conditional sd
+        dof = np.maximum(weights[idx].sum(axis=1) - n_par, 1.0)
+        small = np.abs(step) * scale < rel_tol * np.sqrt(cost[idx] / dof)[:, None]
+        small[:, :2] |= np.abs(step[:, :2]) < tol
+        small[:, 2:] |= np.abs(step[:, 2:]) * scale[:, 2:] < \
+            tol * np.max(scale[:, :2], axis=1, keepdims=True)
+        # a near Gauss-Newton step, not one shrunk by damping
+        tiny = np.all(small, axis=1) & (lam[idx] <= 1e-2)
         n_iter[idx] += 1
         done = idx[tiny]
         p[done] += step[tiny]
@@ -845,10 +855,10 @@ def refine_corners(
     window : int
         Half-size of the fitting window, px (5 -> 11 x 11 pixels).
     sigma : float, 'shared' or None
-        Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it per
-        corner, takes the median over converged corners and refits every corner with that value
-        fixed (a two-stage estimate of one common blur), or with the shared anisotropic
-        covariance when the data ask for it (see above).
+        Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it on up to
+        64 corners spread over the list, takes the median over converged ones and fits every
+        corner with that value fixed (a two-stage estimate of one common blur), or with the
+        shared anisotropic covariance when the data ask for it (see above).
     pixel_model : {'quadrature', 'gaussian'}
         Pixel integration model for the final iterations.
     n_sub : int, optional
@@ -933,6 +943,16 @@ def refine_corners(
             # corner it brought close converges in a few of these iterations; one it did not
             # rarely does at all, and must not cost max_iter quadrature ones.
             fine.fit(blur, "gaussian", 1, max_iter, 1e-3)
+            # A corner whose position sd dwarfs the Gaussian pixel model's bias (a poor fit on
+            # a real, sharpened frame; a dim corner) ends here: polishing cannot move it by
+            # anything that matters against its own sd.
+            done = fine.gaussian_is_final(blur) if pixel_model == "quadrature" else \
+                np.zeros(len(fine.p), bool)
+            final = fine.subset(done)
+            if len(final.p):
+                final.store(out, blur)
+            fine = fine.subset(~done)
+        if len(fine.p):
             budget = np.where(fine.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
             fine.fit(blur, "quadrature", n_sub or auto_n_sub(fine.smallest_sigma(blur)),
                      budget, tol)
@@ -945,7 +965,34 @@ def refine_corners(
 
 
 _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corners
+_REL_TOL = 0.05  # a corner fit stops on steps below this fraction of each parameter's sd
+_FINAL_FRACTION = 0.05  # of a corner's position sd: a bias or a step below it does not matter
+# Largest position error of the Gaussian pixel model on noise-free corners against the blur
+# (px, px), from ``python benchmarks/bench_refine.py --model-accuracy`` (docs/model.md).
+_GAUSSIAN_BIAS_SIGMA = np.array([0.3, 0.5, 0.7, 1.0, 1.6])
+_GAUSSIAN_BIAS = np.array([1.3e-2, 7.6e-4, 9.9e-5, 3.7e-5, 1.2e-5])
+
+
+def gaussian_pixel_bias(sigma: float | np.ndarray) -> np.ndarray:
+    """Bound on the corner position error (px) of the variance-matched Gaussian pixel model at
+    a blur of ``sigma`` px across the edges: the measured errors of docs/model.md, interpolated
+    in log-log; infinite below the smallest measured blur (0.3 px), the largest measured value
+    scaled as ``sigma^-2.5`` above.
+
+    Examples
+    --------
+    >>> float(gaussian_pixel_bias(0.5)), bool(np.isinf(gaussian_pixel_bias(0.2)))
+    (0.00076, True)
+    """
+    sig = np.asarray(sigma, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logb = np.interp(np.log(np.maximum(sig, 1e-300)), np.log(_GAUSSIAN_BIAS_SIGMA),
+                         np.log(_GAUSSIAN_BIAS), left=np.inf, right=np.nan)
+        out = np.exp(logb)
+        tail = _GAUSSIAN_BIAS[-1] * (sig / _GAUSSIAN_BIAS_SIGMA[-1]) ** -2.5
+    return np.where(sig > _GAUSSIAN_BIAS_SIGMA[-1], tail, np.where(np.isfinite(sig), out, np.inf))
 _GAUSSIAN_PIXEL_SIGMA = 1.0  # px; a fixed or shared blur from which the cheap model is final
+_BLUR_SAMPLE = 64  # corners, spread over the image's list, whose own fits give the shared blur
 _ANISO_SAMPLE = 48  # corners whose own anisotropic fits estimate the shared PSF covariance
 _ANISO_CHI2 = 13.8  # chi^2 (2 dof) at p = 0.001: the anisotropy is beyond its noise
 _ANISO_MIN_RATIO = 1.25  # major over minor PSF sd from which the anisotropy is used
@@ -988,23 +1035,29 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     """The blur shared by the image's corners: an sd (px) or, when the data ask for it, the
     entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance.
 
-    Every corner's blur is fitted (Gaussian pixel model); the median over converged corners is
-    the isotropic estimate ``sigma``. With ``anisotropic``, up to ``_ANISO_SAMPLE`` corners
-    spread over the list are refitted, in a window grown for ``sigma``, with their own
-    covariance ``S_k``; the anisotropy ``d_k = ((S_xx - S_yy) / 2, S_xy)`` is 0 for an
-    isotropic PSF. Its median ``d`` over converged corners, with per-component standard errors
-    ``se_j = 1.2533 * 1.4826 MAD_j / sqrt(n)`` (median of a normal sample), is significant when
-    ``sum_j (d_j / se_j)^2 > _ANISO_CHI2``; the covariance (median of each entry) is used only
-    when it is also physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
+    The blur of up to ``_BLUR_SAMPLE`` corners spread over the list is fitted (Gaussian pixel
+    model); the median over converged ones is the isotropic estimate ``sigma`` (its standard
+    error is a few thousandths of a pixel, far below what changes a position). With
+    ``anisotropic``, up to ``_ANISO_SAMPLE`` of those corners are refitted, in a window grown
+    for ``sigma``, with their own covariance ``S_k``; the anisotropy
+    ``d_k = ((S_xx - S_yy) / 2, S_xy)`` is 0 for an isotropic PSF. Its median ``d`` over
+    converged corners, with per-component standard errors ``se_j = 1.2533 * 1.4826 MAD_j /
+    sqrt(n)`` (median of a normal sample), is significant when ``sum_j (d_j / se_j)^2 >
+    _ANISO_CHI2``; the covariance (median of each entry) is used only when it is also
+    physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
     """
-    for c in chunks:
-        c.fit(None, "gaussian", 1, max_iter, tol)
-    fitted = np.concatenate([c.sigma_fitted() for c in chunks]) if chunks else np.zeros(0)
+    if not chunks:
+        return 1.0
+    start = np.concatenate([c.p[:, :2] + c.origin for c in chunks])
+    pick = np.unique(np.linspace(0, len(start) - 1, _BLUR_SAMPLE).round().astype(int))
+    blurs = _CornerChunk.start(img, start[pick], window, slice(0, len(pick)))
+    blurs.fit(None, "gaussian", 1, max_iter, tol)
+    fitted = blurs.sigma_fitted()
     good = np.isfinite(fitted)
     sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
     if not anisotropic or good.sum() < 8:
         return sigma
-    points = np.concatenate([c.p[:, :2] + c.origin for c in chunks])[good]
+    points = (blurs.p[:, :2] + blurs.origin)[good]
     pick = np.unique(np.linspace(0, len(points) - 1, _ANISO_SAMPLE).round().astype(int))
     sample = _CornerChunk.start(img, points[pick], _blur_window(sigma, window, max_window),
                                 slice(0, len(pick)))
@@ -1095,9 +1148,21 @@ class _CornerChunk:
             return ok
 
         self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
+                              rel_tol=_REL_TOL,
                               valid=valid)
         self.p = self.lm.p
         self.n_iter = self.n_iter + self.lm.n_iter
+
+    def gaussian_is_final(self, blur: float | np.ndarray | None) -> np.ndarray:
+        """Corners whose Gaussian-pixel-model fit is final: converged, and both that model's
+        position bias at their blur (:func:`gaussian_pixel_bias`) and the stage's stopping step
+        (1e-3 px) are within ``_FINAL_FRACTION`` of their own position sd."""
+        edge = np.exp(self.p[:, 6]) if blur is None else self.edge_sd(blur)
+        cov, _ = _covariance(self.lm, self.weights, self.p.shape[1])
+        with np.errstate(invalid="ignore"):
+            sd = np.sqrt(np.minimum(cov[:, 0, 0], cov[:, 1, 1]))
+        limit = _FINAL_FRACTION * np.where(np.isfinite(sd), sd, 0.0)
+        return self.lm.converged & (gaussian_pixel_bias(edge) <= limit) & (1e-3 <= limit)
 
     def sigma_fitted(self) -> np.ndarray:
         """Per-corner fitted blur, px; NaN where the stage did not converge."""
