@@ -291,7 +291,8 @@ def test_a_fit_that_cannot_match_the_image_stops_where_more_work_would_not_move_
     sd = np.sqrt(np.minimum(full.cov[ok, 0, 0], full.cov[ok, 1, 1]))
     moved = np.linalg.norm(early.points[ok] - full.points[ok], axis=1) / sd
     print(f"\nsd median {np.median(sd):.4f} px; moved / sd: median {np.median(moved):.4f}, "
-          f"max {moved.max():.4f}; iterations {early.n_iter.mean():.1f} vs {full.n_iter.mean():.1f}")
+          f"max {moved.max():.4f}; iterations {early.n_iter.mean():.1f} vs "
+          f"{full.n_iter.mean():.1f}")
     assert np.median(sd) > 0.02  # the case this rule is for
     assert np.percentile(moved, 95) < 0.1 and moved.max() < 0.25
     assert early.n_iter.mean() < full.n_iter.mean()

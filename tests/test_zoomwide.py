@@ -582,3 +582,32 @@ def test_a_board_retaped_between_sessions_gets_a_shape_per_session():
     one_rms = np.array([r.rms_px for r in one.results.values()])
     assert np.all(apart_rms < 1.2 * noise), apart_rms
     assert one_rms.max() > 1.3 * noise, one_rms
+
+
+def test_normal_equations_summed_per_view_equal_the_assembled_jacobians(rng, monkeypatch):
+    # The solver sums J^T J and J^T r step by step and view by view without forming J; on a
+    # sweep with two board sessions and the shared aspect ratio (every kind of global column),
+    # each call must equal the products of the assembled sparse Jacobian.
+    import zoomcalib.calibrate.zoomwide as zoomwide
+
+    obs, _, _ = sweep_observations(rng, steps=4, views=8, retaped_at=2)
+    original = zoomwide._ZoomProblem.normal_equations
+    checked = []
+
+    def compared(self, state):
+        r, blocks = original(self, state)
+        r_ref, J = self.evaluate(state)
+        ref = zoomwide._normal_blocks(self, J, r_ref)
+        # rounding only: the same sums in another order, each within 1e-9 of the sum of its
+        # terms' magnitudes (the same products of |J| and |r|)
+        size = zoomwide._normal_blocks(self, abs(J), np.abs(r_ref))
+        np.testing.assert_allclose(r, r_ref, rtol=1e-12, atol=1e-9)
+        for got, want, bound in zip(blocks, ref, size, strict=True):
+            assert np.all(np.abs(got - want) <= 1e-9 * bound + 1e-300)
+        checked.append(self.n_modes)
+        return r, blocks
+
+    monkeypatch.setattr(zoomwide._ZoomProblem, "normal_equations", compared)
+    sessions = {name: ("a" if k < 2 else "b") for k, name in enumerate(obs)}
+    calibrate_zoom_wide(obs, sessions=sessions)
+    assert len(checked) > 5 and max(checked) > 0

@@ -113,6 +113,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -573,32 +574,84 @@ class _ZoomProblem:
                                      np.concatenate(cols))), shape=(row0, self.n_unknowns))
         return r, scipy.sparse.vstack([J, self.prior_rows], format="csr")
 
+    def _global_block(self, s: int, step: _Step, Jc: np.ndarray, Jx: np.ndarray,
+                      state: _State) -> tuple[np.ndarray, np.ndarray]:
+        """Step ``s``'s unweighted derivatives by the global unknowns it touches, (n, 2, k),
+        and their columns (k,): its free intrinsics, the shared aspect ratio, its session's
+        board modes."""
+        sel = step.inlier
+        free = np.flatnonzero(self.free[s])
+        if self.shared_aspect:  # fy = aspect fx: fx moves fy too; the aspect column
+            Jc = Jc.copy()
+            Jc[:, :, 0] += state.aspect * Jc[:, :, 1]
+        blocks, cols = [Jc[:, :, free]], [self.cam_col[s, free]]
+        if self.shared_aspect:
+            blocks.append(state.cams[s, 0] * Jc[:, :, 1:2])
+            cols.append(np.array([self.aspect_col]))
+        if self.n_basis:
+            first = self.n_cam + self.n_basis * int(self.session[s])
+            blocks.append(Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :])
+            cols.append(first + np.arange(self.n_basis))
+        return np.concatenate(blocks, axis=2), np.concatenate(cols)
+
     def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals, state: _State):
         Jc, Jp, Jx = jac
         sel = step.inlier
         n = int(sel.sum())
         row = row0 + np.arange(2 * n).reshape(n, 2)
         w = 1.0 / step.sigma
-        free = np.flatnonzero(self.free[s])
         pose_col = self.n_glob + 6 * (self.view_start[s] + step.view[sel])
-        if self.shared_aspect:  # fy = aspect fx: fx moves fy too; the aspect column
-            Jc = Jc.copy()
-            Jc[:, :, 0] += state.aspect * Jc[:, :, 1]
-        blocks = [(Jc[:, :, free], np.broadcast_to(self.cam_col[s, free], (n, len(free)))),
-                  (Jp, pose_col[:, None] + np.arange(6))]
-        if self.shared_aspect:
-            blocks.append((state.cams[s, 0] * Jc[:, :, 1:2],
-                           np.full((n, 1), self.aspect_col)))
-        if self.n_basis:
-            first = self.n_cam + self.n_basis * int(self.session[s])
-            blocks.append((Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :],
-                           np.broadcast_to(first + np.arange(self.n_basis),
-                                           (n, self.n_basis))))
-        for block, col in blocks:
+        G, g_cols = self._global_block(s, step, Jc, Jx, state)
+        for block, col in ((G, np.broadcast_to(g_cols, (n, len(g_cols)))),
+                           (Jp, pose_col[:, None] + np.arange(6))):
             k = block.shape[2]
             rows.append(np.repeat(row, k, axis=1).ravel())
             cols.append(np.repeat(col[:, None, :], 2, axis=1).ravel())
             vals.append((block * w).ravel())
+
+    def normal_equations(self, state: _State) -> tuple[np.ndarray, _NormalBlocks]:
+        """The weighted residuals (as :meth:`evaluate`) and the blocks of ``J^T J`` and
+        ``J^T r`` (:class:`_NormalBlocks`), summed step by step and view by view from the dense
+        derivatives without forming ``J``: a corner's rows touch its step's global columns and
+        its view's six pose columns only, and the prior rows the global columns only."""
+        n_views = int(self.view_start[-1])
+        U = np.zeros((self.n_glob, self.n_glob))
+        W = np.zeros((self.n_glob, n_views, 6))
+        V = np.zeros((n_views, 6, 6))
+        g_glob, g_pose = np.zeros(self.n_glob), np.zeros((n_views, 6))
+        res = []
+        for s, step in enumerate(self.steps):
+            sel = step.inlier
+            uv, Jc, Jp, Jx = project_jacobian(
+                state.cams[s], state.rvecs[self.view_start[s]:self.view_start[s + 1]],
+                state.tvecs[self.view_start[s]:self.view_start[s + 1]],
+                self.points(state.modes, s), step.view[sel], step.point[sel])
+            w = 1.0 / step.sigma
+            r = (uv - step.uv[sel]) * w                                       # (n, 2)
+            res.append(r.ravel())
+            G, cols = self._global_block(s, step, Jc, Jx, state)
+            G, P = G * w, Jp * w
+            views = step.view[sel]
+            n_local = step.n_views
+            # per view sums of per-corner products: one sparse (views x corners) sum matrix
+            by_view = scipy.sparse.csr_matrix(
+                (np.ones(len(views)), (views, np.arange(len(views)))),
+                shape=(n_local, len(views)))
+            U[np.ix_(cols, cols)] += np.einsum("nik,nil->kl", G, G)
+            g_glob[cols] += np.einsum("nik,ni->k", G, r)
+            v0, v1 = self.view_start[s], self.view_start[s + 1]
+            V[v0:v1] += (by_view @ np.einsum("nij,nik->njk", P, P).reshape(len(views), 36)
+                         ).reshape(n_local, 6, 6)
+            g_pose[v0:v1] += by_view @ np.einsum("nij,ni->nj", P, r)
+            GP = by_view @ np.einsum("nik,nij->nkj", G, P).reshape(len(views), -1)
+            W[cols, v0:v1] += GP.reshape(n_local, len(cols), 6).transpose(1, 0, 2)
+        r = np.concatenate(res)
+        prior = self.prior_rows @ state.vector(self.free)
+        glob = self.prior_rows[:, :self.n_glob]
+        U += (glob.T @ glob).toarray()
+        g_glob += glob.T @ prior
+        return (np.concatenate([r, prior]),
+                _NormalBlocks(U, W.reshape(self.n_glob, -1), V, g_glob, g_pose.ravel()))
 
     def apply(self, state: _State, delta: np.ndarray) -> _State:
         cams = state.cams.copy()
@@ -622,10 +675,22 @@ class _Solve:
     stop_reason: str
 
 
-def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray):
-    """``J^T J`` split into the global block ``U`` (intrinsics and board, dense), the coupling
-    ``W`` (global x poses, dense) and the per-view 6 x 6 pose blocks ``V`` (views, 6, 6); and
-    ``J^T r`` split likewise."""
+class _NormalBlocks(NamedTuple):
+    """``J^T J`` split into the global block ``U`` (intrinsics, board modes, aspect; dense),
+    the coupling ``W`` (global x poses, dense) and the per-view 6 x 6 pose blocks ``V``
+    (views, 6, 6); and ``J^T r`` split likewise into ``g_glob`` and ``g_pose``."""
+
+    U: np.ndarray
+    W: np.ndarray
+    V: np.ndarray
+    g_glob: np.ndarray
+    g_pose: np.ndarray
+
+
+def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
+                   ) -> _NormalBlocks:
+    """:class:`_NormalBlocks` from an assembled sparse ``J`` (the reference for
+    :meth:`_ZoomProblem.normal_equations`, which sums them without forming ``J``)."""
     n_glob = prob.n_glob
     A = (J.T @ J).tocsr()
     g = J.T @ r
@@ -633,8 +698,8 @@ def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
     V.sort_indices()
     if len(V.data) != V.shape[0] // 6:
         raise RuntimeError("zoom-wide problem: two views are coupled (internal error)")
-    return (A[:n_glob, :n_glob].toarray(), A[:n_glob, n_glob:].toarray(), V.data,
-            g[:n_glob], g[n_glob:])
+    return _NormalBlocks(A[:n_glob, :n_glob].toarray(), A[:n_glob, n_glob:].toarray(), V.data,
+                         g[:n_glob], g[n_glob:])
 
 
 def _schur_step(U, W, V, g_glob, g_pose, lam: float):
@@ -663,11 +728,10 @@ def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int 
     """Marquardt-scaled LM with the poses eliminated (:func:`_schur_step`). Stops when the
     relative decrease of the cost falls below ``tol`` (``"tolerance"``), at the iteration cap,
     or when the damping passes 1e12 without a decrease (``"damping limit"``)."""
-    r, J = prob.evaluate(state)
+    r, blocks = prob.normal_equations(state)
     cost = float(r @ r)
     lam = 1e-4
     for it in range(1, max_iterations + 1):
-        blocks = _normal_blocks(prob, J, r)
         while True:
             delta = _schur_step(*blocks, lam)
             if delta is not None:
@@ -684,7 +748,7 @@ def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int 
         lam = max(lam / 10.0, 1e-12)
         if decrease < tol:
             return _Solve(state, cost, it, True, "tolerance")
-        r, J = prob.evaluate(state)
+        r, blocks = prob.normal_equations(state)
     return _Solve(state, cost, max_iterations, False, "iteration cap")
 
 
@@ -1255,7 +1319,7 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     marginalised: the inverse of the Schur complement), weighted problem with its prior rows;
     and, if ``check``, the view-scatter check of the intrinsics (:func:`_view_scatter`)."""
     r, J = prob.evaluate(state)
-    U, W, V, _, _ = _normal_blocks(prob, J, r)
+    U, W, V, _, _ = prob.normal_equations(state)[1]
     W3 = W.reshape(len(U), len(V), 6)
     through_pose = np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V))        # W_v V_v^-1
     S = U - np.einsum("gvj,hvj->gh", through_pose, W3)
