@@ -611,3 +611,12 @@ def test_normal_equations_summed_per_view_equal_the_assembled_jacobians(rng, mon
     sessions = {name: ("a" if k < 2 else "b") for k, name in enumerate(obs)}
     calibrate_zoom_wide(obs, sessions=sessions)
     assert len(checked) > 5 and max(checked) > 0
+
+
+def test_the_steps_own_fits_in_two_processes_give_the_same_adjustment(rng):
+    obs, _, _ = sweep_observations(rng, steps=4, views=8)
+    one, two = calibrate_zoom_wide(obs), calibrate_zoom_wide(obs, workers=2)
+    assert one.terms == two.terms
+    for step in obs:
+        np.testing.assert_array_equal(one.results[step].K, two.results[step].K)
+        np.testing.assert_array_equal(one.results[step].dist, two.results[step].dist)

@@ -610,7 +610,7 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--method", type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
               help="Detector; default: the target's usual one.")
 @click.option("--workers", default=0, show_default=True, type=click.IntRange(min=0),
-              help="Detection processes (0: all cores).")
+              help="Processes for detection and the zoom-wide per-step fits (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--grid-points", default=50, show_default=True, type=click.IntRange(min=2),

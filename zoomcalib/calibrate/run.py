@@ -239,7 +239,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     method : str, optional
         Detection method (default: the target's usual one).
     workers : int
-        Detection processes.
+        Processes for detection and for the zoom-wide adjustment's per-step OpenCV fits.
     progress : callable, optional
         Called with 1 per image detected.
     log : callable
@@ -300,14 +300,15 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     sessions = _board_sessions(run, extras_of, log) if zoom_wide else {}
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
-                                             extras_of.items()}, pp_model, sessions)
+                                             extras_of.items()}, pp_model, sessions, workers)
     for step in [s for s, r in run.results.items() if not r]:
         del run.results[step]
         run.backend_failures.pop(step, None)
         run.dropped.append(step)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
-        run.cross_validation = _cross_validate(run, model, target, pp_model, sessions)
+        run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
+                                               workers)
     run.flags = _step_flags(run)
     run.status = _step_statuses(run)
     for step, st in run.status.items():
@@ -553,7 +554,7 @@ def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
 
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2",
-               sessions: dict[str, str] | None = None) -> None:
+               sessions: dict[str, str] | None = None, workers: int = 1) -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -570,7 +571,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         obs = {s: correct_dot_centres(o, next(iter(run.results[s].values())), radius)[0]
                if run.results.get(s) else o for s, o in obs.items()}
     try:
-        zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions)
+        zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions,
+                                 workers=workers)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -590,7 +592,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
 
 
 def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2",
-                    sessions: dict[str, str] | None = None):
+                    sessions: dict[str, str] | None = None, workers: int = 1):
     """Two-halves check with the backend (and mode) of the zoom table (zoom-wide: with the
     board sessions of the full set)."""
     from .checks import cross_validate
@@ -601,7 +603,8 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
 
         return cross_validate(run.observations,
                               lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
-                                                            sessions=sessions).results,
+                                                            sessions=sessions,
+                                                            workers=workers).results,
                               backend)
 
     def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:

@@ -112,6 +112,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -818,22 +819,50 @@ class ZoomWideResult:
     board_sessions: list[str] = field(default_factory=lambda: [""])
 
 
-def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool):
+def _map_steps(function, items: list, workers: int) -> list:
+    """``[function(*item) for item in items]``, in ``workers`` processes when more than one
+    (each step's OpenCV fits are independent of the others'; the results, in order, are the
+    same either way)."""
+    if workers <= 1 or len(items) <= 1:
+        return [function(*item) for item in items]
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(items)))
+    try:
+        futures = [pool.submit(function, *item) for item in items]
+        return [f.result() for f in futures]
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _initial_step(name: str, obs: Observations, select: bool, decentring: bool):
+    """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
+    it could not be started or None)``."""
+    seed = _robust_start(obs)
+    held = select_distortion(obs, start=seed) if select else None
+    terms = {name: (with_decentring(held.terms, decentring) if select
+                    else DISTORTION_SETS["k1k2p1p2k3"])}
+    try:
+        return terms[name], held, _opencv_start(name, obs, terms, seed), None
+    except ValueError as exc:
+        return terms[name], held, None, str(exc)
+
+
+def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
+             workers: int = 1):
     """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
     step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
-    start from :func:`_robust_start`, not from OpenCV's own start."""
+    start from :func:`_robust_start`, not from OpenCV's own start. Steps run in ``workers``
+    processes."""
     terms, held, init, skipped = {}, {}, {}, {}
-    for name, obs in observations.items():
-        seed = _robust_start(obs)
-        if select:
-            held[name] = select_distortion(obs, start=seed)
-            terms[name] = with_decentring(held[name].terms, decentring)
+    items = [(name, obs, select, decentring) for name, obs in observations.items()]
+    for (name, *_), (term, choice, start, why) in zip(
+            items, _map_steps(_initial_step, items, workers), strict=True):
+        terms[name] = term
+        if choice is not None:
+            held[name] = choice
+        if start is not None:
+            init[name] = start
         else:
-            terms[name] = DISTORTION_SETS["k1k2p1p2k3"]
-        try:
-            init[name] = _opencv_start(name, obs, terms, seed)
-        except ValueError as exc:
-            skipped[name] = str(exc)
+            skipped[name] = why
     return terms, held, init, skipped
 
 
@@ -1006,7 +1035,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         pp_model: str = "angle2",
                         prior_strength: Mapping[str, float] | None = None,
                         decentring: bool = True, shared_aspect: bool = True,
-                        sessions: Mapping[str, str] | None = None) -> ZoomWideResult:
+                        sessions: Mapping[str, str] | None = None,
+                        workers: int = 1) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -1049,6 +1079,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         The capture session of each step: steps of different sessions see boards of their
         own shape (a paper board re-taped between sessions), steps of one session share
         it. Default: one session.
+    workers : int
+        Processes for the steps' own OpenCV fits (the distortion-term choice by held-out views
+        and the starts); the results do not depend on it.
 
     Returns
     -------
@@ -1062,7 +1095,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     """
     _check_options(pp_model, prior_strength)
     board = _common_board(observations)
-    terms, held, init, skipped = _initial(observations, select, decentring)
+    terms, held, init, skipped = _initial(observations, select, decentring, workers)
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
@@ -1091,7 +1124,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations = _solve_unsmoothed(
         problem, state, free, max_rounds,
-        observations if select and phi.shape[1] else None, init, terms, held, decentring)
+        observations if select and phi.shape[1] else None, init, terms, held, decentring, workers)
     forms = _Form.of(pp_model, np.exp(u),
                      0.5 * np.hypot(*observations[names[0]].image_size))
     if joint_cov is not None:
@@ -1227,7 +1260,7 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
 def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
                       observations: Mapping[str, Observations] | None,
                       init: Mapping[str, CalibrationResult], terms: dict, held: dict,
-                      decentring: bool = True):
+                      decentring: bool = True, workers: int = 1):
     """The solve without the smoothness prior (``problem(free)`` builds it). With
     ``observations`` the distortion terms are then chosen again on the board's estimated
     shape (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
@@ -1238,7 +1271,8 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
     if observations is not None and _select_on_board(
             observations, init, [unsmoothed.points(solve.state.modes, s)
-                                 for s in range(len(init))], terms, held, decentring):
+                                 for s in range(len(init))], terms, held, decentring,
+            workers):
         free = _free_mask(list(init), terms)
         free[:, 1] = not unsmoothed.shared_aspect
         state = solve.state
@@ -1283,14 +1317,15 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
 def _select_on_board(observations: Mapping[str, Observations],
                      init: Mapping[str, CalibrationResult], board_points: list[np.ndarray],
                      terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice],
-                     decentring: bool = True) -> bool:
+                     decentring: bool = True, workers: int = 1) -> bool:
     """Choose each started step's distortion terms again, by held-out views on the board's
     estimated shape (``board_points``, one (n, 3) array per step of ``init``, in its order;
-    :func:`select_distortion`); ``terms`` and ``held`` are updated in place. True when a
-    step's terms changed."""
+    :func:`select_distortion`, steps in ``workers`` processes); ``terms`` and ``held`` are
+    updated in place. True when a step's terms changed."""
     changed = False
-    for (name, start), points in zip(init.items(), board_points, strict=True):
-        choice = select_distortion(observations[name], board_points=points, start=start)
+    items = [(observations[name], 0.01, points, start)
+             for (name, start), points in zip(init.items(), board_points, strict=True)]
+    for name, choice in zip(init, _map_steps(select_distortion, items, workers), strict=True):
         if not choice.excess_se_px2:
             continue  # too few views, or no set could be fitted: keep the flat-board choice
         held[name] = choice
