@@ -12,7 +12,8 @@ repository; this script reads it where it lies and writes to ``--out`` (default
 
 1. **The default run.** ``calibrate_folder`` as ``zoomcalib calibrate FOLDER --pattern ...``
    runs it (detections cached in ``OUT/detections``, so a rerun times the calibration alone),
-   timed, beside plain per-step OpenCV on the same detections in the same run (the peer). It
+   timed, beside plain per-step OpenCV on the same detections in the same run (the peer), and
+   OpenCV's own detection (``classic``, two processes) plus that calibration. It
    prints the 10-step table: zoom-wide fx, fy / fx, cx, cy with their sigmas, the RMS, the
    status and its reasons.
 2. **Halves.** ``--splits`` splits of every step's views (the even and odd groups of views of
@@ -47,6 +48,7 @@ from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: 
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
 from zoomcalib.calibrate.status import sensor_aspect, step_status  # noqa: E402
 from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+from zoomcalib.detect import detect_folder  # noqa: E402
 
 COMPARED = ("fx", "cx", "cy")
 
@@ -61,6 +63,15 @@ def _table(results: dict, run) -> None:
         print(f"{step:>9} {r.fx:8.1f}±{r.sd['fx']:5.1f} {r.fy / r.fx:7.4f} "
               f"{r.cx:7.1f}±{r.sd['cx']:5.1f} {r.cy:7.1f}±{r.sd['cy']:5.1f} {r.rms_px:6.3f}  "
               f"{st.summary()}")
+
+
+def _opencv_detection(folder: Path, pattern: str) -> float:
+    """Seconds OpenCV's own chessboard detection (findChessboardCorners and cornerSubPix,
+    method ``classic``) takes on every step's images in two processes (the detection peer)."""
+    t = time.perf_counter()
+    for step in sorted(p for p in folder.iterdir() if p.is_dir()):
+        detect_folder(step, pattern, "classic", workers=2)
+    return time.perf_counter() - t
 
 
 def _per_step_opencv(run) -> float:
@@ -140,16 +151,19 @@ def main() -> None:
                            log=messages.append, report=False)
     wall = time.perf_counter() - t
     peer = _per_step_opencv(run)
+    detection_peer = _opencv_detection(args.folder, args.pattern)
     for m in messages:
         if "session" in m or "unusable" in m:
             print(m)
     print(f"default run: {wall:.0f} s wall ({sum(run.reused.values())} images' detections "
           f"reused from {args.out / 'detections'}; "
           f"{sum(len(o.names) for o in run.observations.values())} views); plain per-step "
-          f"OpenCV on the same detections {peer:.1f} s (ratio {wall / peer:.1f})")
+          f"OpenCV on the same detections {peer:.1f} s (ratio {wall / peer:.1f}); OpenCV's "
+          f"detection (classic, 2 processes) and per-step calibration {detection_peer + peer:.0f}"
+          f" s (ratio {wall / (detection_peer + peer):.1f})")
     sessions = {s: r["zoom-wide"].info.get("board_session", "")
                 for s, r in run.results.items() if "zoom-wide" in r}
-    kwargs = {"shared_aspect": not args.free_aspect}
+    kwargs = {"shared_aspect": not args.free_aspect, "workers": 2}
     zw = run.zoom_wide
     if args.one_session or args.free_aspect:
         sessions = None if args.one_session else sessions
