@@ -17,6 +17,7 @@ from zoomcalib.calibrate.checks import (
     split_halves,
 )
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv
+from zoomcalib.calibrate.quality import projection_difference, projection_z
 from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.zoommodel import prior_operator
 from zoomcalib.calibrate.zoomwide import (
@@ -271,6 +272,17 @@ def test_cross_validation_passes_one_camera_and_flags_a_moved_one(rng):
     check = cross_validate(moved, lambda o: calibrate_zoom_wide(o).results, "zoom-wide")
     assert all(abs(check.z[s]["cx"]) > Z_LIMIT for s in moved), check.z
     assert set(check.disagreeing()) == set(moved)
+    # the projections over the image in their own sigma: the halves of one camera agree, a
+    # 15 px move (about 10 sigmas of cx) is seen there too
+    assert all(p["z_rms"] < Z_LIMIT for p in steady.projection.values()), steady.projection
+    assert sum(p["z_rms"] > Z_LIMIT for p in check.projection.values()) >= 2, check.projection
+    assert min(p["z_rms"] for p in check.projection.values()) > \
+        np.median([p["z_rms"] for p in steady.projection.values()])
+    # the statistic's difference is the report's map
+    a, b = check.halves["step1"]
+    even, odd = split_halves(moved["step1"])
+    xs, ys, _, diff = projection_z(a, even, b, odd)
+    np.testing.assert_allclose(diff, projection_difference(a, b, even.image_size)[2])
     even, odd = split_halves(moved["step0"])
     assert even.names == moved["step0"].names[0::2] and odd.names == moved["step0"].names[1::2]
 

@@ -708,7 +708,11 @@ def _print_calibration(run) -> None:
         click.echo(f"cross-validation ({cv.backend}; even vs odd images, difference / combined "
                    "sigma):")
         for step, z in cv.z.items():
-            click.echo(f"{step:>12s} " + " ".join(f"z_{q} {v:+6.2f}" for q, v in z.items()))
+            proj = cv.projection.get(step, {})
+            click.echo(f"{step:>12s} " + " ".join(f"z_{q} {v:+6.2f}" for q, v in z.items())
+                       + (f"  projection z {proj['z_rms']:.2f} (up to "
+                          f"{proj['difference_max_px']:.2f} px apart)" if "z_rms" in proj
+                          else f"  projection: {proj.get('error', 'not compared')}"))
         for step, why in cv.failures.items():
             click.echo(f"{step:>12s} halves not calibrated: {why}")
     for step, res in run.results.items():

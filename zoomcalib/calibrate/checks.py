@@ -31,6 +31,14 @@ for ``q`` in ``fx, cx, cy`` the difference is expressed in its combined sigma,
 which is ``N(0, 1)`` when the reported sigmas are honest and the halves see the same camera.
 ``|z| > 3`` flags the step ("halves disagree").
 
+What matters to a user is where the two halves project a ray: every pixel is unprojected with
+one half's intrinsics and projected with the other's, and the difference is divided by the
+two fits' projection uncertainty there (:func:`~zoomcalib.calibrate.quality.projection_z`, the
+map of the report's cross-validation figure in its own sigma). Its root mean square over the
+region the step's views covered, ``z_proj``, is about 1 for honest sigmas (its square's mean
+is 1 at every pixel); ``z_proj > 3`` (a chi-square of 2 degrees of freedom above 18 even where
+the pixels move as one, p = 1.2e-4) flags the step too ("projection").
+
 A half of 5-15 views has too few for its view-scatter test (:mod:`zoomcalib.calibrate.scatter`)
 to see a factor below 2, while the errors views share (a lens misfit, a waving board) are the
 whole session's, which the full set's test sees with all its views. So with per-step backends
@@ -207,11 +215,19 @@ class CrossValidation:
     halves: dict[str, tuple[CalibrationResult, CalibrationResult]] = field(default_factory=dict)
     z: dict[str, dict[str, float]] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
+    projection: dict[str, dict] = field(default_factory=dict)
 
     def disagreeing(self) -> dict[str, list[str]]:
-        """Steps whose halves differ by more than :data:`Z_LIMIT` combined sigmas, and in what."""
-        return {s: [q for q, v in z.items() if not abs(v) <= Z_LIMIT]
-                for s, z in self.z.items() if any(not abs(v) <= Z_LIMIT for v in z.values())}
+        """Steps whose halves differ by more than :data:`Z_LIMIT` combined sigmas, and in what
+        (``"projection"``: the projection difference's RMS z over the observed region)."""
+        out = {}
+        for step, z in self.z.items():
+            bad = [q for q, v in z.items() if not abs(v) <= Z_LIMIT]
+            if self.projection.get(step, {}).get("z_rms", 0.0) > Z_LIMIT:
+                bad.append("projection")
+            if bad:
+                out[step] = bad
+        return out
 
     def to_dict(self) -> dict:
         out = {"backend": self.backend, "z_limit": Z_LIMIT, "failures": dict(self.failures),
@@ -219,6 +235,7 @@ class CrossValidation:
         for s, (a, b) in self.halves.items():
             out["steps"][s] = {
                 "z": self.z[s],
+                "projection": self.projection.get(s, {}),
                 "halves": [{q: getattr(r, q) for q in CROSS_VALIDATED}
                            | {f"sd_{q}": r.sd.get(q, float("nan")) for q in CROSS_VALIDATED}
                            | {"n_views": len(r.per_view_rms_px)} for r in (a, b)]}
@@ -269,6 +286,26 @@ def cross_validate(observations: Mapping[str, Observations],
         if step in res_even and step in res_odd:
             cv.halves[step] = (res_even[step], res_odd[step])
             cv.z[step] = _z(res_even[step], res_odd[step])
+            cv.projection[step] = _projection_check(res_even[step], even[step],
+                                                    res_odd[step], odd[step])
         else:
             cv.failures[step] = "a half could not be calibrated"
     return cv
+
+
+def _projection_check(a: CalibrationResult, obs_a: Observations, b: CalibrationResult,
+                      obs_b: Observations) -> dict:
+    """``z_rms``, ``z_max`` and ``difference_max_px`` of :func:`projection_z` over the region
+    both halves' views covered; ``error`` instead when it cannot be formed."""
+    from .quality import observed_region, projection_z
+
+    try:
+        xs, ys, z, diff = projection_z(a, obs_a, b, obs_b)
+    except (np.linalg.LinAlgError, ValueError, KeyError) as exc:
+        return {"error": " ".join(str(exc).split()) or type(exc).__name__}
+    points = np.concatenate([p for o in (obs_a, obs_b) for _, p in o.views])
+    inside = observed_region(points, xs, ys)[1] & np.isfinite(z)
+    if not inside.any():
+        return {"error": "no pixel of the grid inside the observed region"}
+    return {"z_rms": float(np.sqrt(np.mean(z[inside] ** 2))), "z_max": float(z[inside].max()),
+            "difference_max_px": float(diff[inside].max())}

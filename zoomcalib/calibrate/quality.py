@@ -65,7 +65,7 @@ from .bundle import scaled_inverse
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",
-           "intrinsics_covariance", "view_information", "projection_uncertainty",
+           "intrinsics_covariance", "view_information", "projection_uncertainty", "projection_z",
            "projection_difference",
            "pixel_grid", "observed_region", "MIN_TILT_DEG", "MIN_REACH", "MIN_CELLS", "GRID",
            "MIN_DISTANCE_RATIO"]
@@ -274,11 +274,19 @@ def projection_uncertainty(result: CalibrationResult, obs: Observations, distanc
     sigma : (R, C) ndarray
         1-sigma, px.
     """
+    xs, ys = pixel_grid(obs.image_size, columns)
+    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    cov_q = _projection_covariance(result, obs, distance, q)
+    return xs, ys, _largest_sd(cov_q).reshape(len(ys), len(xs))
+
+
+def _projection_covariance(result: CalibrationResult, obs: Observations, distance: float,
+                           q: np.ndarray) -> np.ndarray:
+    """``cov(q)`` (n, 2, 2), px^2, of the projection of the points at range ``distance`` on the
+    rays of the pixels ``q`` (n, 2) (module docstring)."""
     free = _free(result)
     blocks = _fit_blocks(result, obs, free)
     _, cov_theta = intrinsics_covariance(result, obs, blocks)
-    xs, ys = pixel_grid(obs.image_size, columns)
-    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     p_cam = distance * _rays(result.K, result.dist, q)
     _, jac = cv2.projectPoints(p_cam, np.zeros(3), np.zeros(3), result.K, result.dist)
     jac = jac.reshape(-1, 2, jac.shape[1])
@@ -291,8 +299,7 @@ def projection_uncertainty(result: CalibrationResult, obs: Observations, distanc
         V_inv = np.linalg.inv(blocks.V[i])
         G += M @ (-V_inv @ blocks.W[i].T)
         pose_var += blocks.s2 * M @ V_inv @ np.swapaxes(M, 1, 2)
-    cov_q = G @ cov_theta @ np.swapaxes(G, 1, 2) + pose_var
-    return xs, ys, _largest_sd(cov_q).reshape(len(ys), len(xs))
+    return G @ cov_theta @ np.swapaxes(G, 1, 2) + pose_var
 
 
 def _pose_gradient(P: np.ndarray, p_cam: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
@@ -325,6 +332,40 @@ def observed_region(points: np.ndarray, xs: np.ndarray, ys: np.ndarray
     cross = edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]
     inside = np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)
     return hull, inside.reshape(len(ys), len(xs))
+
+
+def projection_z(a: CalibrationResult, obs_a: Observations, b: CalibrationResult,
+                 obs_b: Observations, columns: int = 40
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The halves' projection difference in its own uncertainty over the image.
+
+    Each pixel ``q`` is unprojected with ``a``'s intrinsics and that ray projected with
+    ``b``'s, ``d = q_b - q`` (:func:`projection_difference`). To first order ``d = A (theta_b -
+    theta_a)`` with ``A = dq / dtheta`` on that ray (the ray held in the camera frame, as the
+    map holds it: no rotation compensated), so its covariance is ``A (Sigma_a + Sigma_b)
+    A^T`` with each half's intrinsics covariance (:func:`intrinsics_covariance`), and
+    ``z = sqrt(d^T (A (Sigma_a + Sigma_b) A^T)^-1 d / 2)``: its square has mean 1 at every pixel
+    when the halves see one camera and their sigmas are honest (``2 z^2`` is chi-square with 2
+    degrees of freedom).
+
+    Returns ``xs`` (C,), ``ys`` (R,), ``z`` (R, C) and the difference ``|d|`` (R, C), px.
+    """
+    xs, ys = pixel_grid(obs_a.image_size, columns)
+    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    rays = _rays(a.K, a.dist, q)
+    qb, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), b.K, b.dist)
+    d = qb.reshape(-1, 2) - q
+    cov = np.zeros((len(q), 2, 2))
+    for r, o in ((a, obs_a), (b, obs_b)):
+        free = _free(r)
+        _, cov_theta = intrinsics_covariance(r, o)
+        _, jac = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), r.K, r.dist)
+        A = jac.reshape(len(q), 2, -1)[:, :, 6:][:, :, free]
+        cov += A @ cov_theta @ np.swapaxes(A, 1, 2)
+    chi2 = np.einsum("ni,ni->n", d, np.linalg.solve(cov, d[:, :, None])[:, :, 0])
+    shape = (len(ys), len(xs))
+    return xs, ys, np.sqrt(np.maximum(chi2, 0.0) / 2.0).reshape(shape), \
+        np.linalg.norm(d, axis=1).reshape(shape)
 
 
 def projection_difference(a: CalibrationResult, b: CalibrationResult,

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import report_plots as figs
+from .checks import Z_LIMIT
 from .quality import (
     GRID,
     MIN_REACH,
@@ -227,9 +228,12 @@ def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Obse
     cv = run.cross_validation
     if cv is not None and step in cv.halves:
         diff = projection_difference(*cv.halves[step], obs.image_size)[2]
+        proj = cv.projection.get(step, {})
         note = (" Right: each pixel unprojected with the even half's intrinsics and projected "
                 f"with the odd half's: up to {_largest(diff, inside)} px where points were "
-                "detected.")
+                "detected"
+                + (f"; in the halves' own sigma, RMS z {proj['z_rms']:.2f} over the observed "
+                   f"region (flagged above {Z_LIMIT:g})." if "z_rms" in proj else "."))
     elif cv is not None and step in cv.failures:
         note = f" Cross-validation: halves not calibrated ({_e(cv.failures[step])})."
     centre = sigma[len(ys) // 2, len(xs) // 2]

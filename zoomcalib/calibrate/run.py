@@ -630,6 +630,9 @@ def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
         cv = run.cross_validation
         if cv is not None and step in cv.z:
             bad = [f"{q} {z:+.1f}" for q, z in cv.z[step].items() if not abs(z) <= Z_LIMIT]
+            proj = cv.projection.get(step, {}).get("z_rms", 0.0)
+            if proj > Z_LIMIT:
+                bad.append(f"projection {proj:.1f}")
             if bad:
                 reasons.append("halves disagree (z: " + ", ".join(bad) + ")")
         if cv is not None and step in cv.failures:
@@ -650,8 +653,12 @@ def _step_statuses(run: CalibrateRun) -> dict[str, StepStatus]:
     out = {}
     for step, res in table.items():
         own = run.results[step].get("opencv") if res.backend == "zoom-wide" else None
-        out[step] = step_status(res, run.observations[step].image_size, aspect, own,
-                                cv.z.get(step) if cv is not None else None)
+        halves = None
+        if cv is not None and step in cv.z:
+            halves = dict(cv.z[step])
+            if "z_rms" in cv.projection.get(step, {}):
+                halves["projection"] = cv.projection[step]["z_rms"]
+        out[step] = step_status(res, run.observations[step].image_size, aspect, own, halves)
         if out[step].status != "ok" and res.fx > 0:
             advice = advise(res, run.observations[step])
             out[step].advice = None if advice is None else advice.to_dict()

@@ -206,7 +206,8 @@ def step_status(res: CalibrationResult, image_size: tuple[int, int],
         The step calibrated on its own (per-step OpenCV), when ``res`` comes from the zoom-wide
         adjustment.
     halves_z : dict, optional
-        The cross-validation's ``z`` of the step by parameter.
+        The cross-validation's ``z`` of the step by parameter (and ``projection``: the RMS z of
+        the halves' projections over the observed region).
 
     Examples
     --------
