@@ -274,6 +274,10 @@ def test_cross_validation_passes_one_camera_and_flags_a_moved_one(rng):
     assert set(check.disagreeing()) == set(moved)
     # the projections over the image in their own sigma: the halves of one camera agree, a
     # 15 px move (about 10 sigmas of cx) is seen there too
+    print("\nprojection z_rms, one camera: "
+          + ", ".join(f"{p['z_rms']:.2f}" for p in steady.projection.values())
+          + "; odd views' cx moved 15 px: "
+          + ", ".join(f"{p['z_rms']:.2f}" for p in check.projection.values()))
     assert all(p["z_rms"] < Z_LIMIT for p in steady.projection.values()), steady.projection
     assert sum(p["z_rms"] > Z_LIMIT for p in check.projection.values()) >= 2, check.projection
     assert min(p["z_rms"] for p in check.projection.values()) > \
