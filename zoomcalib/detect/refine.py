@@ -54,7 +54,10 @@ point-symmetric, which keeps the corner position error smaller than that suggest
 sigma absorbs part of the mismatch). The refiner uses this model to get close, then finishes with
 a few quadrature iterations; from a blur of 1 px on (a fixed or shared sigma; for a covariance,
 the sd ``sqrt(n_i^T S n_i)`` across each of the corner's edges) the difference has fallen to the
-level of the quadrature's own, so the fit ends on this model.
+level of the quadrature's own, so the fit ends on this model. A corner whose own position sd is
+at least 20 times this model's bias at its blur (:func:`gaussian_pixel_bias`; a model that does
+not describe the frame exactly, a dim corner) ends on it too: the polish could not move it by
+anything that matters against that sd.
 
 The errors of each of these approximations (quadrature orders, pixel models, the ``erf``
 product, noise-free corners and dots) are measured by ``python benchmarks/bench_refine.py
