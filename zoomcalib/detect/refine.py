@@ -730,6 +730,12 @@ class RefineResult:
     psf_cov : (K, 2, 2) ndarray
         Covariance of the Gaussian PSF, px^2, rows and columns in (x, y) order: ``sigma^2 I``
         for an isotropic blur. ``sigma`` is ``sqrt(tr(psf_cov) / 2)``.
+    steep_edges : bool
+        With ``sigma='shared'``: the corners' own fits put the blur below
+        ``_STEEP_EDGE_BLUR`` while missing the image by more than ``_STEEP_EDGE_MISFIT`` of
+        their contrast, the signature of edges steeper than any Gaussian blur makes (a camera
+        that sharpens); the blur was then fixed at ``_STEEP_EDGE_BLUR`` (see
+        :func:`refine_corners`).
     """
 
     points: np.ndarray
@@ -742,6 +748,7 @@ class RefineResult:
     sigma: np.ndarray
     n_iter: np.ndarray
     psf_cov: np.ndarray
+    steep_edges: bool = False
 
 
 def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
@@ -841,6 +848,17 @@ def refine_corners(
     exact (module docstring) and the fit ends on it. The covariance is ``s^2 (J^T J)^-1``
     (position block) with ``s^2 = RSS / (n - P)``.
 
+    With ``sigma='shared'``, when the sampled corners' fits put the blur below 0.5 px
+    (``_STEEP_EDGE_BLUR``) and their residual RMS exceeds 3 % (``_STEEP_EDGE_MISFIT``) of their
+    contrast (median over the sample), the edges are steeper than any Gaussian blur with pixel
+    integration makes: a camera sharpened them, and the blur the fit finds is no blur but the
+    model's way of steepening them. The fit then fixes the blur at 0.5 px, where the cheap
+    pixel model ends the fit (its bias there is a few hundredths of such corners' sd), and says
+    so in ``steep_edges``; a collapsed blur would need a finer pixel rule, more iterations and
+    leave more corners unconverged, for positions no closer to the truth on sharpened renders
+    (``tests/test_refine.py``). A render with a genuinely small blur fits to its noise and keeps
+    its blur.
+
     With ``sigma='shared'`` the blur may come out anisotropic: a Gaussian PSF of covariance
     ``S`` (module docstring), fixed for every corner, chosen only when up to 48 corners' own
     fits of ``S`` find an anisotropy beyond its noise (chi^2 test of the median of
@@ -925,8 +943,10 @@ def refine_corners(
     gaussian_only = pixel_model == "gaussian"
     blur: float | np.ndarray | None = sigma
     if sigma == "shared":
-        blur = _shared_blur(img, chunks, window, max_window, max_iter,
-                            tol if gaussian_only else 1e-3, anisotropic)
+        blur, misfit = _shared_blur(img, chunks, window, max_window, max_iter,
+                                    tol if gaussian_only else 1e-3, anisotropic)
+        if np.ndim(blur) == 0 and blur < _STEEP_EDGE_BLUR and misfit > _STEEP_EDGE_MISFIT:
+            blur, out.steep_edges = _STEEP_EDGE_BLUR, True
     if blur is not None:
         grown = _blur_window(blur, window, max_window)
         for c in chunks:
@@ -996,6 +1016,8 @@ def gaussian_pixel_bias(sigma: float | np.ndarray) -> np.ndarray:
     return np.where(sig > _GAUSSIAN_BIAS_SIGMA[-1], tail, np.where(np.isfinite(sig), out, np.inf))
 _GAUSSIAN_PIXEL_SIGMA = 1.0  # px; a fixed or shared blur from which the cheap model is final
 _BLUR_SAMPLE = 64  # corners, spread over the image's list, whose own fits give the shared blur
+_STEEP_EDGE_BLUR = 0.5  # px: a shared blur below this with a large misfit is sharpening
+_STEEP_EDGE_MISFIT = 0.03  # of the contrast: the sampled corners' median residual RMS above it
 _ANISO_SAMPLE = 48  # corners whose own anisotropic fits estimate the shared PSF covariance
 _ANISO_CHI2 = 13.8  # chi^2 (2 dof) at p = 0.001: the anisotropy is beyond its noise
 _ANISO_MIN_RATIO = 1.25  # major over minor PSF sd from which the anisotropy is used
@@ -1034,9 +1056,12 @@ def _blur_window(blur: float | np.ndarray, window: int, max_window: int) -> int:
 
 
 def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_window: int,
-                 max_iter: int, tol: float, anisotropic: bool) -> float | np.ndarray:
+                 max_iter: int, tol: float, anisotropic: bool
+                 ) -> tuple[float | np.ndarray, float]:
     """The blur shared by the image's corners: an sd (px) or, when the data ask for it, the
-    entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance.
+    entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance; and the sampled
+    corners' misfit, the median residual RMS over the median ``|a|`` (contrast) of those whose
+    blur fit converged.
 
     The blur of up to ``_BLUR_SAMPLE`` corners spread over the list is fitted (Gaussian pixel
     model); the median over converged ones is the isotropic estimate ``sigma`` (its standard
@@ -1050,7 +1075,7 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
     """
     if not chunks:
-        return 1.0
+        return 1.0, 0.0
     start = np.concatenate([c.p[:, :2] + c.origin for c in chunks])
     pick = np.unique(np.linspace(0, len(start) - 1, _BLUR_SAMPLE).round().astype(int))
     blurs = _CornerChunk.start(img, start[pick], window, slice(0, len(pick)))
@@ -1058,8 +1083,11 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     fitted = blurs.sigma_fitted()
     good = np.isfinite(fitted)
     sigma = float(np.median(fitted[good])) if np.any(good) else 1.0
+    rms = np.sqrt(blurs.lm.cost / np.maximum(blurs.weights.sum(axis=1), 1.0))
+    misfit = float(np.median(rms[good]) / max(np.median(np.abs(blurs.p[good, 4])), 1e-300)) \
+        if np.any(good) else 0.0
     if not anisotropic or good.sum() < 8:
-        return sigma
+        return sigma, misfit
     points = (blurs.p[:, :2] + blurs.origin)[good]
     pick = np.unique(np.linspace(0, len(points) - 1, _ANISO_SAMPLE).round().astype(int))
     sample = _CornerChunk.start(img, points[pick], _blur_window(sigma, window, max_window),
@@ -1068,7 +1096,7 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     sample.fit(_cov_entries(sigma), "gaussian", 1, max_iter, tol, free=True)
     cov = sample.p[sample.lm.converged, 6:9]
     if len(cov) < 8:
-        return sigma
+        return sigma, misfit
     d = np.column_stack([0.5 * (cov[:, 0] - cov[:, 2]), cov[:, 1]])
     d_med = np.median(d, axis=0)
     se = 1.2533 * 1.4826 * np.median(np.abs(d - d_med), axis=0) / np.sqrt(len(d))
@@ -1076,8 +1104,8 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     minor, major = _cov_eig_sd(shared)
     significant = np.sum((d_med / np.maximum(se, 1e-12)) ** 2) > _ANISO_CHI2
     if significant and minor > 0 and major >= _ANISO_MIN_RATIO * minor:
-        return shared
-    return sigma
+        return shared, misfit
+    return sigma, misfit
 
 
 @dataclass
