@@ -269,19 +269,7 @@ def test_a_fit_that_cannot_match_the_image_stops_where_more_work_would_not_move_
     # fraction of the sd, with fewer iterations.
     import zoomcalib.detect.refine as refine
 
-    n, lam = 120, 0.4
-    cols = 11
-    img = np.zeros((11 * PATCH, cols * PATCH))
-    init = np.empty((n, 2))
-    for i in range(n):
-        r, c = divmod(i, cols)
-        local = CENTRE + rng.uniform(-0.5, 0.5, 2)
-        a1 = rng.uniform(0.0, np.pi)
-        ang = (a1, a1 + rng.uniform(np.deg2rad(45.0), np.deg2rad(135.0)))
-        patch = (1 + lam) * render_corner(local, ang, 0.6) - lam * render_corner(local, ang, 1.6)
-        img[r * PATCH:(r + 1) * PATCH, c * PATCH:(c + 1) * PATCH] = 0.1 + 0.7 * patch
-        init[i] = local + (c * PATCH, r * PATCH) + rng.uniform(-1.0, 1.0, 2)
-    img += rng.normal(0.0, 12.0 / 255.0, img.shape)
+    img, _, init = _sharpened_mosaic(rng, 120, 0.4, 0.6, 1.6, 12.0)
     early = refine_corners(img, init, sigma="shared")
     monkeypatch.setattr(refine, "_FINAL_FRACTION", 0.0)
     monkeypatch.setattr(refine, "_REL_TOL", 0.0)
