@@ -303,3 +303,19 @@ def test_unknown_option_and_missing_folder_raise(tmp_path):
         detect_image(LEFT / "left01.jpg", CHESS, "sb", win=3)
     with pytest.raises(FileNotFoundError, match="no such folder"):
         detect_folder(tmp_path / "absent", CHESS)
+
+
+def test_a_sharpening_camera_is_said_and_its_corners_kept():
+    # OpenCV's sample photos as they are, and unsharp-masked as a camera's sharpening does
+    # (I + 2 (I - G_2 * I)): only the sharpened ones are fitted as steep edges, the flag goes
+    # through the detections file, and no corner is lost to it.
+    for path in sorted(LEFT.glob("left0[1-4].jpg")):
+        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        plain = detect_image(grey, "chessboard:9x6:25")
+        blurred = cv2.GaussianBlur(grey.astype(float), (0, 0), 2.0)
+        sharp = np.clip(grey + 2.0 * (grey - blurred), 0, 255).astype(np.uint8)
+        sharpened = detect_image(sharp, "chessboard:9x6:25", name=path.name)
+        assert plain.ok and not plain.steep_edges
+        assert sharpened.ok and sharpened.steep_edges and sharpened.n_fallback == 0
+        back = Detection.from_dict(json.loads(json.dumps(sharpened.to_dict())))
+        assert back.steep_edges and "steep_edges" not in plain.to_dict()

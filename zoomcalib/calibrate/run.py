@@ -490,6 +490,10 @@ def _step_detections(out: Path, step: str, files: list[Path], target: Target, se
         log(f"step {step}: reused the cached detections of {reused} unchanged image"
             f"{'s' if reused > 1 else ''} ({cache})"
             + (f"; detected {fresh} new or changed" if fresh else ""))
+    steep = sum(d.steep_edges for d in dets)
+    if steep:
+        log(f"step {step}: {steep} of {len(dets)} images have edges steeper than any blur makes "
+            "(a camera that sharpens): their corners were fitted at a 0.5 px blur")
     return dets
 
 

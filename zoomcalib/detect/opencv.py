@@ -137,6 +137,10 @@ class Detection:
         The image failed for a reason outside it (an unexpected exception, a worker killed by
         the system): another run may succeed, so a cache must not reuse the failure. Not
         written to a detections file.
+    steep_edges : bool
+        The image's edges are steeper than any Gaussian blur makes (a camera that sharpens):
+        the ``model`` refiner fitted its corners at a fixed 0.5 px blur
+        (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`).
     """
 
     file: str
@@ -147,6 +151,7 @@ class Detection:
     image_size: tuple[int, int] = (0, 0)
     fallback: np.ndarray | None = None
     transient: bool = False
+    steep_edges: bool = False
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
@@ -172,12 +177,15 @@ class Detection:
         return int(np.count_nonzero(self.fallback))
 
     def to_dict(self) -> dict:
-        """The detections-file entry ``{"file", "points", "ids", "error"[, "fallback"]}``, plain
-        Python types; ``fallback`` (one bool per point) only when a point fell back."""
+        """The detections-file entry ``{"file", "points", "ids", "error"[, "fallback",
+        "steep_edges"]}``, plain Python types; ``fallback`` (one bool per point) only when a point
+        fell back, ``steep_edges`` only when true."""
         entry = {"file": self.file, "points": self.points.tolist(),
                  "ids": [int(i) for i in self.ids], "error": self.error}
         if self.n_fallback:
             entry["fallback"] = [bool(b) for b in self.fallback]
+        if self.steep_edges:
+            entry["steep_edges"] = True
         return entry
 
     @classmethod
@@ -188,7 +196,7 @@ class Detection:
         return cls(str(entry["file"]), np.asarray(entry.get("points") or [], float),
                    np.asarray(entry.get("ids") or [], np.int64), entry.get("error"),
                    str(entry.get("method", method)), tuple(entry.get("image_size", image_size)),
-                   entry.get("fallback"))
+                   entry.get("fallback"), steep_edges=bool(entry.get("steep_edges", False)))
 
 
 def default_method(target: Target) -> str:
@@ -553,7 +561,9 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     spacing. Dots: blurred-ellipse fit; the result is the
     centre of the imaged ellipse (its perspective/distortion bias is corrected at calibration,
     see :func:`zoomcalib.detect.dots.dot_centre_bias`). Points whose fit did not converge keep
-    OpenCV's position and are returned flagged (the third element, True where a point fell back).
+    OpenCV's position and are returned flagged (the third element, True where a point fell back);
+    the fourth says whether the corners' edges were steeper than any blur makes
+    (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`).
     """
     from .refine import refine_corners, refine_dots
 
@@ -585,7 +595,7 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
                              max_window=min(_MAX_WINDOW, cap))
         refined = res.points
     out = np.where(res.converged[:, None], refined, pts)
-    return out, ids, ~res.converged
+    return out, ids, ~res.converged, bool(getattr(res, "steep_edges", False))
 
 
 _MAX_WINDOW = 12  # px; the model fit's half-window grows with the blur up to this
@@ -661,8 +671,9 @@ def detect_image(image_or_path: str | os.PathLike | np.ndarray, target: Target |
                          method=method, image_size=size)
     if isinstance(found, str):
         return Detection(label, error=f"{label}: {found}", method=method, image_size=size)
-    points, ids, *fallback = found
-    return Detection(label, points, ids, None, method, size, fallback[0] if fallback else None)
+    points, ids, *extra = found
+    return Detection(label, points, ids, None, method, size, extra[0] if extra else None,
+                     steep_edges=len(extra) > 1 and bool(extra[1]))
 
 
 def image_files(folder: str | os.PathLike) -> list[Path]:
