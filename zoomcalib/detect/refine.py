@@ -1004,7 +1004,7 @@ def gaussian_pixel_bias(sigma: float | np.ndarray) -> np.ndarray:
 
     Examples
     --------
-    >>> float(gaussian_pixel_bias(0.5)), bool(np.isinf(gaussian_pixel_bias(0.2)))
+    >>> round(float(gaussian_pixel_bias(0.5)), 6), bool(np.isinf(gaussian_pixel_bias(0.2)))
     (0.00076, True)
     """
     sig = np.asarray(sigma, dtype=float)
