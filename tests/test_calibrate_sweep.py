@@ -62,3 +62,21 @@ def test_zoom_model_of_the_principal_point_is_reported(rendered):
     for q in ("cx", "cy"):  # the default: the angular second-difference prior, REML tau
         assert models[q]["model"] == "angle2" and models[q]["order"] == 2
         assert models[q]["tau"] > 0
+
+
+def test_the_zoom_model_is_the_adjustments_own_posterior(rendered):
+    # at each step's zoom the model written to zoom_model.json gives that step's row: the
+    # rows are not refitted as if the prior had not smoothed them
+    from zoomcalib.calibrate.zoompath import PosteriorZoomModel
+
+    _, out, _ = rendered
+    doc = json.loads((out / "zoom_model.json").read_text())
+    model = PosteriorZoomModel.from_dict(doc["model"])
+    rows = read_zoom_table(out / "zoom_calibration.csv")
+    for row in rows:
+        lens = model.at(row["zoom"])
+        for q in ("fx", "fy", "cx", "cy"):
+            assert abs(lens.values[q] - row[q]) < 1e-6 * row[f"sd_{q}"], (row["step"], q)
+    assert set(doc["holdout_rms"]) >= {"fx", "cx", "cy"}
+    grid = (out / "zoom_model_grid.csv").read_text().splitlines()
+    assert grid[0].startswith("zoom,fx,fy,cx,cy") and len(grid) == 51

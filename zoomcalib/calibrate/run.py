@@ -13,7 +13,9 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
 - ``zoom_calibration.csv`` — one row per step, all from one backend, named in its ``backend``
   and ``mode`` columns: the zoom-wide adjustment (:mod:`zoomcalib.calibrate.zoomwide`, the
   default for a zoom set), else the bundle when it calibrated every step, else OpenCV;
-- ``zoom_model.json`` — smooth fits versus zoom with their held-out interpolation error
+- ``zoom_model.json`` — the intrinsics versus zoom (for the zoom-wide table: its own posterior
+  carried between the steps by its prior, :mod:`zoomcalib.calibrate.zoompath`; else curves
+  fitted to the table) with their held-out interpolation error
   (four or more steps with known zoom);
 - ``opencv/``, ``ros/``, ``mrcal/`` and ``zoom_model_grid.csv`` — the results in the formats
   of other tools (:mod:`zoomcalib.calibrate.export`);
@@ -421,9 +423,16 @@ def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
     if len(known) < 4:
         return
     from ..zoom import ZoomModel
+    from .zoompath import PosteriorZoomModel
 
     try:
-        run.zoom_model = ZoomModel.from_table(known)
+        if _posterior_zoom_model(run, known):
+            run.zoom_model = PosteriorZoomModel.from_zoom_wide(
+                run.zoom_wide, {r["step"]: r["zoom"] for r in known})
+            for note in run.zoom_model.notes:
+                log(f"zoom model: {note}")
+        else:
+            run.zoom_model = ZoomModel.from_table(known)
         if "k1" not in run.zoom_model.names and any(r.get("k4") is not None for r in known):
             log("zoom model: fx, fy, cx, cy only; steps "
                 + ", ".join(r["step"] for r in known if r.get("k4") is not None)
@@ -438,6 +447,15 @@ def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
     except (ValueError, np.linalg.LinAlgError) as exc:
         run.failures.append(f"zoom model: {exc}")
         log(run.failures[-1])
+
+
+def _posterior_zoom_model(run: CalibrateRun, rows: list[dict]) -> bool:
+    """Whether the zoom model comes from the zoom-wide adjustment's posterior
+    (:mod:`zoomcalib.calibrate.zoompath`): its rows make the table and it has one chain (the
+    steps reached zooming in and out are two paths; their table rows are fitted instead)."""
+    return (run.zoom_wide is not None and bool(getattr(run.zoom_wide, "u", None))
+            and all(run.table_backend.get(r["step"]) == "zoom-wide" for r in rows)
+            and len({r.get("direction") or "" for r in rows}) == 1)
 
 
 def _camera_name(folder: str | Path) -> str:

@@ -134,6 +134,7 @@ from .scatter import ViewScatter, noise_share, view_groups, view_scatter
 from .zoommodel import (
     CANDIDATES,
     ZoomModel,
+    held_out_residuals,
     marginal_tau,
     pooled_prior_strength,
     prior_operator,
@@ -467,19 +468,28 @@ class _Form:
     name: str = "prior2"
     weight: np.ndarray | None = None
     offset: bool = True
+    #: ``weight = (scale / fx)^power`` (power 0: no weight)
+    power: int = 0
+    scale: float = 1.0
 
     def at(self, steps) -> np.ndarray | None:
         """``weight`` of the given steps (None for a prior in the parameter's units)."""
         return None if self.weight is None else self.weight[steps]
 
+    def to_dict(self) -> dict:
+        """The form without its per-step weights: ``weight = (scale / fx)^power``."""
+        return {"name": self.name, "power": self.power, "scale": self.scale,
+                "offset": bool(self.offset and self.power != 0)}
+
     @classmethod
     def of(cls, pp_model: str, fx: np.ndarray, half_diagonal_px: float) -> dict[str, _Form]:
         """The forms of the smoothed parameters (``fx`` (S,) the steps' focal lengths, px):
         ``corner2`` for the distortion terms, and for cx and cy the one of ``pp_model``."""
-        forms = {q: cls("corner2", weight=(half_diagonal_px / fx) ** power, offset=False)
+        forms = {q: cls("corner2", weight=(half_diagonal_px / fx) ** power, offset=False,
+                        power=power, scale=half_diagonal_px)
                  for q, power in CORNER_POWER.items()}
         if pp_model == "angle2":
-            forms.update({q: cls("angle2", weight=1.0 / fx) for q in SELECTED})
+            forms.update({q: cls("angle2", weight=1.0 / fx, power=1) for q in SELECTED})
         return forms
 
 
@@ -775,6 +785,8 @@ class ZoomWideResult:
         (``board_sessions``), each session's in the order of :func:`board_height_modes`.
     board_sessions : list of str
         The capture sessions, in the order of their amplitudes (``[""]``: one session).
+    u : dict of str to float
+        Per step, the abscissa of the smoothness prior, ``log fx`` of the step's start.
     tau : dict of str to float
         Estimated prior strength per smoothed parameter (per ``u^2``, in the units that
         ``prior_strength`` of :func:`calibrate_zoom_wide` lists); ``inf`` = none.
@@ -782,8 +794,10 @@ class ZoomWideResult:
         Which per-step values ``tau`` was estimated from (module docstring).
     zoom_models : dict of str to dict
         Per smoothed parameter: the zoom model (``model``: ``prior2``, ``prior3``, ``poly1`` ..
-        ``poly3``, :mod:`~zoomcalib.calibrate.zoommodel`), its difference ``order``, ``tau`` and
-        the held-out log predictive density of every candidate tried.
+        ``poly3``, :mod:`~zoomcalib.calibrate.zoommodel`), its difference ``order``, ``tau``,
+        the held-out log predictive density of every candidate tried, its ``form`` (how the
+        prior reads the parameter) and ``held_out``: each step predicted from the others
+        (:func:`_held_out_paths`).
     terms : dict of str to tuple
         Distortion terms estimated per step: those its own held-out views chose
         (``held_out``) and, through the smoothness prior, those the other steps of its chain
@@ -817,6 +831,7 @@ class ZoomWideResult:
     aspect: float = float("nan")
     aspect_sd: float = float("nan")
     board_sessions: list[str] = field(default_factory=lambda: [""])
+    u: dict[str, float] = field(default_factory=dict)
 
 
 def _map_steps(function, items: list, workers: int) -> list:
@@ -981,6 +996,54 @@ def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarra
     return models, inflation
 
 
+def _with_scatter(result: ZoomWideResult, names: list[str], cams: np.ndarray, noise,
+                  free: np.ndarray) -> tuple:
+    """``(cams, noise, free)`` with the noise scaled per step and parameter by the factor the
+    views' scatter put on the adjustment's sigma (``sd / sd_noise_model``): a held-out step
+    is then judged by the sigmas the table reports."""
+    factor = np.ones((len(names), len(PARAMS)))
+    for s, n in enumerate(names):
+        res = result.results[n]
+        base = res.info.get("sd_noise_model", {})
+        for j, q in enumerate(PARAMS):
+            if base.get(q, 0.0) > 0 and q in res.sd:
+                factor[s, j] = max(res.sd[q] / base[q], 1.0)
+    if callable(noise):
+        def scaled(steps, j, noise=noise):
+            f = factor[steps, j]
+            return noise(steps, j) * np.outer(f, f)
+        return cams, scaled, free
+    return cams, np.asarray(noise, float) * factor, free
+
+
+def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
+                    u: np.ndarray, forms: Mapping[str, _Form], models: Mapping[str, ZoomModel],
+                    names: list[str]) -> dict[str, dict]:
+    """Per modelled parameter: each step of its chains predicted from the other steps' values
+    (``cams``, sigmas or joint covariance ``cov`` as :func:`_series` reads them) under its zoom
+    model (:func:`~zoomcalib.calibrate.zoommodel.held_out_residuals`; a REML ``tau`` estimated
+    again without the step; the values' noise scaled by :func:`_with_scatter`):
+    ``{"steps": [...], "error": [...], "sd": [...]}``, the value minus
+    its prediction and the predictive 1-sigma (the step's own noise included), in the
+    parameter's units. A chain too short to predict from is left out."""
+    out = {}
+    for name, model in models.items():
+        form, j = forms.get(name, _Form()), PARAMS.index(name)
+        reml = CANDIDATES.get(model.name, (2, True))[1] and model.tau_kind != "given"
+        record: dict[str, list] = {"steps": [], "error": [], "sd": []}
+        for steps, chain in _series(cams, cov, free, chains, u, j, form):
+            got = held_out_residuals(chain, model.order, model.tau, reml)
+            if got is None:
+                continue
+            w = form.at(steps)
+            w = np.ones(len(steps)) if w is None else np.abs(w)
+            record["steps"] += [names[s] for s in steps]
+            record["error"] += [float(v) for v in got[0] / w]
+            record["sd"] += [float(v) for v in got[1] / w]
+        out[name] = record
+    return out
+
+
 def _joint_covariance(prob: _ZoomProblem, state: _State):
     """``cov(steps, j)`` of the per-step intrinsics of a solved problem, or None when its
     posterior covariance is not positive definite."""
@@ -1135,6 +1198,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         noise, selected = sds, ()
     models, inflation = _zoom_models(state.cams, noise, free, chain_idx, u, selected, forms,
                                      prior_strength or {})
+    unsmoothed = (state.cams.copy(), noise, free.copy())
     free = _tie_terms(state, free, chain_idx, u, models)
     terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
              for s, n in enumerate(names)}
@@ -1144,6 +1208,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                      inflation)
     result.skipped, result.tau_source = skipped, tau_source
     result.board_sessions = session_names
+    result.u = {n: float(v) for n, v in zip(names, u, strict=True)}
+    held_paths = _held_out_paths(*_with_scatter(result, names, *unsmoothed), chain_idx, u,
+                                 forms, models, names)
+    for name, doc in result.zoom_models.items():
+        doc.update(form=forms.get(name, _Form()).to_dict(), held_out=held_paths.get(name))
     for s, r in enumerate(result.results.values()):
         r.info["board_session"] = labels[s]
         r.info["tau_source"] = tau_source

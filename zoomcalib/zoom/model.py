@@ -545,6 +545,25 @@ class ZoomIntrinsics:
         return np.array([self.values.get(k, 0.0) for k in _DIST_ORDER[:n]])
 
 
+def intrinsics_at(model, zoom: float, extrapolate: bool) -> ZoomIntrinsics:
+    """``model.predict`` at one zoom as :class:`ZoomIntrinsics` (``model`` has ``zoom_range``,
+    ``names`` and ``predict``); ValueError for a zoom that is not finite or, without
+    ``extrapolate``, outside the calibrated range; KeyError when fx, fy, cx or cy is missing."""
+    z = float(zoom)
+    lo, hi = model.zoom_range
+    if not math.isfinite(z):
+        raise ValueError(f"zoom {z} is not finite")
+    if not extrapolate and not lo <= z <= hi:
+        raise ValueError(f"zoom {z:g} is outside the calibrated range [{lo:g}, {hi:g}]; "
+                         "pass extrapolate=True to use the model there")
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in model.names]
+    if missing:
+        raise KeyError(f"zoom model has no {', '.join(missing)}")
+    p = model.predict(z)
+    return ZoomIntrinsics(z, {k: p[k] for k in model.names},
+                          {k: p[f"sd_{k}"] for k in model.names}, not lo <= z <= hi)
+
+
 # ----------------------------------------------------------------------------------------------
 # the model
 
@@ -822,19 +841,7 @@ class ZoomModel:
         ...
         ValueError: zoom 1.5 is outside the calibrated range [0, 1]; pass extrapolate=True ...
         """
-        z = float(zoom)
-        lo, hi = self.zoom_range
-        if not math.isfinite(z):
-            raise ValueError(f"zoom {z} is not finite")
-        if not extrapolate and not lo <= z <= hi:
-            raise ValueError(f"zoom {z:g} is outside the calibrated range [{lo:g}, {hi:g}]; "
-                             "pass extrapolate=True to use the fitted curves there")
-        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in self.fits]
-        if missing:
-            raise KeyError(f"zoom model has no {', '.join(missing)}")
-        p = self.predict(z)
-        return ZoomIntrinsics(z, {k: p[k] for k in self.fits},
-                              {k: p[f"sd_{k}"] for k in self.fits}, not lo <= z <= hi)
+        return intrinsics_at(self, zoom, extrapolate)
 
     def holdout_error(self, interior_only: bool = True, reselect: bool = True,
                       details: bool = False) -> dict:
@@ -932,6 +939,9 @@ class ZoomModel:
         """Inverse of :meth:`to_dict`."""
         if d.get("format") != "zoomcalib-zoom-model":
             raise ValueError("not a zoom model (format != 'zoomcalib-zoom-model')")
+        if d.get("kind") == "posterior":
+            raise ValueError("a zoom-wide adjustment's posterior zoom model: read it with "
+                             "zoomcalib.calibrate.zoompath.zoom_model_from_dict")
         data = d["data"]
         sensor = None if d.get("sensor") is None else Sensor(**d["sensor"])
         fits = {k: ParamFit.from_dict(k, f) for k, f in d["params"].items()}
