@@ -79,3 +79,23 @@ def test_calibrate_zoom_set_recovers_rendered_cameras(zoom_set, tmp_path):
                                     "--backend", "opencv", "--method", "model", "--out", str(out)])
     assert res.exit_code == 3
     assert (out / "detections" / "zoom_00.json").stat().st_mtime_ns == stamp
+
+
+def test_the_residual_budget_is_written_and_said(zoom_set, tmp_path):
+    # rendered frames of the exact lens, a flat board, no motion: nothing to name
+    out = tmp_path / "budget"
+    res = CliRunner().invoke(main, ["calibrate", str(zoom_set), "--pattern", "chessboard:9x6:25",
+                                    "--method", "model", "--workers", "1", "--residual-budget",
+                                    "--out", str(out)])
+    assert res.exit_code in (0, 3), res.output
+    budget = json.loads((out / "calibration.json").read_text())["meta"]["residual_budget"]
+    steps = {"zoom_00", "zoom_01", "zoom_02"}
+    assert steps <= set(budget["steps"])
+    for name in steps:
+        b = budget["steps"][name]
+        assert [c["name"] for c in b["causes"]] == ["lens", "board", "points", "focal",
+                                                    "readout"]
+        assert b["named"] == [], b
+        assert f"budget {name}: held-out RMS" in res.output
+    assert sum(len(s["steps"]) for s in budget["sessions"].values()) == len(budget["steps"])
+    assert "budget of session" in res.output

@@ -604,13 +604,18 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--cross-validate", is_flag=True,
               help="Also calibrate the even and the odd images of every step apart and report "
                    "their differences in combined sigmas (flags |z| > 3).")
+@click.option("--residual-budget", is_flag=True,
+              help="Also say per step and per capture session what the residual is made of: "
+                   "lens terms, board shape, a focal length per view and a readout shift, "
+                   "each judged on held-out corners (calibration.md, 'Residual budget').")
 @click.option("--model", default="standard", show_default=True,
               type=click.Choice(["standard", "rational"]),
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
 @click.option("--method", type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
               help="Detector; default: the target's usual one.")
 @click.option("--workers", default=0, show_default=True, type=click.IntRange(min=0),
-              help="Processes for detection and the zoom-wide per-step fits (0: all cores).")
+              help="Processes for detection, the zoom-wide per-step fits and the residual "
+                   "budget (0: all cores).")
 @click.option("--out", default="zoomcalib-calibration", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--grid-points", default=50, show_default=True, type=click.IntRange(min=2),
@@ -621,8 +626,9 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
-def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, model, method,
-              workers, out, grid_points, camera_name, no_report, report_distance):
+def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, residual_budget,
+              model, method, workers, out, grid_points, camera_name, no_report,
+              report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -666,7 +672,7 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, mode
                                zoom_wide=not per_step, cross_validate=cross_validate,
                                grid_points=grid_points, camera_name=camera_name,
                                report=not no_report, report_distance=report_distance,
-                               pp_model=pp_model)
+                               pp_model=pp_model, residual_budget=residual_budget)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

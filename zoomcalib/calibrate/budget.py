@@ -10,10 +10,13 @@ views, started from the step's calibration. A *training* cause refits that with 
 ``lens``
     the rational model's k4, k5, k6 freed beside the step's terms;
 ``board``
-    every board point released (the bundle adjustment, :func:`calibrate_bundle`, with its
-    five terms): a board that is not flat or not as printed, one shape for the step's views
-    (all of one capture session). OpenCV's ``calibrateCameraRO`` would need every view to see
-    the whole board; on the real PTZ set 6 of 29 views at 1x do.
+    a smooth warp of the board (the bundle adjustment, :func:`calibrate_bundle`, with its
+    five terms; each point within 0.01 mm of the warp): a board that is not flat, one shape
+    for the step's views (all of one capture session). OpenCV's ``calibrateCameraRO`` would
+    need every view to see the whole board; on the real PTZ set 6 of 29 views at 1x do;
+``points``
+    every board point free (the same adjustment without its prior on the points): a print or
+    a paper that differs from the nominal board point by point.
 
 Each held-out view's corners are split into the two colours of a checkerboard over the
 board's grid of points; the view's pose, and a *per-view* cause's own parameters, are fitted
@@ -40,12 +43,22 @@ whose shares alone are within :data:`AMBIGUOUS` of each other are reported as no
 (``ambiguous_with``): per-view causes absorb any error smooth over a view, so a focal length
 per view and a readout shift each explain most of the other's effect on tilted views.
 
+Corner level
+------------
+How much of the residual any per-view cause could explain at most: each held-out view's
+baseline residuals on one checkerboard half are fitted by a cubic in the image coordinates
+(per axis, 10 terms) and taken off the other half's. What that leaves (``corner_level``, a
+share of the baseline) is not smooth over a view: the corners' own noise (the detector, the
+compression, the print), or a board that differs point by point. The corner noise alone
+gives a share near ``1 / (1 + (geometric / noise)^2)``.
+
 Sizes
 -----
-``board``: RMS of the released points off their best-fit plane (mm), mean over the folds
-(sd: their spread). ``focal``: the sd of ``s_v`` over the views with the fits' own variance
-taken out (``var = mean (s - mean s)^2 - mean se^2``), a fraction; ``readout``: the RMS of
-``(a_v, b_v)`` alike, px. Each with its sd from the spread of the per-view values.
+``board``, ``points``: RMS distance of the released points from the nominal board after the
+best similarity transform (mm), mean over the folds (sd: their spread). ``focal``: the sd of
+``s_v`` over the views with the fits' own variance taken out (``var = mean (s - mean s)^2 -
+mean se^2``), a fraction; ``readout``: the RMS of ``(a_v, b_v)`` alike, px. Each with its
+sd from the spread of the per-view values.
 """
 
 from __future__ import annotations
@@ -62,16 +75,18 @@ from .bundle import calibrate_bundle
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 
-__all__ = ["AMBIGUOUS", "CAUSES", "PAY_SE", "Cause", "ResidualBudget", "residual_budget"]
+__all__ = ["AMBIGUOUS", "CAUSES", "PAY_SE", "Cause", "ResidualBudget", "residual_budget",
+           "step_budgets", "session_budgets"]
 
 #: The causes tried, in order: training (``lens``, ``board``), then per view.
 CAUSES: dict[str, str] = {
     "lens": "lens model: rational terms k4-k6",
-    "board": "board shape: every board point released (bundle adjustment)",
+    "board": "board shape: a smooth warp of the board (bundle adjustment)",
+    "points": "board points each free: a print or paper that differs point by point",
     "focal": "a focal length per view (zoom repeatability)",
     "readout": "an image shift growing with the row (rolling shutter with motion)",
 }
-_TRAINING = ("lens", "board")
+_TRAINING = ("lens", "board", "points")
 #: A cause pays when its mean held-out gain exceeds this many standard errors.
 PAY_SE = 3.0
 _DIST = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -113,7 +128,9 @@ class ResidualBudget:
     """A step's residual budget (module docstring). ``fit_rms_px`` is the step's own fit's
     RMS; ``held_out_rms_px`` the baseline's on held-out corners; ``combined`` the causes kept
     by forward selection and ``combined_rms_px`` their held-out RMS together; ``unexplained``
-    the share of the baseline's held-out mean square they leave."""
+    the share of the baseline's held-out mean square they leave; ``corner_level`` (and its
+    ``corner_level_rms_px``) the share that no error smooth over a view explains (module
+    docstring, "Corner level")."""
 
     step: str
     views: int
@@ -124,6 +141,8 @@ class ResidualBudget:
     combined: list[str] = field(default_factory=list)
     combined_rms_px: float = math.nan
     unexplained: float = 1.0
+    corner_level_rms_px: float = math.nan
+    corner_level: float = math.nan
 
     @property
     def named(self) -> list[str]:
@@ -145,7 +164,8 @@ class ResidualBudget:
             parts.append(f"{c.name} {100 * c.share:.0f} % ({verdict}{size})")
         return (f"{self.step}: held-out RMS {self.held_out_rms_px:.3g} px (fit "
                 f"{self.fit_rms_px:.3g}); " + "; ".join(parts)
-                + f"; unexplained {100 * self.unexplained:.0f} %")
+                + f"; unexplained {100 * self.unexplained:.0f} %; not smooth over a "
+                f"view {100 * self.corner_level:.0f} %")
 
     def to_dict(self) -> dict:
         out = {k: v for k, v in self.__dict__.items() if k != "causes"}
@@ -186,7 +206,8 @@ def residual_budget(obs: Observations, start: CalibrationResult, step: str = "",
     group = np.random.default_rng(seed).permutation(n) % folds
     fold = _Folds(obs, start, terms, group)
     base = fold.held_out(())
-    extras: dict[str, list] = {"focal": [], "readout": [], "board": fold.board_rms}
+    extras: dict[str, list] = {"focal": [], "readout": [], "board": fold.off_plane["board"],
+                               "points": fold.off_plane["points"]}
     causes = []
     for name in CAUSES:
         if name in fold.notes:
@@ -205,6 +226,10 @@ def residual_budget(obs: Observations, start: CalibrationResult, step: str = "",
         else:
             c.note = "pays alone, not beside " + " + ".join(kept)
     budget.combined = kept
+    warp = fold.held_out(("warp",))
+    ok = np.isfinite(warp) & np.isfinite(base)
+    budget.corner_level_rms_px = float(np.sqrt(np.mean(warp[ok])))
+    budget.corner_level = float(np.mean(warp[ok]) / np.mean(base[ok]))
     paying = [c for c in causes if c.pays]
     for c in paying:
         c.ambiguous_with = [o.name for o in paying if o is not c
@@ -225,7 +250,7 @@ class _Folds:
         self.halves = _checker_halves(obs.object_points)
         self.models: list[dict] = []
         self.notes: dict[str, str] = {}
-        self.board_rms: list[float] = []
+        self.off_plane: dict[str, list[float]] = {"board": [], "points": []}
         for f in range(int(group.max()) + 1):
             train = _subset(obs, np.flatnonzero(group != f))
             models = {(): _train(train, start, terms, ())}
@@ -236,8 +261,10 @@ class _Folds:
                     models[(cause,)] = _train(train, start, terms, (cause,))
                 except (cv2.error, ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                     self.notes[cause] = " ".join(str(exc).split())[:120]
-            if ("board",) in models:
-                self.board_rms.append(_off_plane_rms(models[("board",)][2]))
+            for cause in ("board", "points"):
+                if (cause,) in models:
+                    self.off_plane[cause].append(_off_plane_rms(
+                        models[(cause,)][2], np.asarray(obs.object_points, float)))
             self.models.append(models)
 
     def _model(self, f: int, training: tuple[str, ...]):
@@ -322,30 +349,42 @@ def _train(obs: Observations, start: CalibrationResult, terms: tuple[str, ...],
     rational = "lens" in training
     flags = _flags(terms, rational)
     dist0 = _guess_dist(start, terms, rational)
-    if "board" not in training:
-        res = calibrate_opencv(obs, flags=flags, K_guess=start.K, dist_guess=dist0)
-        return res.K, np.ravel(res.dist), np.asarray(obs.object_points, float)
-    return _train_board(obs, start.K, dist0, flags)
+    if "points" in training:
+        return _train_board(obs, start.K, dist0, flags, None)
+    if "board" in training:
+        return _train_board(obs, start.K, dist0, flags, 0.01)
+    res = calibrate_opencv(obs, flags=flags, K_guess=start.K, dist_guess=dist0)
+    return res.K, np.ravel(res.dist), np.asarray(obs.object_points, float)
 
 
-def _train_board(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _train_board(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int,
+                 point_sigma_mm: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The bundle adjustment with the board points released (:func:`calibrate_bundle`: its
-    own five terms, the aspect ratio held), from ``K``, ``dist``."""
+    own five terms, the aspect ratio held), from ``K``, ``dist``: each point within
+    ``point_sigma_mm`` of a smooth warp of the board (None: each point free)."""
     rational = bool(flags & cv2.CALIB_RATIONAL_MODEL)
     with warnings.catch_warnings():  # its guard's advice is for its own users; here the
         warnings.simplefilter("ignore", RuntimeWarning)  # held-out views judge the board
         res = calibrate_bundle(obs, "rational" if rational else "standard", K0=K,
                                dist0=np.ravel(dist)[:8 if rational else 5],
                                refine_target=True, robust=False, fix_aspect=True,
-                               scatter_check=False)
+                               target_sigma_mm=point_sigma_mm, scatter_check=False)
     return res.K, np.ravel(res.dist), np.asarray(res.object_points, float)
 
 
-def _off_plane_rms(X: np.ndarray) -> float:
-    """RMS distance (mm) of points from their least-squares plane."""
-    centred = X - X.mean(axis=0)
-    return float(np.linalg.svd(centred, compute_uv=False)[-1] / math.sqrt(len(X)))
+def _off_plane_rms(X: np.ndarray, nominal: np.ndarray | None = None) -> float:
+    """RMS distance (mm) of released points ``X`` from the ``nominal`` board after the best
+    similarity transform (Umeyama 1991); without ``nominal``, from their least-squares
+    plane."""
+    if nominal is None:
+        centred = X - X.mean(axis=0)
+        return float(np.linalg.svd(centred, compute_uv=False)[-1] / math.sqrt(len(X)))
+    a, b = nominal - nominal.mean(axis=0), X - X.mean(axis=0)
+    u, sv, vt = np.linalg.svd(b.T @ a)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    R = u @ d @ vt
+    scale = float(np.trace(np.diag(sv) @ d) / np.sum(a**2))
+    return float(np.sqrt(np.mean(np.sum((b - scale * a @ R.T) ** 2, axis=1))))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -385,7 +424,7 @@ def _held_out(model, idx: np.ndarray, uv: np.ndarray, half: np.ndarray, cause: s
     return value, np.stack([vals, se])
 
 
-_EXTRA = {"base": 0, "lens": 0, "board": 0, "focal": 1, "readout": 2}
+_EXTRA = {"base": 0, "lens": 0, "board": 0, "focal": 1, "readout": 2, "warp": 0}
 
 
 def _fit_view(K, dist, X, uv, fit, test, cause, size):
@@ -420,6 +459,10 @@ def _fit_view(K, dist, X, uv, fit, test, cause, size):
     sol = scipy.optimize.least_squares(lambda p: (predict(p, fit) - uv[fit]).ravel(), p0,
                                        method="lm", x_scale="jac")
     resid = predict(sol.x, test) - uv[test]
+    if cause == "warp":  # the fit half's residuals, a cubic in the image, taken off the test's
+        basis = _cubic(uv, size)
+        coef = np.linalg.lstsq(basis[fit], uv[fit] - predict(sol.x, fit), rcond=None)[0]
+        resid = resid + basis[test] @ coef
     if not n_extra:
         return np.sum(resid**2, axis=1), None
     dof = max(2 * int(fit.sum()) - len(p0), 1)
@@ -430,6 +473,13 @@ def _fit_view(K, dist, X, uv, fit, test, cause, size):
     except np.linalg.LinAlgError:
         se = np.full(n_extra, np.nan)
     return np.sum(resid**2, axis=1), (sol.x[6:], se)
+
+
+def _cubic(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(n, 10) the monomials of degree <= 3 in the image coordinates scaled to [-1, 1]."""
+    x = (uv[:, 0] - size[0] / 2) / (size[0] / 2)
+    y = (uv[:, 1] - size[1] / 2) / (size[1] / 2)
+    return np.column_stack([x**i * y**j for i in range(4) for j in range(4 - i)])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -454,9 +504,10 @@ def _cause(name: str, e: np.ndarray, base: np.ndarray, extra: list | None) -> Ca
 
 
 def _size(name: str, extra: list) -> tuple[float, float, str]:
-    if name == "board":
+    if name in ("board", "points"):
         v = np.asarray(extra, float)
-        return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else math.nan, "mm"
+        return (float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else math.nan,
+                "mm RMS from the nominal board")
     vals = np.array([p[0] for p in extra])  # (views, p)
     se = np.array([p[1] for p in extra])
     if name == "focal":
@@ -473,3 +524,64 @@ def _size(name: str, extra: list) -> tuple[float, float, str]:
     sd = math.sqrt(2.0 / n) * (max(float(var), 0.0) + float(np.mean(se**2))) / max(2 * size,
                                                                                      1e-12)
     return size, sd, unit
+
+
+# ----------------------------------------------------------------------------------------------
+# every step of a run, and the capture sessions
+
+
+def step_budgets(observations: dict[str, Observations], results: dict[str, CalibrationResult],
+                 workers: int = 1, folds: int = 5, seed: int = 0
+                 ) -> tuple[dict[str, ResidualBudget], dict[str, str]]:
+    """:func:`residual_budget` of every step that has a result, in ``workers`` processes;
+    returns the budgets and, per step that failed, the one-line reason (the others are kept).
+    """
+    names = [s for s in observations if s in results]
+    items = [(observations[s], results[s], s, folds, seed) for s in names]
+    budgets, failed = {}, {}
+    if workers > 1 and len(items) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(workers, len(items))) as pool:
+            futures = [pool.submit(_one_budget, *item) for item in items]
+            outcomes = [f.result() for f in futures]
+    else:
+        outcomes = [_one_budget(*item) for item in items]
+    for name, outcome in zip(names, outcomes, strict=True):
+        if isinstance(outcome, str):
+            failed[name] = outcome
+        else:
+            budgets[name] = outcome
+    return budgets, failed
+
+
+def _one_budget(obs, result, step, folds, seed) -> ResidualBudget | str:
+    try:
+        return residual_budget(obs, result, step, folds, seed)
+    except (ValueError, RuntimeError, cv2.error, np.linalg.LinAlgError) as exc:
+        return " ".join(str(exc).split())
+
+
+def session_budgets(budgets: dict[str, ResidualBudget], sessions: dict[str, str]
+                    ) -> dict[str, dict]:
+    """Per capture session (``sessions``: step -> label; one session when empty): its steps,
+    each cause's share averaged over them (weighted by their views), the steps that named it,
+    and the mean unexplained share."""
+    groups: dict[str, list[str]] = {}
+    for step in budgets:
+        groups.setdefault(sessions.get(step, "") or "", []).append(step)
+    out = {}
+    for label, steps in groups.items():
+        w = np.array([budgets[s].views for s in steps], float)
+        shares = {}
+        for name in CAUSES:
+            vals = np.array([next((c.share for c in budgets[s].causes if c.name == name),
+                                  math.nan) for s in steps])
+            ok = np.isfinite(vals)
+            shares[name] = float(np.average(vals[ok], weights=w[ok])) if ok.any() else None
+        out[label] = {"steps": steps, "share": shares,
+                      "named_in": {n: [s for s in steps if n in budgets[s].named]
+                                   for n in CAUSES},
+                      "unexplained": float(np.average([budgets[s].unexplained for s in steps],
+                                                      weights=w))}
+    return out

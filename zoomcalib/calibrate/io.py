@@ -160,7 +160,7 @@ def _entry(res: CalibrationResult) -> dict:
 
 #: ``meta`` entries too long for one YAML string (OpenCV's limit); calibration.json has them
 #: (of ``status`` the YAML keeps each step's status word).
-_JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags")
+_JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags", "residual_budget")
 
 
 def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult]],

@@ -91,7 +91,8 @@ class CalibrateRun:
     ``skipped_images`` the one-line errors of the images whose detection failed, per step;
     ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``);
     ``status`` each step's :class:`~zoomcalib.calibrate.status.StepStatus` (``ok``,
-    ``imprecise``, ``unusable``, with reasons and remedies).
+    ``imprecise``, ``unusable``, with reasons and remedies); ``budget`` and
+    ``budget_sessions`` the residual budget per step and per capture session (when asked).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -114,6 +115,8 @@ class CalibrateRun:
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
     status: dict[str, StepStatus] = field(default_factory=dict)
+    budget: dict = field(default_factory=dict)
+    budget_sessions: dict = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -226,8 +229,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      log: Callable[[str], None] = print, zoom_wide: bool = True,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
-                     report_distance: float | None = None, pp_model: str = "angle2"
-                     ) -> CalibrateRun:
+                     report_distance: float | None = None, pp_model: str = "angle2",
+                     residual_budget: bool = False) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -267,6 +270,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     report_distance : float, optional
         Distance (mm) of the report's projection-uncertainty maps; default each step's median
         board distance.
+    residual_budget : bool
+        Also the residual budget of every usable step and capture session
+        (:mod:`zoomcalib.calibrate.budget`; ``run.budget``, ``run.budget_sessions`` and
+        ``calibration.json``'s ``meta.residual_budget``).
 
     Returns
     -------
@@ -317,6 +324,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         if not st.usable:
             log(f"step {step}: unusable ({'; '.join(st.reasons)}): kept in the table and "
                 "calibration.json with its status, not exported and not in the zoom model")
+    if residual_budget and run.results:
+        _residual_budget(run, sessions, workers, log)
     rows = [_table_row(step, run.zoom[step], extras_of[step],
                        run.results[step][run.table_backend[step]]) | {
                            "flags": "; ".join(run.flags.get(step, [])),
@@ -399,6 +408,9 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
         "status": {s: st.to_dict() for s, st in run.status.items()}}
     if run.cross_validation is not None:
         meta["cross_validation"] = run.cross_validation.to_dict()
+    if run.budget:
+        meta["residual_budget"] = {"steps": {s: b.to_dict() for s, b in run.budget.items()},
+                                   "sessions": run.budget_sessions}
     if run.zoom_wide is not None:
         zw = run.zoom_wide
         meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
@@ -413,6 +425,30 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
                              "distortion_choice": {k: v.to_dict()
                                                    for k, v in zw.held_out.items()}}
     return meta
+
+
+def _residual_budget(run: CalibrateRun, sessions: dict[str, str], workers: int,
+                     log: Callable[[str], None]) -> None:
+    """The residual budget of every usable step's table result and of each capture session
+    (:mod:`zoomcalib.calibrate.budget`); a step whose budget fails is logged, the others kept."""
+    from .budget import session_budgets, step_budgets
+
+    usable = {s: run.results[s][run.table_backend[s]] for s in run.results
+              if s in run.observations and (s not in run.status or run.status[s].usable)}
+    log(f"residual budget of {len(usable)} steps (each cause judged on held-out corners)")
+    run.budget, failed = step_budgets({s: run.observations[s] for s in usable}, usable,
+                                      workers)
+    for step, why in failed.items():
+        run.failures.append(f"step {step}: residual budget failed: {why}")
+        log(run.failures[-1])
+    run.budget_sessions = session_budgets(run.budget, sessions)
+    for budget in run.budget.values():
+        log(f"budget {budget.summary()}")
+    for label, d in run.budget_sessions.items():
+        shares = ", ".join(f"{k} {100 * v:.0f} %" for k, v in d["share"].items()
+                           if v is not None)
+        log(f"budget of session {label or '(one)'} ({', '.join(d['steps'])}): {shares}; "
+            f"unexplained {100 * d['unexplained']:.0f} %")
 
 
 def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
