@@ -56,7 +56,8 @@ def step_views(rng, views=24, fx=1500.0, noise=0.05, wave_mm=0.0, focal_sd=0.0,
         omegas.append(omega)
     plane = X - X.mean(axis=0)
     off_plane = float(np.linalg.svd(plane, compute_uv=False)[-1] / np.sqrt(len(X)))
-    truth = {"off_plane_mm": off_plane, "print_mm": float(np.sqrt(2) * print_mm), "focal_sd": float(np.std(np.log(scales))),
+    truth = {"off_plane_mm": off_plane, "print_mm": float(np.sqrt(2) * print_mm),
+             "focal_sd": float(np.std(np.log(scales))),
              # the shift at the top and bottom rows, half a readout from the middle, per axis
              "readout_px": float(fx * 0.5 * np.sqrt(np.mean(np.square(omegas)[:, :2])))}
     return Observations(X0, out, SIZE, [f"v{i:02d}" for i in range(views)]), truth
