@@ -99,3 +99,6 @@ def test_the_residual_budget_is_written_and_said(zoom_set, tmp_path):
         assert f"budget {name}: held-out RMS" in res.output
     assert sum(len(s["steps"]) for s in budget["sessions"].values()) == len(budget["steps"])
     assert "budget of session" in res.output
+    page = (out / "report.html").read_text()
+    assert "id='residual-budget'" in page and "budget zoom_00" not in page
+    assert page.count("zoom_01: held-out RMS") == 1

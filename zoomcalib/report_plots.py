@@ -236,3 +236,40 @@ def zoom_range_figure(zoom: np.ndarray, zoom_label: str, values: dict[str, np.nd
         ax.legend(fontsize=7, loc="best")
     fig.subplots_adjust(left=0.08, right=0.98, bottom=0.08, top=0.97, hspace=0.3, wspace=0.25)
     return _png(fig)
+
+
+def budget_figure(steps: Sequence[str], shares: dict[str, np.ndarray], named: np.ndarray,
+                  unexplained: np.ndarray, not_smooth: np.ndarray) -> bytes:
+    """The residual budget of each step: each cause's share of the held-out mean square alone
+    (bars; hatched where it is not kept), what the kept causes leave and the share no error
+    smooth over a view explains (lines).
+
+    Parameters
+    ----------
+    steps : sequence of str
+    shares : dict of str to (S,) ndarray
+        Per cause, its share alone (NaN: not tried).
+    named : (S, C) bool ndarray
+        Whether each cause (in the order of ``shares``) is kept at each step.
+    unexplained, not_smooth : (S,) ndarray
+        Shares of the held-out mean square.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(11.0, 4.2))
+    x = np.arange(len(steps))
+    width = 0.8 / max(len(shares), 1)
+    for c, (name, vals) in enumerate(shares.items()):
+        pos = x - 0.4 + (c + 0.5) * width
+        v = np.clip(np.nan_to_num(vals), 0.0, None)
+        ax.bar(pos[named[:, c]], v[named[:, c]], width, color=f"C{c}", label=f"{name} (kept)")
+        ax.bar(pos[~named[:, c]], v[~named[:, c]], width, color="none", edgecolor=f"C{c}",
+               hatch="//", label=f"{name} (not kept)")
+    ax.plot(x, unexplained, "k_", ms=22, mew=2, label="left by the kept causes")
+    ax.plot(x, not_smooth, "x", color=_MARK, label="not smooth over a view")
+    ax.set_xticks(x, steps, fontsize=8)
+    ax.set_ylabel("share of the held-out mean square")
+    ax.set_ylim(0, 1.05)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.12))
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.3, top=0.97)
+    return _png(fig)

@@ -99,6 +99,8 @@ def report_html(run: CalibrateRun, distance_mm: float | None = None) -> str:
         body.append(_step_section(run, step, distance_mm))
     if len(steps) >= 2:
         body.append(_zoom_section(run, steps))
+    if run.budget:
+        body.append(_budget_section(run))
     return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
             f"<title>Calibration report</title><style>{_STYLE}</style>"
             f"<script>{_SCRIPT}</script></head><body>\n" + "\n".join(body)
@@ -295,3 +297,29 @@ def _holdout_text(run: CalibrateRun) -> str:
                         for k, v in run.holdout.items()) + ".</p>"
             + ("<ul class='bad'>" + "".join(f"<li>{_e(f)}</li>" for f in flags) + "</ul>"
                if flags else ""))
+
+
+def _budget_section(run: CalibrateRun) -> str:
+    """The residual budget: one figure of every step, one line per step and session."""
+    from .budget import CAUSES
+
+    steps = list(run.budget)
+    budgets = [run.budget[s] for s in steps]
+    shares = {c: np.array([next(k.share for k in b.causes if k.name == c) for b in budgets])
+              for c in CAUSES}
+    named = np.array([[c in b.named for c in CAUSES] for b in budgets])
+    png = figs.budget_figure(steps, shares, named, np.array([b.unexplained for b in budgets]),
+                             np.array([b.corner_level for b in budgets]))
+    lines = "".join(f"<li>{_e(b.summary())}</li>" for b in budgets)
+    sessions = "".join(
+        f"<li>session {_e(label or '(one)')} ({_e(', '.join(d['steps']))}): "
+        + _e(", ".join(f"{k} {100 * v:.0f} %" for k, v in d["share"].items() if v is not None))
+        + f"; unexplained {100 * d['unexplained']:.0f} %</li>"
+        for label, d in run.budget_sessions.items())
+    return ("<section id='residual-budget'><h2>What the residual is made of</h2>"
+            "<p>Each cause's share of the held-out mean square on the flat nominal board, "
+            "alone; the causes kept by forward selection (each pays beside those kept "
+            "before it); what they leave; and the share no error smooth over a view "
+            "explains (docs/calibration.md, 'Residual budget').</p>"
+            + _img(png, "residual budget per step") + f"<ul>{lines}</ul>"
+            + f"<h3>Per capture session</h3><ul>{sessions}</ul></section>")
