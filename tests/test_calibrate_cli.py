@@ -102,3 +102,26 @@ def test_the_residual_budget_is_written_and_said(zoom_set, tmp_path):
     page = (out / "report.html").read_text()
     assert "id='residual-budget'" in page and "budget zoom_00" not in page
     assert page.count("zoom_01: held-out RMS") == 1
+
+
+def test_a_byte_identical_copy_is_one_view(zoom_set, tmp_path):
+    # the real PTZ set holds such a copy under another name: used twice it would count as a
+    # second view of the same pose
+    import shutil
+
+    folder = tmp_path / "set"
+    shutil.copytree(zoom_set, folder, ignore=shutil.ignore_patterns("zoom_99"))
+    steps = (folder / "steps.csv").read_text().splitlines()
+    (folder / "steps.csv").write_text("\n".join(r for r in steps if "zoom_99" not in r) + "\n")
+    first = sorted((folder / "zoom_00").glob("*.png"))[0]
+    shutil.copy(first, folder / "zoom_00" / "zz_copy.png")
+    out = tmp_path / "cal"
+    res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", "chessboard:9x6:25",
+                                    "--method", "model", "--workers", "1", "--per-step",
+                                    "--backend", "opencv", "--no-report", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert f"zz_copy.png is a byte-identical copy of {first.name}: used once" in res.output
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["meta"]["copies"] == {"zoom_00": {"zz_copy.png": first.name}}
+    views = {s: e["opencv"]["n_views"] for s, e in cal["steps"].items()}
+    assert views["zoom_00"] == views["zoom_01"] == 6, views

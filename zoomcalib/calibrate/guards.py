@@ -125,6 +125,20 @@ def image_fingerprints(files: Iterable[Path]) -> list[dict]:
             for f in files]
 
 
+def byte_identical(files: list[Path]) -> dict[Path, Path]:
+    """Each image whose bytes equal an earlier one's (in ``files``' order), mapped to that
+    first one: a copy under another name is one view, not two."""
+    first: dict[tuple[int, str], Path] = {}
+    copies = {}
+    for f in files:
+        key = (f.stat().st_size, _file_digest(f))
+        if key in first:
+            copies[f] = first[key]
+        else:
+            first[key] = f
+    return copies
+
+
 def _detector_code_digest() -> str:
     """BLAKE2b (64-bit, hex) of the source files of ``zoomcalib.detect``: a change of the
     detection code between releases also invalidates cached detections."""

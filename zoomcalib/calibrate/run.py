@@ -46,6 +46,7 @@ from ..targets import Target, parse_pattern
 from .advice import advise
 from .export import write_exports
 from .guards import (
+    byte_identical,
     clear_previous_outputs,
     detect_with_cache,
     detection_settings,
@@ -86,6 +87,8 @@ class CalibrateRun:
     that failed on a step that another backend calibrated; either makes the run
     :attr:`partial`. ``reused`` counts, per step, the images whose cached detections were
     reused; ``left_out`` names, per step, the images of another size than the step's;
+    ``copies`` maps, per step, each byte-identical copy of an earlier image to that image
+    (used once);
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
     step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
     ``skipped_images`` the one-line errors of the images whose detection failed, per step;
@@ -106,6 +109,7 @@ class CalibrateRun:
     backend_failures: dict[str, list[str]] = field(default_factory=dict)
     reused: dict[str, int] = field(default_factory=dict)
     left_out: dict[str, list[str]] = field(default_factory=dict)
+    copies: dict[str, dict[str, str]] = field(default_factory=dict)
     ignored: list[str] = field(default_factory=list)
     table_backend: dict[str, str] = field(default_factory=dict)
     stems: dict[str, str] = field(default_factory=dict)
@@ -283,8 +287,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     out = Path(out)
     steps = zoom_steps(folder)
     run = CalibrateRun(stems=step_file_stems(s[0] for s in steps))
-    step_files = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
-    _start_output_folder(out, run, step_files)
+    every_file = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
+    _start_output_folder(out, run, every_file)
+    step_files = {step: _without_copies(step, files, run, log)
+                  for step, files in every_file.items()}
     _report_ignored(folder, run, log)
     settings = detection_settings(target, method)
     provenance: dict[str, dict] = {}
@@ -403,7 +409,7 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
         "failures": run.failures, "partial": run.partial_message(),
         "detections": {s: {k: v for k, v in p.items() if k != "images"}
                        for s, p in provenance.items()},
-        "left_out": run.left_out, "ignored_images": run.ignored,
+        "left_out": run.left_out, "copies": run.copies, "ignored_images": run.ignored,
         "table_backend": run.table_backend, "flags": run.flags,
         "status": {s: st.to_dict() for s, st in run.status.items()}}
     if run.cross_validation is not None:
@@ -528,6 +534,19 @@ def _report_ignored(folder: str | Path, run: CalibrateRun, log: Callable[[str], 
         run.ignored = [p.name for p in stray]
         log(f"{folder}: ignored {len(stray)} image{'s' if len(stray) > 1 else ''} next to the "
             f"step subfolders ({', '.join(run.ignored)}); only the subfolders are calibrated")
+
+
+def _without_copies(step: str, files: list[Path], run: CalibrateRun,
+                    log: Callable[[str], None]) -> list[Path]:
+    """``files`` without the byte-identical copies of an earlier image (one view, not two);
+    each copy is logged and recorded in ``run.copies``."""
+    copies = byte_identical(files)
+    if copies:
+        run.copies[step] = {f.name: kept.name for f, kept in copies.items()}
+        log(f"step {step}: " + "; ".join(f"{f.name} is a byte-identical copy of {kept.name}"
+                                         for f, kept in copies.items())
+            + ": used once")
+    return [f for f in files if f not in copies]
 
 
 def _step_detections(out: Path, step: str, files: list[Path], target: Target, settings: dict,
