@@ -125,3 +125,15 @@ def test_a_byte_identical_copy_is_one_view(zoom_set, tmp_path):
     assert cal["meta"]["copies"] == {"zoom_00": {"zz_copy.png": first.name}}
     views = {s: e["opencv"]["n_views"] for s, e in cal["steps"].items()}
     assert views["zoom_00"] == views["zoom_01"] == 6, views
+
+
+def test_a_spec_that_counts_squares_gets_the_inner_corner_count(zoom_set, tmp_path):
+    # the board has 9x6 inner corners (10x7 squares): a user who counts squares finds nothing,
+    # and is told which count finds the board
+    out = tmp_path / "cal"
+    res = CliRunner().invoke(main, ["calibrate", str(zoom_set / "zoom_00"), "--pattern",
+                                    "chessboard:10x7:25", "--workers", "1", "--no-report",
+                                    "--out", str(out)])
+    assert res.exit_code == 4, res.output
+    assert ("chessboard:9x6:25 is found in view_00.png: count the inner corners (where four "
+            "squares meet), not the squares") in res.output, res.output

@@ -298,7 +298,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     for step, _, zoom, extras in steps:
         dets = _step_detections(out, step, step_files[step], target, settings, workers,
                                 progress, run, provenance, log)
-        obs = _step_observations(step, dets, target, run, log)
+        obs = _step_observations(step, dets, target, run, log, step_files[step], method)
         if obs is None:
             continue
         run.observations[step] = obs
@@ -363,9 +363,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
 
 
 def _step_observations(step: str, dets: list, target: Target, run: CalibrateRun,
-                       log: Callable[[str], None]) -> Observations | None:
+                       log: Callable[[str], None], files: Sequence[Path] = (),
+                       method: str | None = None) -> Observations | None:
     """The step's detections as observations: images of another size left out, failed images
-    named in ``run.skipped_images``; None (the step dropped, with the reason) when nothing is
+    named in ``run.skipped_images``; None (the step dropped, with the reason and, for a
+    chessboard found in none of its images, a count that does find it) when nothing is
     left."""
     dets = _same_size_images(step, dets, run, log)
     if dets is None:
@@ -376,13 +378,37 @@ def _step_observations(step: str, dets: list, target: Target, run: CalibrateRun,
             run.skipped_images.setdefault(step, []).append(d.error)
     good = [d for d in dets if d.error is None]
     if not good:
-        _drop(run, step, "no image with a detected target", log)
+        hint = _corner_count_hint(target, files, method)
+        _drop(run, step, "no image with a detected target" + (f"; {hint}" if hint else ""),
+              log)
         return None
     try:
         return observations_from_detections(good, target, good[0].image_size)
     except ValueError as exc:
         _drop(run, step, str(exc), log)
         return None
+
+
+def _corner_count_hint(target: Target, files: Sequence[Path], method: str | None,
+                       tries: int = 3) -> str | None:
+    """For a chessboard found in no image: the first of ``(cols-1, rows-1)``, ``(cols-1,
+    rows)``, ``(cols, rows-1)`` found in one of the first ``tries`` images (a spec that counted
+    squares instead of inner corners), said as a suggestion; None when none is found."""
+    if target.kind != "chessboard" or not files:
+        return None
+    from ..detect.opencv import detect_image
+    from ..targets import chessboard
+
+    cols, rows = target.pattern_size
+    for c, r in ((cols - 1, rows - 1), (cols - 1, rows), (cols, rows - 1)):
+        if min(c, r) < 2:
+            continue
+        other = chessboard(c, r, target.pitch_mm)
+        for f in list(files)[:tries]:
+            if detect_image(f, other, method).error is None:
+                return (f"chessboard:{c}x{r}:{target.pitch_mm:g} is found in {f.name}: count "
+                        "the inner corners (where four squares meet), not the squares")
+    return None
 
 
 def _calibrate_step(step: str, obs: Observations, backends: Sequence[str], model: str,
