@@ -1,5 +1,7 @@
 import csv
 import json
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -104,15 +106,23 @@ def test_the_residual_budget_is_written_and_said(zoom_set, tmp_path):
     assert page.count("zoom_01: held-out RMS") == 1
 
 
-def test_a_byte_identical_copy_is_one_view(zoom_set, tmp_path):
-    # the real PTZ set holds such a copy under another name: used twice it would count as a
-    # second view of the same pose
+def _clean_copy(zoom_set, tmp_path):
+    """The rendered set copied without the broken step the first test adds to it."""
     import shutil
 
     folder = tmp_path / "set"
     shutil.copytree(zoom_set, folder, ignore=shutil.ignore_patterns("zoom_99"))
     steps = (folder / "steps.csv").read_text().splitlines()
     (folder / "steps.csv").write_text("\n".join(r for r in steps if "zoom_99" not in r) + "\n")
+    return folder
+
+
+def test_a_byte_identical_copy_is_one_view(zoom_set, tmp_path):
+    # the real PTZ set holds such a copy under another name: used twice it would count as a
+    # second view of the same pose
+    import shutil
+
+    folder = _clean_copy(zoom_set, tmp_path)
     first = sorted((folder / "zoom_00").glob("*.png"))[0]
     shutil.copy(first, folder / "zoom_00" / "zz_copy.png")
     out = tmp_path / "cal"
@@ -137,3 +147,77 @@ def test_a_spec_that_counts_squares_gets_the_inner_corner_count(zoom_set, tmp_pa
     assert res.exit_code == 4, res.output
     assert ("chessboard:9x6:25 is found in view_00.png: count the inner corners (where four "
             "squares meet), not the squares") in res.output, res.output
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process table from /proc")
+def test_ctrl_c_during_detection_ends_at_once_and_keeps_the_finished_images(zoom_set,
+                                                                          tmp_path):
+    # a real SIGINT to the process group, as a terminal's Ctrl-C sends it, once the two
+    # detection workers run
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    # 72 images (zoom_00's six, 12 times each with its corner pixel changed: another file,
+    # the same board): about 11 s of detection on two idle cores
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for src in sorted((zoom_set / "zoom_00").glob("*.png")):
+        image = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        for k in range(12):
+            image[0, 0] = 10 * k
+            cv2.imwrite(str(folder / f"{src.stem}_{k:02d}.png"), image)
+    out = tmp_path / "cal"
+    cmd = [sys.executable, "-m", "zoomcalib.cli", "calibrate", str(folder), "--pattern",
+           "chessboard:9x6:25", "--workers", "2", "--no-report", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    workers: list[int] = []
+    deadline = time.monotonic() + 60
+    while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+        workers = _children(proc.pid)
+    assert len(workers) >= 2, ("the detection workers did not start", proc.poll())
+    time.sleep(4.0)  # the workers started (about 1.5 s) and finished some images
+    sent = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=30)
+    took = time.monotonic() - sent
+    assert proc.returncode == 130, (proc.returncode, stdout, stderr)
+    assert took < 2.0, (took, stderr)
+    assert "Traceback" not in stderr + stdout, stderr
+    assert "interrupted: the detections finished so far are kept" in stderr
+    # the workers, and multiprocessing's resource tracker, go with the main process
+    gone_by = time.monotonic() + 2.0
+    while [p for p in workers if _alive(p)] and time.monotonic() < gone_by:
+        time.sleep(0.05)
+    assert not [p for p in workers if _alive(p)], ("orphans", workers, stderr)
+    cached = sum(len(json.loads(f.read_text())["images"])
+                 for f in (out / "detections").glob("*.json"))
+    assert 1 <= cached < 72, cached
+    # the same command resumes: the finished images are not detected again
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"reused the cached detections of {cached} unchanged images" in res.stdout

@@ -666,13 +666,21 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
-    with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
-        run = calibrate_folder(folder, pattern, out, backends, model, method,
-                               workers or os.cpu_count() or 1, bar.update, messages.append,
-                               zoom_wide=not per_step, cross_validate=cross_validate,
-                               grid_points=grid_points, camera_name=camera_name,
-                               report=not no_report, report_distance=report_distance,
-                               pp_model=pp_model, residual_budget=residual_budget)
+    try:
+        with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
+            run = calibrate_folder(folder, pattern, out, backends, model, method,
+                                   workers or os.cpu_count() or 1, bar.update,
+                                   messages.append, zoom_wide=not per_step,
+                                   cross_validate=cross_validate, grid_points=grid_points,
+                                   camera_name=camera_name, report=not no_report,
+                                   report_distance=report_distance, pp_model=pp_model,
+                                   residual_budget=residual_budget)
+    except KeyboardInterrupt:
+        for m in messages:
+            click.echo(m)
+        click.echo(f"\ninterrupted: the detections finished so far are kept in {out}/detections;"
+                   " the same command resumes from them", err=True)
+        sys.exit(130)
     for m in messages:
         click.echo(m)
     _print_calibration(run)

@@ -71,6 +71,7 @@ import cv2
 import numpy as np
 import scipy.optimize
 
+from ..pool import map_in_processes
 from .bundle import calibrate_bundle
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
@@ -539,14 +540,7 @@ def step_budgets(observations: dict[str, Observations], results: dict[str, Calib
     names = [s for s in observations if s in results]
     items = [(observations[s], results[s], s, folds, seed) for s in names]
     budgets, failed = {}, {}
-    if workers > 1 and len(items) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=min(workers, len(items))) as pool:
-            futures = [pool.submit(_one_budget, *item) for item in items]
-            outcomes = [f.result() for f in futures]
-    else:
-        outcomes = [_one_budget(*item) for item in items]
+    outcomes = map_in_processes(_one_budget, items, workers)
     for name, outcome in zip(names, outcomes, strict=True):
         if isinstance(outcome, str):
             failed[name] = outcome

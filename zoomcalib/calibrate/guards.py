@@ -27,7 +27,7 @@ import cv2
 from .. import __version__
 from .. import detect as detect_package
 from ..detect import detect_folder, read_detections, write_detections
-from ..detect.opencv import Detection, default_method
+from ..detect.opencv import Detection, DetectionInterrupted, default_method
 from ..io import read_json
 from ..targets import Target
 
@@ -211,8 +211,19 @@ def detect_with_cache(cache: Path, files: list[Path], target: Target, settings: 
     reused = len(files) - len(todo)
     if reused and progress is not None:
         progress(reused)
-    fresh = iter(detect_folder(todo, target, settings["method"], workers=workers,
-                               progress=progress, **settings["options"]) if todo else [])
+    try:
+        fresh = iter(detect_folder(todo, target, settings["method"], workers=workers,
+                                   progress=progress, **settings["options"]) if todo else [])
+    except DetectionInterrupted as stop:  # keep what was finished: a rerun resumes there
+        done = iter(stop.finished)
+        kept = [(fp, d if d is not None else next(done))
+                for fp, d in zip(prints, found, strict=True)]
+        kept = [(fp, d) for fp, d in kept if d is not None and not d.transient]
+        if kept:
+            write_detections(cache, [d for _, d in kept], settings["pattern"],
+                             provenance={"settings": settings,
+                                         "images": [fp for fp, _ in kept]})
+        raise
     dets = [d if d is not None else next(fresh) for d in found]
     if todo or cached_names != [f.name for f in files]:
         images = [fp | {"reuse": False} if d.transient else fp

@@ -112,7 +112,6 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -122,6 +121,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.stats
 
+from ..pool import map_in_processes
 from .bundle import _deletion_steps, project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
@@ -838,14 +838,7 @@ def _map_steps(function, items: list, workers: int) -> list:
     """``[function(*item) for item in items]``, in ``workers`` processes when more than one
     (each step's OpenCV fits are independent of the others'; the results, in order, are the
     same either way)."""
-    if workers <= 1 or len(items) <= 1:
-        return [function(*item) for item in items]
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(items)))
-    try:
-        futures = [pool.submit(function, *item) for item in items]
-        return [f.result() for f in futures]
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    return map_in_processes(function, items, workers)
 
 
 def _initial_step(name: str, obs: Observations, select: bool, decentring: bool):

@@ -73,6 +73,7 @@ import cv2
 import numpy as np
 
 from zoomcalib.io import read_json
+from zoomcalib.pool import ignore_interrupt, stop_pool
 from zoomcalib.targets import Target, parse_pattern
 
 __all__ = [
@@ -696,6 +697,16 @@ def _detect_safely(path: Path, target: Target, method: str, options: dict) -> De
 
 def _worker_init() -> None:
     cv2.setNumThreads(1)  # the pool supplies the parallelism
+    ignore_interrupt()  # Ctrl-C: the main process stops the pool (zoomcalib.pool)
+
+
+class DetectionInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`detect_folder`: ``finished`` holds, per input image, its
+    detection or None where it was not finished."""
+
+    def __init__(self, finished: list[Detection | None]):
+        super().__init__("detection interrupted")
+        self.finished = finished
 
 
 def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLike],
@@ -761,8 +772,9 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
         return out
     results: list[Detection | None] = [None] * len(files)
     ctx = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(min(workers, len(files)), mp_context=ctx,
-                                                initializer=_worker_init) as pool:
+    pool = concurrent.futures.ProcessPoolExecutor(min(workers, len(files)), mp_context=ctx,
+                                                  initializer=_worker_init)
+    try:
         futures = {pool.submit(_detect_safely, f, target, method, options): i
                    for i, f in enumerate(files)}
         for fut in concurrent.futures.as_completed(futures):
@@ -776,6 +788,10 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
                                        method=method, transient=True)
             if progress is not None:
                 progress(1)
+    except KeyboardInterrupt:
+        stop_pool(pool)
+        raise DetectionInterrupted(results) from None
+    pool.shutdown()
     return [r for r in results if r is not None]
 
 
