@@ -35,6 +35,7 @@ import numpy as np
 from zoomcalib.calibrate.io import read_zoom_table
 from zoomcalib.calibrate.zoommodel import divided_difference, path_between, prior_strength
 from zoomcalib.calibrate.zoompath import PosteriorZoomModel
+from zoomcalib.render.pp_path import wiener_draw
 from zoomcalib.zoom import ZoomModel
 
 _DIST = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -72,23 +73,15 @@ def grid_conditional(u: np.ndarray, u_new: float, tau: float) -> tuple[np.ndarra
 
 
 def wiener(seeds: int, reps: int = 150) -> None:
-    fine = np.linspace(-0.05, 2.35, 4801)
-    dt = fine[1] - fine[0]
+    sd = 1e-3
     print(f"{'seed':>4} | {'path_between: rms z':>20} {'scale':>6} {'>3':>6} | "
           f"{'grid prior: rms z':>18} {'scale':>6} {'>3':>6}")
     for seed in range(seeds):
         rng = np.random.default_rng(seed)
         z = np.empty((reps, 2))
         for r in range(reps):
-            u = np.sort(rng.uniform(0, 2.3, 10))
-            u[0], u[-1] = 0.0, 2.3
-            path = np.cumsum(np.cumsum(30 * np.sqrt(dt) * rng.normal(size=len(fine)))) * dt
-            sd = 1e-3
-            v = np.interp(u, fine, path) + rng.normal(0, sd, len(u))
+            u, v, u_new, truth = wiener_draw(rng, noise=sd)
             tau, _ = prior_strength(v, np.full(len(u), sd), u)
-            i = rng.integers(0, len(u) - 1)
-            u_new = u[i] + rng.uniform(0.2, 0.8) * (u[i + 1] - u[i])
-            truth = np.interp(u_new, fine, path)
             for k, (lam, var) in enumerate((path_between(u, u_new, 2, tau),
                                             grid_conditional(u, u_new, tau))):
                 z[r, k] = (lam @ v - truth) / np.sqrt(var + lam @ lam * sd**2)

@@ -17,26 +17,19 @@ from test_zoomwide import sweep_observations
 from zoomcalib.calibrate.zoommodel import kernel_energy, path_between, prior_strength
 from zoomcalib.calibrate.zoompath import PosteriorZoomModel
 from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide
-from zoomcalib.render.pp_path import traced_path
+from zoomcalib.render.pp_path import traced_path, wiener_draw
 
 
 def _wiener_midpoint_z(rng, reps: int = 150) -> np.ndarray:
     """z of the path predicted between two of 10 irregular steps, tau by REML from the
     steps' noisy values (noise 1e-3, the prediction's variance includes it)."""
     z = np.empty(reps)
-    fine = np.linspace(-0.05, 2.35, 4801)
-    dt = fine[1] - fine[0]
+    sd = 1e-3
     for r in range(reps):
-        u = np.sort(rng.uniform(0, 2.3, 10))
-        u[0], u[-1] = 0.0, 2.3
-        path = np.cumsum(np.cumsum(30 * np.sqrt(dt) * rng.normal(size=len(fine)))) * dt
-        sd = 1e-3
-        v = np.interp(u, fine, path) + rng.normal(0, sd, len(u))
+        u, v, u_new, truth = wiener_draw(rng, noise=sd)
         tau, _ = prior_strength(v, np.full(len(u), sd), u)
-        i = rng.integers(0, len(u) - 1)
-        u_new = u[i] + rng.uniform(0.2, 0.8) * (u[i + 1] - u[i])
         lam, var = path_between(u, u_new, 2, tau)
-        z[r] = (lam @ v - np.interp(u_new, fine, path)) / np.sqrt(var + lam @ lam * sd**2)
+        z[r] = (lam @ v - truth) / np.sqrt(var + lam @ lam * sd**2)
     return z
 
 

@@ -254,15 +254,9 @@ class PosteriorZoomModel:
         return out
 
     def at(self, zoom: float, *, extrapolate: bool = False) -> ZoomIntrinsics:
-        """The intrinsics and their 1-sigma at one zoom value (:meth:`ZoomModel.at`).
-
-        Raises
-        ------
-        ValueError
-            If ``zoom`` is not finite, or outside the calibrated range without
-            ``extrapolate``.
-        KeyError
-            If cx or cy is not carried.
+        """The intrinsics and their 1-sigma at one zoom value, with the errors of
+        :meth:`zoomcalib.zoom.ZoomModel.at` (a zoom not finite or outside the calibrated range
+        without ``extrapolate``; cx or cy not carried).
 
         Examples
         --------

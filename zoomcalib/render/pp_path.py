@@ -21,6 +21,11 @@ r"""Principal-point paths over a zoom sweep, in px from the sweep's nominal prin
     ``c = -x fx(s) / efl(z)`` (the read-out turns the inverted image upright). Smooth, but not a
     polynomial in ``log fx``: the groups' sensitivities change with zoom, and the run-out turns
     twice over the range. Play and backlash (not repeatable) are left out.
+
+``wiener`` (:func:`wiener_draw`)
+    A path whose second derivative is white noise (an integrated Wiener process), drawn on a
+    fine grid and seen at a few irregular steps: the generator of the tests and benchmarks of
+    the zoom model between the steps, which models the path by a difference prior of its own.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from ..optics.paraxial import effective_focal_length
 from ..optics.prescription import load_prescription
 from ..optics.principal_point import principal_point_image
 
-__all__ = ["PP_PATHS", "bowed_path", "traced_path"]
+__all__ = ["PP_PATHS", "bowed_path", "traced_path", "wiener_draw"]
 
 PP_PATHS = ("bow", "traced")
 TRACED_LENS = "laikin-10x"
@@ -111,3 +116,23 @@ def traced_path(s: np.ndarray, fx_range: tuple[float, float], span_px: float,
     s = np.concatenate([[0.0], np.asarray(s, float)])
     path = _trace(s, fx_range, errors, scale, runout)
     return path[1:] - path[0], record
+
+
+def wiener_draw(rng: np.random.Generator, steps: int = 10, span: float = 2.3,
+                intensity: float = 30.0, noise: float = 1e-3
+                ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """One integrated Wiener path: its second derivative white noise of ``intensity`` per
+    square root of ``u``, simulated on 4801 points over ``[-0.05, span + 0.05]``; seen at
+    ``steps`` abscissae drawn uniformly in ``[0, span]`` (both ends included), each value with
+    Gaussian noise of sd ``noise``; and one abscissa drawn between two neighbouring steps
+    (0.2-0.8 of their gap). Returns ``u`` (steps,) increasing, the noisy values (steps,),
+    ``u_new`` and the path's true value there."""
+    fine = np.linspace(-0.05, span + 0.05, 4801)
+    dt = fine[1] - fine[0]
+    u = np.sort(rng.uniform(0, span, steps))
+    u[0], u[-1] = 0.0, span
+    path = np.cumsum(np.cumsum(intensity * np.sqrt(dt) * rng.normal(size=len(fine)))) * dt
+    values = np.interp(u, fine, path) + rng.normal(0, noise, steps)
+    i = rng.integers(0, steps - 1)
+    u_new = float(u[i] + rng.uniform(0.2, 0.8) * (u[i + 1] - u[i]))
+    return u, values, u_new, float(np.interp(u_new, fine, path))
