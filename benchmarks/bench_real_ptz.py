@@ -1,7 +1,8 @@
 """A real PTZ camera's zoom sweep, calibrated as a user would, and its halves.
 
 ``python benchmarks/bench_real_ptz.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
-[--splits 5] [--seed 0] [--one-session] [--free-aspect] [--board-degree 4]``
+[--splits 5] [--seed 0] [--one-session] [--free-aspect] [--board-degree 4]
+[--board-shape points]``
 
 ``FOLDER`` is an image folder of zoom-step subfolders, e.g. the ``calibration_images`` folder
 of the public set ``e-cagan/camera-calibration`` (10 steps ``zoom_1x`` .. ``zoom_10x`` of a
@@ -26,7 +27,9 @@ repository; this script reads it where it lies and writes to ``--out`` (default
 ``--one-session`` calibrates with one board shape for all steps, ``--free-aspect`` with a
 ``fy`` per step: the settings before they became the default. ``--board-degree N`` gives the
 zoom-wide board modes up to degree ``N`` (the default run's 4; a paper board taped to a wall
-ripples beyond it, ``bench_real_board.py``), for the table and the halves.
+ripples beyond it, ``bench_real_board.py``), for the table and the halves; ``--board-shape
+modes`` leaves out the height of every board point and session that the default fits
+(``calibrate_zoom_wide(board_points=False)``, the earlier default).
 ``--halves-steps S ...``
 calibrates the halves of those steps alone (the splits drawn as for all steps, so split ``k``
 is the same as in a run over all steps): what the long end's own frames determine without the
@@ -146,6 +149,9 @@ def main() -> None:
     ap.add_argument("--free-aspect", action="store_true")
     ap.add_argument("--board-degree", type=int, default=4,
                     help="highest degree of the zoom-wide board modes (default 4, as calibrate)")
+    ap.add_argument("--board-shape", default="points", choices=("points", "modes"),
+                    help="the zoom-wide board: modes and point heights (default, as calibrate) "
+                         "or the modes alone")
     ap.add_argument("--halves-steps", nargs="+", default=None,
                     help="calibrate the halves of these steps alone")
     args = ap.parse_args()
@@ -169,15 +175,17 @@ def main() -> None:
     sessions = {s: r["zoom-wide"].info.get("board_session", "")
                 for s, r in run.results.items() if "zoom-wide" in r}
     kwargs = {"shared_aspect": not args.free_aspect, "workers": 2,
-              "board_degree": args.board_degree}
+              "board_degree": args.board_degree, "board_points": args.board_shape == "points"}
     zw = run.zoom_wide
-    if args.one_session or args.free_aspect or args.board_degree != 4:
+    if (args.one_session or args.free_aspect or args.board_degree != 4
+            or args.board_shape != "points"):
         sessions = None if args.one_session else sessions
         t = time.perf_counter()
         zw = calibrate_zoom_wide(run.observations, sessions=sessions, **kwargs)
         print(f"zoom-wide with {'one board shape' if args.one_session else 'sessions'}, "
               f"{'fy per step' if args.free_aspect else 'one aspect ratio'}, board modes to "
-              f"degree {args.board_degree}: {time.perf_counter() - t:.0f} s")
+              f"degree {args.board_degree}{' and point heights' * (args.board_shape == 'points')}: "
+              f"{time.perf_counter() - t:.0f} s")
     if zw is None:
         print("no zoom-wide adjustment")
         return

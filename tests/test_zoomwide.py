@@ -37,7 +37,7 @@ SIZE = (1280, 720)
 def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
                        pattern="chessboard:22x15:20", fx_range=(2300.0, 23000.0),
                        shift_odd_cx=0.0, pp=None, dist=None, dist_centre=(0.0, 0.0),
-                       aspect=1.0, retaped_at=None):
+                       aspect=1.0, retaped_at=None, ripple_mm=0.0):
     """A zoom sweep's detections and its truth (see the module docstring); ``pp(u)`` (steps, 2)
     px replaces the principal-point path, ``u = log(fx / fx_0)``, and ``dist(u)`` (5,) the
     distortion, centred ``dist_centre`` px from the principal point (OpenCV's model about a
@@ -45,7 +45,9 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
     tilt follows the focal length (35 deg at 2300 px, near 3 deg at the long end); the pixels'
     aspect ratio ``fy / fx`` is ``aspect`` at every step. With ``retaped_at`` the steps from
     that index on see a board of another wave (re-taped between two capture sessions); the
-    returned wave is then the pair."""
+    returned wave is then the pair. ``ripple_mm`` adds, on every session's board, ripples of
+    3-6 cycles across it (three plane waves of random direction and phase, together of that
+    RMS): a shape no low-degree surface follows."""
     target = parse_pattern(pattern)
     X0 = target.object_points.astype(float)
     centre = X0.mean(axis=0)
@@ -59,6 +61,12 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
 
     wave = wave_mm * np.sin(rng.uniform(1.5, 2.5) * xn + phase[0]) * np.cos(
         rng.uniform(1.2, 2.0) * yn + phase[1])
+    if ripple_mm:
+        angle, cycles, shift = (rng.uniform(0, np.pi, 3), rng.uniform(3, 6, 3),
+                                rng.uniform(0, 2 * np.pi, 3))
+        ripple = sum(np.sin(np.pi * c * (np.cos(a) * xn + np.sin(a) * yn) + p)
+                     for a, c, p in zip(angle, cycles, shift, strict=True))
+        wave = wave + ripple_mm * ripple / np.sqrt(np.mean(ripple**2))
     X = X0.copy()
     X[:, 2] += wave
     if retaped_at is not None:
@@ -598,6 +606,37 @@ def test_a_board_retaped_between_sessions_gets_a_shape_per_session():
     one_rms = np.array([r.rms_px for r in one.results.values()])
     assert np.all(apart_rms < 1.2 * noise), apart_rms
     assert one_rms.max() > 1.3 * noise, one_rms
+
+
+@pytest.mark.parametrize("ripple_mm", [0.0, 0.4])
+def test_point_heights_follow_ripples_the_modes_cannot(ripple_mm):
+    # a board rippled at 3-6 cycles across (0.4 mm RMS): the degree-4 modes leave it in the
+    # residual, the point heights take it out and give it back; on a board without ripples
+    # they find none and leave the sigmas honest
+    rng = np.random.default_rng(53)
+    noise = 0.02
+    obs, truth, wave = sweep_observations(rng, steps=4, views=10, noise=noise, wave_mm=0.3,
+                                          ripple_mm=ripple_mm)
+    points = calibrate_zoom_wide(obs)
+    modes = calibrate_zoom_wide(obs, board_points=False)
+    assert points.board_heights.shape == (1, len(wave))
+    z = [(getattr(points.results[n], q) - t[q]) / points.results[n].sd[q]
+         for n, t in truth.items() for q in ("fx", "cx", "cy")]
+    assert max(np.abs(z)) < 4 and 0.4 < np.sqrt(np.mean(np.square(z))) < 1.6, z
+    rms = np.array([r.rms_px for r in points.results.values()])
+    assert np.all(rms < 1.2 * noise * np.sqrt(2)), rms      # the corner noise, no more
+    name = next(iter(truth))
+    board = points.results[name].object_points
+    true = _off_plane(board, truth[name]["X"][:, 2])
+    err = _off_plane(board, board[:, 2]) - true
+    if ripple_mm:
+        # the modes alone leave the ripples: several times the corner noise at the short end
+        assert modes.results[name].rms_px > 3 * noise * np.sqrt(2)
+        assert np.sqrt(np.mean(err**2)) < 0.1 * np.sqrt(np.mean(true**2))
+    else:
+        # a smooth board: the modes take it, the points add only the corner noise's heights
+        # (about 0.01 mm RMS here: 0.02 px corners seen by 40 views; the ripple is 0.4 mm)
+        assert np.sqrt(np.mean(points.board_heights**2)) < 0.03
 
 
 def test_normal_equations_summed_per_view_equal_the_assembled_jacobians(rng, monkeypatch):

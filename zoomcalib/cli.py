@@ -608,6 +608,11 @@ def detect(folder, pattern, methods, workers, out):
               help="Also say per step and per capture session what the residual is made of: "
                    "lens terms, board shape, a focal length per view and a readout shift, "
                    "each judged on held-out corners (calibration.md, 'Residual budget').")
+@click.option("--board-shape", default="points", show_default=True,
+              type=click.Choice(["points", "modes"]),
+              help="Zoom-wide: the board of each capture session, a smooth surface of degree 4 "
+                   "plus a height for every point (the ripples of a paper board), or the "
+                   "smooth surface alone.")
 @click.option("--model", default="standard", show_default=True,
               type=click.Choice(["standard", "rational"]),
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
@@ -627,7 +632,7 @@ def detect(folder, pattern, methods, workers, out):
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
 def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, residual_budget,
-              model, method, workers, out, grid_points, camera_name, no_report,
+              board_shape, model, method, workers, out, grid_points, camera_name, no_report,
               report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
@@ -674,7 +679,8 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
                                    cross_validate=cross_validate, grid_points=grid_points,
                                    camera_name=camera_name, report=not no_report,
                                    report_distance=report_distance, pp_model=pp_model,
-                                   residual_budget=residual_budget)
+                                   residual_budget=residual_budget,
+                                   board_shape=board_shape)
     except KeyboardInterrupt:
         for m in messages:
             click.echo(m)

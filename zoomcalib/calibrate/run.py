@@ -234,7 +234,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
                      report_distance: float | None = None, pp_model: str = "angle2",
-                     residual_budget: bool = False) -> CalibrateRun:
+                     residual_budget: bool = False, board_shape: str = "points"
+                     ) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -278,6 +279,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         Also the residual budget of every usable step and capture session
         (:mod:`zoomcalib.calibrate.budget`; ``run.budget``, ``run.budget_sessions`` and
         ``calibration.json``'s ``meta.residual_budget``).
+    board_shape : {'points', 'modes'}
+        The zoom-wide adjustment's board: height modes to degree 4 per capture session and a
+        height for every point (``points``), or the modes alone (``modes``;
+        ``board_points`` of :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
 
     Returns
     -------
@@ -315,7 +320,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     sessions = _board_sessions(run, extras_of, log) if zoom_wide else {}
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
-                                             extras_of.items()}, pp_model, sessions, workers)
+                                             extras_of.items()}, pp_model, sessions, workers,
+                   board_shape == "points")
     for step in [s for s, r in run.results.items() if not r]:
         del run.results[step]
         run.backend_failures.pop(step, None)
@@ -323,7 +329,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
-                                               workers)
+                                               workers, board_shape == "points")
     run.flags = _step_flags(run)
     run.status = _step_statuses(run)
     for step, st in run.status.items():
@@ -452,6 +458,8 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
                              "board_modes_mm": zw.board_modes.tolist(),
                              "board_sessions": zw.board_sessions,
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
+                             "board_point_heights_mm": (None if zw.board_heights is None
+                                                        else zw.board_heights.tolist()),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
                              "skipped": zw.skipped,
                              "distortion_choice": {k: v.to_dict()
@@ -657,7 +665,8 @@ def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
 
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2",
-               sessions: dict[str, str] | None = None, workers: int = 1) -> None:
+               sessions: dict[str, str] | None = None, workers: int = 1,
+               board_points: bool = True) -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -675,7 +684,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
                if run.results.get(s) else o for s, o in obs.items()}
     try:
         zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions,
-                                 workers=workers)
+                                 workers=workers, board_points=board_points)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -695,7 +704,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
 
 
 def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2",
-                    sessions: dict[str, str] | None = None, workers: int = 1):
+                    sessions: dict[str, str] | None = None, workers: int = 1,
+                    board_points: bool = True):
     """Two-halves check with the backend (and mode) of the zoom table (zoom-wide: with the
     board sessions of the full set)."""
     from .checks import cross_validate
@@ -707,7 +717,8 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
         return cross_validate(run.observations,
                               lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
                                                             sessions=sessions,
-                                                            workers=workers).results,
+                                                            workers=workers,
+                                                            board_points=board_points).results,
                               backend)
 
     def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:
