@@ -1,0 +1,149 @@
+"""How wide should a real sweep's sigmas be? A Monte Carlo of synthetic sweeps that imitate it.
+
+``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
+[--draws 10] [--seed 0] [--in-plane-mm 0.3] [--board-shape points]``
+
+``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
+``e-cagan/camera-calibration``, read where it lies; detections cached in ``DIR/detections``).
+
+1. The default ``calibrate`` run on the real set gives, per step, the zoom-wide intrinsics,
+   their sigmas, every view's pose, each capture session's board (modes and point heights) and
+   each step's residual sd per coordinate.
+2. Each draw builds a sweep with the same steps, views and visible corners, from another
+   generator than the adjustment's model: every session's board is the nominal board plus the
+   measured smooth shape, fresh ripples (three plane waves of 3-6 cycles across the board,
+   random direction and phase, of the measured point heights' RMS) and in-plane errors of
+   ``--in-plane-mm`` RMS per point (a printed board's; the adjustment has no such term);
+   ``cv2.projectPoints`` with the step's measured camera and poses; and white corner noise
+   that brings each step's residual to its measured sd (the in-plane errors' share taken
+   out in quadrature).
+3. Each draw is calibrated zoom-wide as the default does (the same sessions and settings).
+
+Per step it prints the real run's sigma of fx, cx, cy, the spread (sd) of the draws'
+estimates, their ratio (issue goal: at most 1.5), and the draws' RMS z against their truth
+with their own sigmas (honest sigmas: near 1). The data have no licence: nothing of them is
+kept in this repository.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # benchmark this checkout
+
+from zoomcalib.calibrate.result import Observations  # noqa: E402
+from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+
+COMPARED = ("fx", "cx", "cy")
+
+
+def ripple(board: np.ndarray, rms_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """(n,) heights mm: three plane waves of 3-6 cycles across the board, ``rms_mm`` RMS."""
+    xy = board[:, :2] - board[:, :2].mean(axis=0)
+    xy = xy / (np.ptp(board[:, :2], axis=0) / 2)
+    angle, cycles, phase = (rng.uniform(0, np.pi, 3), rng.uniform(3, 6, 3),
+                            rng.uniform(0, 2 * np.pi, 3))
+    h = sum(np.sin(np.pi * c * (np.cos(a) * xy[:, 0] + np.sin(a) * xy[:, 1]) + p)
+            for a, c, p in zip(angle, cycles, phase, strict=True))
+    return rms_mm * h / np.sqrt(np.mean(h**2))
+
+
+def draw_sweep(run, zw, in_plane_mm: float, rng: np.random.Generator
+               ) -> tuple[dict[str, Observations], dict[str, dict]]:
+    """One synthetic sweep imitating the real one (module docstring) and its truth."""
+    nominal = next(iter(run.observations.values())).object_points.astype(float)
+    heights = zw.board_heights
+    boards = {}
+    for k, session in enumerate(zw.board_sessions):
+        board = nominal.copy()
+        step = next(s for s, r in zw.results.items() if r.info["board_session"] == session)
+        smooth = zw.results[step].object_points[:, 2] - (0 if heights is None else heights[k])
+        rms = 0.0 if heights is None else float(np.sqrt(np.mean(heights[k] ** 2)))
+        board[:, 2] = smooth + ripple(nominal, rms, rng)
+        board[:, :2] += rng.normal(0, in_plane_mm / np.sqrt(2), (len(board), 2))
+        boards[session] = board
+    sweep, truth = {}, {}
+    for step, r in zw.results.items():
+        obs = run.observations[step]
+        board = boards[r.info["board_session"]]
+        views = []
+        for v, (ids, _) in enumerate(obs.views):
+            p = cv2.projectPoints(board[ids], r.rvecs[v], r.tvecs[v], r.K, r.dist)[0]
+            flat = board[ids].copy()
+            flat[:, :2] = nominal[ids, :2]
+            q = cv2.projectPoints(flat, r.rvecs[v], r.tvecs[v], r.K, r.dist)[0]
+            views.append((ids, p.reshape(-1, 2), q.reshape(-1, 2)))
+        in_plane = np.sqrt(np.mean(np.concatenate([p - q for _, p, q in views]) ** 2))
+        white = np.sqrt(max(r.info["noise_sigma_px"] ** 2 - in_plane**2, 0.0))
+        sweep[step] = Observations(nominal, [(ids, p + rng.normal(0, white, p.shape))
+                                             for ids, p, _ in views], obs.image_size,
+                                   list(obs.names))
+        truth[step] = {"fx": r.fx, "cx": r.cx, "cy": r.cy, "white_px": white, "board": board,
+                       "in_plane_px": in_plane}
+    return sweep, truth
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("bench-real-ptz"))
+    ap.add_argument("--pattern", default="chessboard:22x15:25")
+    ap.add_argument("--draws", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--in-plane-mm", type=float, default=0.3)
+    ap.add_argument("--board-shape", default="points", choices=("points", "modes"))
+    args = ap.parse_args()
+    warnings.simplefilter("ignore", RuntimeWarning)
+    t = time.perf_counter()
+    run = calibrate_folder(args.folder, args.pattern, args.out, ("opencv",), workers=2,
+                           log=lambda m: None, report=False, board_shape=args.board_shape)
+    zw = run.zoom_wide
+    print(f"real run: {time.perf_counter() - t:.0f} s; sessions {zw.board_sessions}")
+    sessions = {s: r.info["board_session"] for s, r in zw.results.items()}
+    rng = np.random.default_rng(args.seed)
+    estimates = {s: [] for s in zw.results}
+    z = {s: [] for s in zw.results}
+    for d in range(args.draws):
+        t = time.perf_counter()
+        sweep, truth = draw_sweep(run, zw, args.in_plane_mm, rng)
+        if d == 0:
+            print("white noise px per step: " + ", ".join(
+                f"{s} {tr['white_px']:.2f} (in-plane {tr['in_plane_px']:.2f})"
+                for s, tr in truth.items()))
+        got = calibrate_zoom_wide(sweep, sessions=sessions, workers=2,
+                                  board_points=args.board_shape == "points").results
+        for s, r in got.items():
+            estimates[s].append([getattr(r, q) for q in COMPARED])
+            z[s].append([(getattr(r, q) - truth[s][q]) / r.sd[q] for q in COMPARED])
+        print(f"  draw {d}: {time.perf_counter() - t:.0f} s", flush=True)
+    print(f"{args.draws} draws, board shape {args.board_shape}, in-plane {args.in_plane_mm} mm")
+    print(f"{'step':>9} " + " ".join(f"{'sd_' + q:>8} {'mc':>7} {'ratio':>5} {'rms z':>5}"
+                                     for q in COMPARED))
+    ratios = []
+    for s, r in zw.results.items():
+        est, zs = np.array(estimates[s]), np.array(z[s])
+        cells = []
+        for i, q in enumerate(COMPARED):
+            mc = est[:, i].std(ddof=1)
+            ratios.append(r.sd[q] / mc)
+            cells.append(f"{r.sd[q]:8.2f} {mc:7.2f} {r.sd[q] / mc:5.2f} "
+                         f"{np.sqrt(np.mean(zs[:, i] ** 2)):5.2f}")
+        print(f"{s:>9} " + " ".join(cells))
+    allz = np.concatenate([np.array(v) for v in z.values()])
+    print(f"ratio real sigma / MC sd: median {np.median(ratios):.2f}, largest "
+          f"{max(ratios):.2f}, above 1.5: {sum(x > 1.5 for x in ratios)} of {len(ratios)}; "
+          f"draws' pooled RMS z {np.sqrt(np.mean(allz**2)):.2f}, beyond 3: "
+          f"{int((np.abs(allz) > 3).sum())} of {allz.size}")
+
+
+if __name__ == "__main__":
+    main()
