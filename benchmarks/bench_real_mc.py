@@ -1,7 +1,7 @@
 """How wide should a real sweep's sigmas be? A Monte Carlo of synthetic sweeps that imitate it.
 
 ``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
-[--draws 10] [--seed 0] [--in-plane-mm 0.3] [--board-shape points]``
+[--draws 10] [--seed 0] [--in-plane-mm 0.3] [--board-shape points] [--verbose]``
 
 ``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
 ``e-cagan/camera-calibration``, read where it lies; detections cached in ``DIR/detections``).
@@ -21,7 +21,9 @@
 
 Per step it prints the real run's sigma of fx, cx, cy, the spread (sd) of the draws'
 estimates, their ratio (issue goal: at most 1.5), and the draws' RMS z against their truth
-with their own sigmas (honest sigmas: near 1). The data have no licence: nothing of them is
+with their own sigmas (honest sigmas: near 1); ``--verbose`` also prints every draw's errors
+of cx, cy with their sigmas, and p1 and the distortion terms, true and estimated, per step.
+The data have no licence: nothing of them is
 kept in this repository.
 """
 
@@ -101,6 +103,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--in-plane-mm", type=float, default=0.3)
     ap.add_argument("--board-shape", default="points", choices=("points", "modes"))
+    ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     t = time.perf_counter()
@@ -119,8 +122,15 @@ def main() -> None:
             print("white noise px per step: " + ", ".join(
                 f"{s} {tr['white_px']:.2f} (in-plane {tr['in_plane_px']:.2f})"
                 for s, tr in truth.items()))
-        got = calibrate_zoom_wide(sweep, sessions=sessions, workers=2,
-                                  board_points=args.board_shape == "points").results
+        adjusted = calibrate_zoom_wide(sweep, sessions=sessions, workers=2,
+                                       board_points=args.board_shape == "points")
+        got = adjusted.results
+        if args.verbose:
+            for s, r in got.items():
+                print(f"    {s}: cx {r.cx - truth[s]['cx']:+.1f} ± {r.sd['cx']:.1f}, cy "
+                      f"{r.cy - truth[s]['cy']:+.1f} ± {r.sd['cy']:.1f}; p1 true "
+                      f"{zw.results[s].dist[2]:+.4f} got {r.dist[2]:+.4f}; terms true "
+                      f"{','.join(zw.terms[s])} got {','.join(adjusted.terms[s])}")
         for s, r in got.items():
             estimates[s].append([getattr(r, q) for q in COMPARED])
             z[s].append([(getattr(r, q) - truth[s][q]) / r.sd[q] for q in COMPARED])

@@ -2,7 +2,7 @@
 
 ``python benchmarks/bench_real_ptz.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
 [--splits 5] [--seed 0] [--one-session] [--free-aspect] [--board-degree 4]
-[--board-shape points]``
+[--board-shape points] [--own-session STEP ...]``
 
 ``FOLDER`` is an image folder of zoom-step subfolders, e.g. the ``calibration_images`` folder
 of the public set ``e-cagan/camera-calibration`` (10 steps ``zoom_1x`` .. ``zoom_10x`` of a
@@ -29,7 +29,8 @@ repository; this script reads it where it lies and writes to ``--out`` (default
 zoom-wide board modes up to degree ``N`` (the default run's 4; a paper board taped to a wall
 ripples beyond it, ``bench_real_board.py``), for the table and the halves; ``--board-shape
 modes`` leaves out the height of every board point and session that the default fits
-(``calibrate_zoom_wide(board_points=False)``, the earlier default).
+(``calibrate_zoom_wide(board_points=False)``, the earlier default). ``--own-session STEP ...``
+gives those steps a board of their own (as a ``session`` column of ``steps.csv`` would).
 ``--halves-steps S ...``
 calibrates the halves of those steps alone (the splits drawn as for all steps, so split ``k``
 is the same as in a run over all steps): what the long end's own frames determine without the
@@ -152,6 +153,8 @@ def main() -> None:
     ap.add_argument("--board-shape", default="points", choices=("points", "modes"),
                     help="the zoom-wide board: modes and point heights (default, as calibrate) "
                          "or the modes alone")
+    ap.add_argument("--own-session", nargs="+", default=(),
+                    help="give these steps a board session of their own")
     ap.add_argument("--halves-steps", nargs="+", default=None,
                     help="calibrate the halves of these steps alone")
     args = ap.parse_args()
@@ -177,8 +180,10 @@ def main() -> None:
     kwargs = {"shared_aspect": not args.free_aspect, "workers": 2,
               "board_degree": args.board_degree, "board_points": args.board_shape == "points"}
     zw = run.zoom_wide
+    for step in args.own_session:
+        sessions[step] = f"{sessions.get(step, '')} {step}"
     if (args.one_session or args.free_aspect or args.board_degree != 4
-            or args.board_shape != "points"):
+            or args.board_shape != "points" or args.own_session):
         sessions = None if args.one_session else sessions
         t = time.perf_counter()
         zw = calibrate_zoom_wide(run.observations, sessions=sessions, **kwargs)
