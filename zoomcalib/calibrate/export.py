@@ -13,7 +13,7 @@ in OpenCV order ``(k1, k2, p1, p2, k3[, k4, k5, k6])``, 5 terms (standard model)
     ``quality_flags`` (the reasons the step's zoom-table row is flagged; empty when none);
     the zoom table's backend's file also ``status`` (``ok``, ``imprecise``, ``unusable``:
     :mod:`zoomcalib.calibrate.status`), ``status_reasons`` and ``status_remedies``.
-``ros/<stem>_zoom_<zoom>.yaml`` and ``ros/camera_info_index.yaml``
+``ros/<stem>.yaml`` and ``ros/camera_info_index.yaml``
     One ROS ``camera_info`` calibration YAML per step (the zoom table's backend), as
     ``camera_calibration_parsers`` reads them: ``camera_name``, ``image_width``,
     ``image_height``, ``camera_matrix`` (K), ``distortion_model`` (``plumb_bob`` for 5 terms,
@@ -98,11 +98,6 @@ def distortion_terms(dist: Sequence[float] | np.ndarray) -> np.ndarray:
 
 def _safe_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]", "_", text) or "_"
-
-
-def _zoom_text(zoom: float) -> str:
-    """The zoom in a file name: 6 significant digits, only ``[0-9.e+-]``."""
-    return format(float(zoom), ".6g")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -369,7 +364,7 @@ def _export_step(out: Path, run: CalibrateRun, step: str, camera_name: str,
         return files
     best = run.results[step][run.table_backend[step]]
     notes = _notes(step, zoom, best, status)
-    name = f"{stem}.yaml" if zoom is None else f"{stem}_zoom_{_zoom_text(zoom)}.yaml"
+    name = f"{stem}.yaml"  # the index gives its zoom and status
     info = ros_camera_info(best.K, best.dist, size, camera_name)
     files.append(write_ros_camera_info(out / "ros" / name, info, notes))
     ros_entries.append(entry | {"file": name})
