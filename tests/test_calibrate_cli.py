@@ -135,6 +135,14 @@ def test_a_byte_identical_copy_is_one_view(zoom_set, tmp_path):
     assert cal["meta"]["copies"] == {"zoom_00": {"zz_copy.png": first.name}}
     views = {s: e["opencv"]["n_views"] for s, e in cal["steps"].items()}
     assert views["zoom_00"] == views["zoom_01"] == 6, views
+    # the progress bar's length is every image file: the copy is counted done, so the bar
+    # ends full (the rerun reuses the cached detections)
+    from zoomcalib.calibrate.run import calibrate_folder
+
+    done: list[int] = []
+    calibrate_folder(folder, "chessboard:9x6:25", out, ("opencv",), method="model",
+                     progress=done.append, log=lambda m: None, zoom_wide=False, report=False)
+    assert sum(done) == len(list(folder.glob("zoom_*/*.png"))), done
 
 
 def test_a_spec_that_counts_squares_gets_the_inner_corner_count(zoom_set, tmp_path):

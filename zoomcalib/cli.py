@@ -5,10 +5,13 @@ The commands only parse options, call the library and print a short summary.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
 import sys
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import click
@@ -94,6 +97,20 @@ def _folder_problem(folder: Path) -> str | None:
     if not os.access(existing, os.W_OK | os.X_OK):
         return f"no permission to write in {existing}"
     return None
+
+
+@contextlib.contextmanager
+def _image_progress(length: int, label: str) -> Iterator[Callable[[int], None]]:
+    """A progress bar over ``length`` images on stderr, with the count, the rate and the time
+    left; yields the callable that advances it by a number of images done."""
+    start, done = time.monotonic(), 0
+    with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True,
+                           item_show_func=lambda rate: rate) as bar:
+        def advance(n: int = 1) -> None:
+            nonlocal done
+            done += n
+            bar.update(n, f"{done / max(time.monotonic() - start, 1e-9):.1f} images/s")
+        yield advance
 
 
 def _check_out_folder(path: str, hint: str = "--out") -> None:
@@ -554,9 +571,8 @@ def detect(folder, pattern, methods, workers, out):
     failed_images = set()
     for method in methods:
         try:
-            with click.progressbar(length=len(files), label=method, file=sys.stderr) as bar:
-                dets = detect_folder(files, target, method, workers=workers,
-                                     progress=bar.update)
+            with _image_progress(len(files), method) as advance:
+                dets = detect_folder(files, target, method, workers=workers, progress=advance)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--method") from None
         for d, name in zip(dets, names, strict=True):
@@ -672,9 +688,9 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
     try:
-        with click.progressbar(length=n_images, label="detecting", file=sys.stderr) as bar:
+        with _image_progress(n_images, "detecting") as advance:
             run = calibrate_folder(folder, pattern, out, backends, model, method,
-                                   workers or os.cpu_count() or 1, bar.update,
+                                   workers or os.cpu_count() or 1, advance,
                                    messages.append, zoom_wide=not per_step,
                                    cross_validate=cross_validate, grid_points=grid_points,
                                    camera_name=camera_name, report=not no_report,

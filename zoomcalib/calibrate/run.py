@@ -251,7 +251,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     workers : int
         Processes for detection and for the zoom-wide adjustment's per-step OpenCV fits.
     progress : callable, optional
-        Called with 1 per image detected.
+        Called with the number of images done: each detected or reused, and the byte-identical
+        copies left out.
     log : callable
         Receives one-line messages (skipped images and steps).
     zoom_wide : bool
@@ -296,6 +297,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     _start_output_folder(out, run, every_file)
     step_files = {step: _without_copies(step, files, run, log)
                   for step, files in every_file.items()}
+    copies = sum(len(every_file[s]) - len(f) for s, f in step_files.items())
+    if copies and progress is not None:  # counted as done: the bar's length is every file
+        progress(copies)
     _report_ignored(folder, run, log)
     settings = detection_settings(target, method)
     provenance: dict[str, dict] = {}
