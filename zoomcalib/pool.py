@@ -21,8 +21,12 @@ def ignore_interrupt() -> None:
 
 def stop_pool(pool: ProcessPoolExecutor) -> None:
     """Cancel the pool's pending work and end its workers now (terminate, then kill what is
-    still alive after a second)."""
+    still alive after a second), then wait briefly for the pool's manager thread to see them
+    gone and close its wake-up pipe: left running, it races the interpreter's exit hook for
+    that pipe, which then prints a traceback (``OSError: Bad file descriptor``) after the
+    interrupt message."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in processes:
         if proc.is_alive():
@@ -31,6 +35,8 @@ def stop_pool(pool: ProcessPoolExecutor) -> None:
         proc.join(timeout=1.0)
         if proc.is_alive():
             proc.kill()
+    if manager is not None:
+        manager.join(timeout=0.5)
 
 
 def map_in_processes(function, items: list[tuple], workers: int) -> list:
