@@ -1511,16 +1511,20 @@ def _warn_not_converged(stage_info: dict) -> None:
                   "max_iterations, or pass a better K0/dist0)", RuntimeWarning, stacklevel=4)
 
 
-def _warn_guard(g: dict, guard_warn_ratio: float) -> None:
+def _warn_guard(g: dict, guard_warn_ratio: float, target_sigma_mm: float | None) -> None:
     """``RuntimeWarning`` when the refined target's irregular deformation exceeds
     ``guard_warn_ratio`` times what the noise explains."""
     if g["irregular_rms_mm"] > guard_warn_ratio * g["irregular_noise_rms_mm"]:
+        prior = ("every target coordinate is free" if target_sigma_mm is None
+                 else f"or the target departs from its nominal shape by more than "
+                      f"target_sigma_mm, {target_sigma_mm:g} mm")
         warnings.warn(f"the refined target departs from a smoothly warped board by "
-                      f"{g['irregular_rms_mm']:.3g} RMS, "
+                      f"{g['irregular_rms_mm']:.3g} mm RMS, "
                       f"{g['irregular_rms_mm'] / g['irregular_noise_rms_mm']:.1f} x what "
                       "the noise explains: the free target points are likely absorbing "
-                      "lens-model misfit (or the target is worse than target_sigma_mm); "
-                      "consider a richer lens model or a smaller target_sigma_mm",
+                      f"lens-model misfit ({prior}); "
+                      "try the rational model (calibrate --per-step --model rational), or "
+                      "the OpenCV backend, which keeps the target fixed",
                       RuntimeWarning, stacklevel=4)
 
 
@@ -1891,7 +1895,7 @@ def _refined_target(prob: _Problem, state: _State, cov: _Covariances, modes, X0:
     info["flatness_mm"], info["flatness_sd_mm"] = _flatness(points, cov.points, prob.free_idx)
     info["guard"] = _guard(modes, X0, points, cov.points, prob.free_idx, flat_cam, state.cam,
                            sd_noise_model)
-    _warn_guard(info["guard"], guard_warn_ratio)
+    _warn_guard(info["guard"], guard_warn_ratio, info.get("target_sigma_mm"))
     return points, np.sqrt(var).reshape(n, 3)
 
 
