@@ -94,6 +94,30 @@ def test_principal_point_path_in_zoom_order_and_user_units(tmp_path, saved):
     assert {t.get_text() for t in ax.texts} >= {"12", "70"}
 
 
+def test_principal_point_path_is_drawn_in_the_image(tmp_path, saved):
+    # a calibrated path spans tens of px: an inset with the image's outline shows where it
+    # lies (a principal point near the image's edge is a finding) beside its detail
+    from matplotlib.patches import Rectangle
+
+    rng = np.random.default_rng(2)
+    mean = np.array([300.0, 500.0]) + rng.normal(0, 20, (6, 2))
+    sd = rng.uniform(1, 4, (6, 2))
+    plots.plot_principal_point_spiral(np.arange(6.0), mean, sd, tmp_path / "p.png",
+                                      image_size=(1280, 720))
+    (fig,) = saved
+    ax = fig.axes[0]
+    (inset,) = ax.child_axes
+    (outline,) = [p for p in inset.patches if isinstance(p, Rectangle)]
+    assert outline.get_xy() == (-0.5, -0.5)
+    assert (outline.get_width(), outline.get_height()) == (1280, 720)
+    x0, x1 = inset.get_xlim()
+    y1, y0 = inset.get_ylim()                   # y down
+    assert x0 < -0.5 and x1 > 1279.5 and y0 < -0.5 and y1 > 719.5
+    assert inset.get_title() == "in the image (1280 x 720 px)"
+    # the main axes keep the path's detail: it fills them, not the image
+    assert np.ptp(ax.get_xlim()) < 0.2 * 1280
+
+
 def test_calibration_figures_are_readable(tmp_path, saved):
     rng = np.random.default_rng(2)
     plots.plot_focal_length(np.array([1.0, 2, 3]), np.array([800.0, 1600, 2400]),

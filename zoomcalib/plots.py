@@ -35,7 +35,8 @@ def wrap_title(text: str, fig_width_in: float, fontsize: float = 9.0) -> str:
 def plot_principal_point_spiral(zoom: np.ndarray, mean_px: np.ndarray, std_px: np.ndarray,
                                 path: str | Path, title: str = "",
                                 centre_px: np.ndarray | None = None,
-                                zoom_label: str = LENS_ZOOM_LABEL) -> Path:
+                                zoom_label: str = LENS_ZOOM_LABEL,
+                                image_size: tuple[int, int] | None = None) -> Path:
     """The paper's Fig. 5: mean principal point across zoom with its 1-sigma ellipses.
 
     The path joins the states in increasing zoom; points, ellipses and the colour bar show the
@@ -53,9 +54,12 @@ def plot_principal_point_spiral(zoom: np.ndarray, mean_px: np.ndarray, std_px: n
         Marked as the nominal image centre.
     zoom_label : str
         Colour-bar label: the zoom's name and unit.
+    image_size : (int, int), optional
+        (width, height) px: an inset shows the path inside the image's outline (pixel edges at
+        -0.5 and size - 0.5), so where it lies in the image is seen beside its detail.
     """
     from matplotlib.colors import Normalize
-    from matplotlib.patches import Ellipse
+    from matplotlib.patches import Ellipse, Rectangle
 
     plt = _pyplot()
     order = np.argsort(zoom, kind="stable")
@@ -75,11 +79,23 @@ def plot_principal_point_spiral(zoom: np.ndarray, mean_px: np.ndarray, std_px: n
                     fontsize=7)
     if centre_px is not None:
         ax.plot(*centre_px, "k+", ms=10, label="sensor centre")
-    ax.legend(loc="upper right", fontsize=8)
     span = np.max(np.abs(mean_px - mean_px.mean(0)) + std_px) * 1.15 + 1e-6
     cx, cy = mean_px.mean(0)
     ax.set_xlim(cx - span, cx + span)
     ax.set_ylim(cy + span, cy - span)  # image convention: y down
+    ax.legend(loc="upper right", fontsize=8)
+    if image_size is not None:
+        w, h = image_size
+        inset = ax.inset_axes([0.02, 0.02, 0.3, 0.3 * h / w])
+        inset.add_patch(Rectangle((-0.5, -0.5), w, h, fill=False, lw=0.8, color="0.3"))
+        inset.plot(mean_px[:, 0], mean_px[:, 1], "-", color="C3", lw=1.2)
+        margin = 0.04 * max(w, h)
+        inset.set_xlim(-0.5 - margin, w - 0.5 + margin)
+        inset.set_ylim(h - 0.5 + margin, -0.5 - margin)
+        inset.set_aspect("equal")
+        inset.set_xticks([])
+        inset.set_yticks([])
+        inset.set_title(f"in the image ({w} x {h} px)", fontsize=7)
     ax.set_aspect("equal")
     ax.set_xlabel("cx [px]")
     ax.set_ylabel("cy [px]")

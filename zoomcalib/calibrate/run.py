@@ -848,7 +848,7 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
         files.append(plot_principal_point_spiral(
             zoom, mean, sd, out / "principal_point_path.png",
             title="Calibrated principal point across zoom (1-sigma ellipses)",
-            zoom_label=label))
+            zoom_label=label, image_size=run.observations[steps[0]].image_size))
         f = np.array([[best[s].fx, best[s].sd.get("fx", 0.0)] for s in steps])
         files.append(plot_focal_length(zoom, f[:, 0], f[:, 1], out / "focal_length.png",
                                        run.zoom_model if known else None, zoom_label=label))
