@@ -3,7 +3,11 @@
 import pytest
 from click.testing import CliRunner
 
+# imported before render_image is patched below: they bind it when first imported, and one
+# first imported under the patch would keep the fake for every later test of the process
+import zoomcalib.render.dataset  # noqa: F401
 import zoomcalib.render.image as render_image_module
+import zoomcalib.render.sweep  # noqa: F401
 import zoomcalib.study.run as study_run
 from zoomcalib.cli import main
 from zoomcalib.study.engine import task_fingerprint, task_seed
