@@ -29,7 +29,6 @@ kept in this repository.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 import warnings
@@ -40,6 +39,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
+
+from bench_real_ptz import real_set_parser  # noqa: E402
 
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
@@ -95,12 +96,8 @@ def draw_sweep(run, zw, in_plane_mm: float, rng: np.random.Generator
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("folder", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("bench-real-ptz"))
-    ap.add_argument("--pattern", default="chessboard:22x15:25")
+    ap = real_set_parser(__doc__)
     ap.add_argument("--draws", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--in-plane-mm", type=float, default=0.3)
     ap.add_argument("--board-shape", default="points", choices=("points", "modes"))
     ap.add_argument("--verbose", action="store_true")

@@ -139,13 +139,20 @@ def r_size(run, step: str) -> tuple[int, int]:
     return run.observations[step].image_size
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def real_set_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every benchmark of the real PTZ set takes: its image ``folder``, ``--out``
+    (detections cached in ``OUT/detections``), ``--pattern`` and ``--seed``."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("folder", type=Path)
     ap.add_argument("--out", type=Path, default=Path("bench-real-ptz"))
     ap.add_argument("--pattern", default="chessboard:22x15:25")
-    ap.add_argument("--splits", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
+    return ap
+
+
+def main() -> None:
+    ap = real_set_parser(__doc__)
+    ap.add_argument("--splits", type=int, default=5)
     ap.add_argument("--one-session", action="store_true")
     ap.add_argument("--free-aspect", action="store_true")
     ap.add_argument("--board-degree", type=int, default=4,
