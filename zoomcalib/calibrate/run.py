@@ -701,6 +701,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         run.failures.append(f"step {step}: left out of the zoom-wide adjustment: {why}")
         log(run.failures[-1])
     for step, res in zw.results.items():
+        if res.info.get("basin", {}).get("moved"):
+            log(f"zoom-wide: step {step}: {res.info['basin']['summary']}")
         run.results[step]["zoom-wide"] = res
         # a per-step backend that failed here is reported, but the step's result is complete
         run.backend_failures.pop(step, None)

@@ -132,6 +132,7 @@ import scipy.sparse
 import scipy.stats
 
 from ..pool import map_in_processes
+from .basins import BasinCheck, best_basin
 from .bundle import _deletion_steps, project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
@@ -1204,9 +1205,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                             order, forms, shared_aspect, session)
 
     # first without the smoothness prior: per-step values free of the flat-board bias
-    solve, state, free, joint_cov, iterations = _solve_unsmoothed(
-        problem, state, free, max_rounds,
-        observations if select and phi.shape[1] else None, init, terms, held, decentring, workers)
+    solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
+        problem, state, free, max_rounds, observations, bool(select and phi.shape[1]), init,
+        terms, held, decentring, workers)
     forms = _Form.of(pp_model, np.exp(u),
                      0.5 * np.hypot(*observations[names[0]].image_size))
     if joint_cov is not None:
@@ -1235,6 +1236,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         doc.update(form=forms.get(name, _Form()).to_dict(), held_out=held_paths.get(name))
     for s, r in enumerate(result.results.values()):
         r.info["board_session"] = labels[s]
+        r.info["basin"] = basins[s].to_dict()
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
@@ -1347,18 +1349,21 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
 
 
 def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
-                      observations: Mapping[str, Observations] | None,
+                      observations: Mapping[str, Observations], reselect: bool,
                       init: Mapping[str, CalibrationResult], terms: dict, held: dict,
                       decentring: bool = True, workers: int = 1):
     """The solve without the smoothness prior (``problem(free)`` builds it). With
-    ``observations`` the distortion terms are then chosen again on the board's estimated
-    shape (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
-    repeated when a step's terms changed, from the first solve's state. Returns the solve, the
-    state it started from, the free mask, the joint covariance of its per-step values (None
-    when it did not converge or has none) and the iterations."""
+    ``reselect`` the distortion terms are then chosen again on the board's estimated shape
+    (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
+    repeated when a step's terms changed, from the first solve's state. Then every step's
+    principal point is checked for a basin of lower cost (:func:`_move_to_best_basins`), and
+    the solve repeated when one moved. Returns the solve, the state it started from, the free
+    mask, the joint covariance of its per-step values (None when it did not converge or has
+    none), the iterations and the basin checks (one :class:`~zoomcalib.calibrate.basins.
+    BasinCheck` per step)."""
     unsmoothed = problem(free)
     solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
-    if observations is not None and _select_on_board(
+    if reselect and _select_on_board(
             observations, init, [unsmoothed.points(solve.state, s)
                                  for s in range(len(init))], terms, held, decentring,
             workers):
@@ -1369,8 +1374,44 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
         unsmoothed = problem(free)
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
         iterations += more
+    basins = _move_to_best_basins(unsmoothed, solve.state, observations, workers)
+    if any(b.moved for b in basins):
+        state = solve.state
+        solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
+        iterations += more
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
-    return solve, state, free, joint_cov, iterations
+    return solve, state, free, joint_cov, iterations, basins
+
+
+def _move_to_best_basins(prob: _ZoomProblem, state: _State,
+                         observations: Mapping[str, Observations], workers: int = 1
+                         ) -> list[BasinCheck]:
+    """Per step of ``prob``: :func:`~zoomcalib.calibrate.basins.best_basin` of its views on
+    its board's estimated points, from its camera in ``state``; where another basin has the
+    lower cost, the step's intrinsics and poses in ``state`` are set to that fit's (its
+    aspect ratio is the state's). Steps run in ``workers`` processes."""
+    items = []
+    for s, step in enumerate(prob.steps):
+        obs = observations[step.name]
+        cam = state.cams[s]
+        K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
+        rational = bool(np.any(cam[9:]))
+        flags = _distortion_flags(tuple(p for p, f in zip(PARAMS[4:], prob.free[s, 4:],
+                                                          strict=True) if f))
+        items.append((Observations(prob.points(state, s), obs.views, obs.image_size,
+                                   obs.names),
+                      K, cam[4:] if rational else cam[4:9], flags, step.sigma))
+    checks = _map_steps(best_basin, items, workers)
+    for s, check in enumerate(checks):
+        if not check.moved:
+            continue
+        fit, first, last = check.fit, prob.view_start[s], prob.view_start[s + 1]
+        state.cams[s, [0, 2, 3]] = fit.fx, fit.cx, fit.cy
+        state.cams[s, 1] = fit.fy
+        state.cams[s, 4:4 + len(fit.dist)] = np.where(prob.free[s, 4:4 + len(fit.dist)],
+                                                      fit.dist, 0.0)
+        state.rvecs[first:last], state.tvecs[first:last] = fit.rvecs, fit.tvecs
+    return checks
 
 
 def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,

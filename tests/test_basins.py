@@ -1,0 +1,66 @@
+"""The principal point's basin at the long end of a zoom (zoomcalib.calibrate.basins).
+
+A narrow-field step (fx 8800 px on 1280 x 720, views tilted at most 8 degrees) through a lens
+with the decentring and pincushion a real PTZ camera's 9x step showed, projected by the
+renderer's camera mapping (not OpenCV's), with 0.3 px of corner noise. Its cost over the
+principal point has a second minimum, p1 of the other sign: OpenCV started there stays there.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from zoomcalib.calibrate.basins import best_basin
+from zoomcalib.calibrate.opencv_backend import calibrate_opencv
+from zoomcalib.calibrate.result import Observations
+from zoomcalib.camera import CameraModel
+from zoomcalib.render.image import camera_mapping, project_points
+from zoomcalib.render.sweep import SWEEP_SENSOR, sweep_poses
+from zoomcalib.targets import parse_pattern
+
+NOISE_PX = 0.3
+FLAGS = cv2.CALIB_FIX_K3
+
+
+def _narrow_step(rng: np.random.Generator):
+    truth = {"cx": rng.uniform(620, 700), "cy": rng.uniform(180, 260),
+             "p1": -rng.uniform(0.08, 0.12), "p2": rng.uniform(0.0, 0.03)}
+    cam = CameraModel(8800.0, 8800.0, truth["cx"], truth["cy"],
+                      np.array([5.5, 0.0, truth["p1"], truth["p2"], 0.0]), SWEEP_SENSOR)
+    target = parse_pattern("chessboard:22x15:25")
+    views = []
+    for R, t in sweep_poses(target, cam, 20, 8.0, rng):
+        uv = project_points(target.object_points, camera_mapping(cam), R, t)
+        views.append((np.arange(len(uv)), uv + rng.normal(0, NOISE_PX, uv.shape)))
+    size = (SWEEP_SENSOR.width_px, SWEEP_SENSOR.height_px)
+    return Observations(target.object_points, views, size), truth
+
+
+def _fit_from(obs, cx, cy, p1):
+    K = np.array([[8800.0, 0, cx], [0, 8800.0, cy], [0, 0, 1]])
+    return calibrate_opencv(obs, flags=FLAGS, fix_aspect=True, K_guess=K,
+                            dist_guess=np.array([5.5, 0, p1, 0, 0]))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_start_in_the_other_basin_is_moved_to_the_right_one(seed):
+    obs, truth = _narrow_step(np.random.default_rng(seed))
+    wrong = _fit_from(obs, 620.0, 500.0, 0.1)
+    # the setting is as met: OpenCV converges in the other basin with a sigma that does not
+    # cover the distance to the truth
+    assert abs(wrong.cy - truth["cy"]) > 30 * wrong.sd["cy"], (wrong.cy, wrong.sd["cy"])
+    check = best_basin(obs, wrong.K, wrong.dist, FLAGS, NOISE_PX)
+    assert check.moved and check.other_cost_px2 < check.cost_px2
+    for q in ("cx", "cy"):  # 4 sigmas: the fit's own, at 0.3 px of noise about 1.3 px
+        assert abs(getattr(check.fit, q) - truth[q]) < 4 * check.fit.sd[q], (q, check.fit)
+    assert np.sign(check.fit.dist[2]) == np.sign(truth["p1"])
+
+
+def test_a_start_in_the_right_basin_stays():
+    obs, truth = _narrow_step(np.random.default_rng(2))
+    right = _fit_from(obs, truth["cx"] + 20, truth["cy"] - 20, 0.0)
+    assert abs(right.cy - truth["cy"]) < 4 * right.sd["cy"]
+    check = best_basin(obs, right.K, right.dist, FLAGS, NOISE_PX)
+    assert not check.moved and check.why is None
+    assert check.fit.cy == pytest.approx(right.cy, abs=0.1 * right.sd["cy"])
+    assert len(check.profile) == 14 and min(c for _, _, c in check.profile) > 0
