@@ -1,7 +1,8 @@
 """How wide should a real sweep's sigmas be? A Monte Carlo of synthetic sweeps that imitate it.
 
 ``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
-[--draws 10] [--seed 0] [--in-plane-mm 0.3] [--board-shape points] [--verbose]``
+[--draws 10] [--seed 0] [--errors resampled|imitated] [--in-plane-mm 0.3]
+[--board-shape points] [--verbose]``
 
 ``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
 ``e-cagan/camera-calibration``, read where it lies; detections cached in ``DIR/detections``).
@@ -9,14 +10,26 @@
 1. The default ``calibrate`` run on the real set gives, per step, the zoom-wide intrinsics,
    their sigmas, every view's pose, each capture session's board (modes and point heights) and
    each step's residual sd per coordinate.
-2. Each draw builds a sweep with the same steps, views and visible corners, from another
-   generator than the adjustment's model: every session's board is the nominal board plus the
-   measured smooth shape, fresh ripples (three plane waves of 3-6 cycles across the board,
-   random direction and phase, of the measured point heights' RMS) and in-plane errors of
-   ``--in-plane-mm`` RMS per point (a printed board's; the adjustment has no such term);
-   ``cv2.projectPoints`` with the step's measured camera and poses; and white corner noise
-   that brings each step's residual to its measured sd (the in-plane errors' share taken
-   out in quadrature).
+2. Each draw builds a sweep with the same steps, views and visible corners, projected by
+   ``cv2.projectPoints`` with the step's measured camera and poses, and errors from one of two
+   generators:
+
+   - ``resampled`` (default): the real run's own residuals, view by view, each view's whole
+     residual field multiplied by a random sign (a wild bootstrap clustered by view, Cameron,
+     Gelbach & Miller 2008). The projection is of the run's estimated board (modes and point
+     heights). Whatever the real views carry (a camera that moved, a board that flexed
+     between frames, the compression, a rolling shutter) is in the draws with its structure
+     within each view, without a model of it; an error the real board shares across views
+     is made a per-view one by the signs. The residuals are those of a fit, a little smaller
+     than the errors (by the parameters each view's corners determine: 6 pose and a share
+     of the intrinsics and heights, of about 600 coordinates).
+   - ``imitated``: a model of the causes. Every session's board is the nominal board plus
+     the measured smooth shape, fresh ripples (three plane waves of 3-6 cycles across the
+     board, random direction and phase, of the measured point heights' RMS) and in-plane
+     errors of ``--in-plane-mm`` RMS per point (a printed board's; the adjustment has no such
+     term); white corner noise brings each step's residual to its measured sd (the in-plane
+     errors' share taken out in quadrature). It has no error that differs between views
+     beyond the noise: the real views' scatter is not in it.
 3. Each draw is calibrated zoom-wide as the default does (the same sessions and settings).
 
 Per step it prints the real run's sigma of fx, cx, cy, the spread (sd) of the draws'
@@ -95,10 +108,30 @@ def draw_sweep(run, zw, in_plane_mm: float, rng: np.random.Generator
     return sweep, truth
 
 
+def resample_sweep(run, zw, rng: np.random.Generator
+                   ) -> tuple[dict[str, Observations], dict[str, dict]]:
+    """One sweep of the real run's own residuals, each view's with a random sign (module
+    docstring, ``resampled``), and its truth."""
+    nominal = next(iter(run.observations.values())).object_points.astype(float)
+    sweep, truth = {}, {}
+    for step, r in zw.results.items():
+        obs = run.observations[step]
+        views = []
+        for v, (ids, pts) in enumerate(obs.views):
+            p = cv2.projectPoints(r.object_points[ids].astype(float), r.rvecs[v], r.tvecs[v],
+                                  r.K, r.dist)[0].reshape(-1, 2)
+            views.append((ids, p + rng.choice((-1.0, 1.0)) * (pts - p)))
+        sweep[step] = Observations(nominal, views, obs.image_size, list(obs.names))
+        truth[step] = {"fx": r.fx, "cx": r.cx, "cy": r.cy}
+    return sweep, truth
+
+
 def main() -> None:
     ap = real_set_parser(__doc__)
     ap.add_argument("--draws", type=int, default=10)
-    ap.add_argument("--in-plane-mm", type=float, default=0.3)
+    ap.add_argument("--errors", default="resampled", choices=("resampled", "imitated"))
+    ap.add_argument("--in-plane-mm", type=float, default=0.3,
+                    help="in-plane board errors of the imitated errors, mm RMS")
     ap.add_argument("--board-shape", default="points", choices=("points", "modes"))
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
@@ -114,8 +147,11 @@ def main() -> None:
     z = {s: [] for s in zw.results}
     for d in range(args.draws):
         t = time.perf_counter()
-        sweep, truth = draw_sweep(run, zw, args.in_plane_mm, rng)
-        if d == 0:
+        if args.errors == "resampled":
+            sweep, truth = resample_sweep(run, zw, rng)
+        else:
+            sweep, truth = draw_sweep(run, zw, args.in_plane_mm, rng)
+        if d == 0 and args.errors == "imitated":
             print("white noise px per step: " + ", ".join(
                 f"{s} {tr['white_px']:.2f} (in-plane {tr['in_plane_px']:.2f})"
                 for s, tr in truth.items()))
@@ -132,7 +168,8 @@ def main() -> None:
             estimates[s].append([getattr(r, q) for q in COMPARED])
             z[s].append([(getattr(r, q) - truth[s][q]) / r.sd[q] for q in COMPARED])
         print(f"  draw {d}: {time.perf_counter() - t:.0f} s", flush=True)
-    print(f"{args.draws} draws, board shape {args.board_shape}, in-plane {args.in_plane_mm} mm")
+    print(f"{args.draws} draws, errors {args.errors}, board shape {args.board_shape}"
+          + (f", in-plane {args.in_plane_mm} mm" if args.errors == "imitated" else ""))
     print(f"{'step':>9} " + " ".join(f"{'sd_' + q:>8} {'mc':>7} {'ratio':>5} {'rms z':>5}"
                                      for q in COMPARED))
     ratios = []
