@@ -3,6 +3,7 @@ loaded in a headless browser (Debian's chromium, when installed; the page's stru
 every embedded image are checked either way)."""
 
 import base64
+import html
 import re
 import shutil
 import subprocess
@@ -288,3 +289,27 @@ def test_every_step_status_reaches_the_summary_the_files_and_the_report(rendered
     text = (out / "report.html").read_text(encoding="utf-8")
     assert "<th>status</th>" in text
     assert all(f"<b>{v}</b>" in text for v in status.values())
+
+
+def test_flags_reach_the_summary_with_severity_and_action_and_the_report_with_details(
+        rendered, tmp_path):
+    import json
+
+    out = tmp_path / "f"
+    res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern", "chessboard:9x6:25",
+                                    "--per-step", "--backend", "opencv", "--workers", "1",
+                                    "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    records = json.loads((out / "calibration.json").read_text())["meta"]["flag_records"]
+    assert records, "the 5-view steps are expected to be flagged"
+    text = (out / "report.html").read_text(encoding="utf-8")
+    lines = res.output.splitlines()
+    for step, flags in records.items():
+        head = next(i for i, t in enumerate(lines) if t.startswith(f"FLAGGED step {step} "))
+        assert lines[head].startswith(f"FLAGGED step {step} ({flags[0]['severity']}): ")
+        for f in flags:
+            assert f"{f['text']} [{f['severity']}]" in lines[head]
+            assert f"  to do: {f['action']}" in lines[head + 1:head + 1 + len(flags)]
+            assert html.escape(f["text"], quote=True) in text
+            assert html.escape(f["action"], quote=True) in text
+    assert "<summary>details, what to do</summary>" in text

@@ -58,7 +58,8 @@ import numpy as np
 from .result import CalibrationResult, Observations
 from .scatter import MIN_VIEWS, pooled_over_steps, view_groups
 
-__all__ = ["conditioning_flags", "CrossValidation", "cross_validate", "split_halves",
+__all__ = ["conditioning_flags", "step_flags", "Flag", "by_severity", "SEVERITIES", "ACTIONS",
+           "CrossValidation", "cross_validate", "split_halves",
            "random_halves", "pooled_halves",
            "CROSS_VALIDATED", "Z_LIMIT"]
 
@@ -72,21 +73,90 @@ Z_LIMIT = 3.0
 _CORRELATION_LIMIT = 0.999
 
 
+#: Flag severities, least severe first: ``note`` (the sigmas already carry it), ``warning``
+#: (the row may be off by more than its sigmas, or the data barely determine it) and ``error``
+#: (the row is not a calibration).
+SEVERITIES = ("note", "warning", "error")
+
+#: The one action each kind of flag asks for.
+ACTIONS = {
+    "mirrored": "check the pattern spec (inner corners) and that every image is of this camera",
+    "centre": "add views tilted 30-45 degrees about the horizontal and the vertical axis",
+    "sd_pp": "add the views the capture advice names (tilted 30-45 degrees, the board in "
+             "every part of the image)",
+    "correlated": "add views tilted 30-45 degrees at two or more distances",
+    "singular": "add views tilted 30-45 degrees; the ones given do not determine the camera",
+    "near_singular": "add views tilted 30-45 degrees about both axes",
+    "views": "keep the camera and the board still while each frame is taken (no live-stream "
+             "grabs during a move), or use the sigmas as widened",
+    "board": "use a rigid flat board (glass or aluminium), or keep --board-shape points",
+    "model_choice": "add views with the board in the image corners, where the two lens "
+                    "models differ",
+    "few_views": "add 4 or more views tilted 20-45 degrees, in turn about each axis",
+    "not_converged": "rerun; if it stays, drop the step's worst views (per-view RMS in the "
+                     "report)",
+    "halves": "compare the halves' maps in the report: a board or camera that changed between "
+              "frames is the usual cause; recapture the step in one go",
+    "halves_failed": "add views: each half needs enough to be calibrated on its own",
+}
+
+
+@dataclass(frozen=True)
+class Flag:
+    """One reason a step's row is not to be trusted as it stands.
+
+    ``kind``: a key of :data:`ACTIONS`; ``severity``: one of :data:`SEVERITIES`; ``text``: a
+    few words with the number that matters; ``detail``: the full reason (the string
+    :func:`conditioning_flags` returns); ``action``: what to do, from :data:`ACTIONS`.
+    """
+
+    kind: str
+    severity: str
+    text: str
+    detail: str
+
+    @property
+    def action(self) -> str:
+        return ACTIONS[self.kind]
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "severity": self.severity, "text": self.text,
+                "action": self.action, "detail": self.detail}
+
+
+def by_severity(flags: list[Flag]) -> list[Flag]:
+    """``flags`` the most severe first, then the shortest text first."""
+    return sorted(flags, key=lambda f: (-SEVERITIES.index(f.severity), len(f.text)))
+
+
 def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[str]:
-    """One-line reasons why ``res`` is ill-conditioned (empty when none; module docstring)."""
+    """One-line reasons why ``res`` is ill-conditioned (empty when none; module docstring):
+    the ``detail`` of each of :func:`step_flags`."""
+    return [f.detail for f in step_flags(res, image_size)]
+
+
+def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag]:
+    """Why ``res`` is ill-conditioned, as :class:`Flag` records (module docstring), in the
+    order of the checks."""
     w, h = image_size
     flags = []
     if not (res.fx > 0 and res.fy > 0):
-        flags.append(f"focal length ({res.fx:.1f}, {res.fy:.1f}) px not positive: a mirrored "
-                     "or failed solution")
+        flags.append(Flag("mirrored", "error", "focal length not positive",
+                          f"focal length ({res.fx:.1f}, {res.fy:.1f}) px not positive: a "
+                          "mirrored or failed solution"))
     dx, dy = res.cx - (w - 1) / 2.0, res.cy - (h - 1) / 2.0
     if abs(dx) > w / 4.0 or abs(dy) > h / 4.0:
-        flags.append(f"principal point ({res.cx:.0f}, {res.cy:.0f}) outside the central region")
+        flags.append(Flag("centre", "warning",
+                          f"principal point ({res.cx:.0f}, {res.cy:.0f}) off-centre",
+                          f"principal point ({res.cx:.0f}, {res.cy:.0f}) outside the central "
+                          "region"))
     limit = 0.01 * float(np.hypot(w, h))
     for q in ("cx", "cy"):
         sd = res.sd.get(q, np.nan)
         if not np.isfinite(sd) or sd > limit:
-            flags.append(f"sd {q} {sd:.1f} px > 1 % of the image diagonal ({limit:.1f} px)")
+            flags.append(Flag("sd_pp", "warning", f"sd {q} {sd:.1f} px",
+                              f"sd {q} {sd:.1f} px > 1 % of the image diagonal ({limit:.1f} "
+                              "px)"))
     corr, names = res.info.get("correlation"), res.info.get("correlation_names")
     if corr is not None and names:
         c = np.abs(np.asarray(corr, float)) - np.eye(len(names))
@@ -98,18 +168,21 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
                 c[i, j] = c[j, i] = 0.0
         i, j = np.unravel_index(np.argmax(c), c.shape)
         if c[i, j] > _CORRELATION_LIMIT:
-            flags.append(f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})")
+            flags.append(Flag("correlated", "note", f"{names[i]}, {names[j]} correlated",
+                              f"{names[i]} and {names[j]} correlated (|r| = {c[i, j]:.4f})"))
     check = res.info.get("sd_check")
     if check and check["reason"] == "singular":
-        flags.append("normal matrix singular at the solution: the data do not determine the "
-                     "intrinsics (sd infinite)")
+        flags.append(Flag("singular", "error", "intrinsics not determined",
+                          "normal matrix singular at the solution: the data do not determine "
+                          "the intrinsics (sd infinite)"))
     elif check and (pinhole := {nm: r for nm, r in check["ratio"].items()
                                 if nm in ("fx", "fy", "cx", "cy")}):
         name, ratio = min(pinhole.items(), key=lambda item: item[1] or 0.0)
         said = ("not a number" if ratio is None
                 else f"{check['opencv_sd'][name]:.3g}, 1/{1 / ratio:.0f} of")
-        flags.append(f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
-                     f"inverse's {check['sd'][name]:.3g} (used)")
+        flags.append(Flag("near_singular", "warning", f"sd {name} barely determined",
+                          f"near-singular normal matrix: OpenCV's sd {name} {said} the full "
+                          f"inverse's {check['sd'][name]:.3g} (used)"))
     scatter = res.info.get("view_scatter")
     if scatter and scatter.get("applied", True):
         factors = {nm: scatter["factor"][nm] for nm in scatter["scaled"]} | scatter.get(
@@ -119,17 +192,20 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
             name = max(pinhole, key=pinhole.get)
             pooled = (f", tested over {scatter['steps_pooled']} steps"
                       if scatter.get("steps_pooled") else "")
-            flags.append(f"views disagree beyond the corner noise{pooled}: sd {name} x"
-                         f"{pinhole[name]:.1f} from their scatter (used; lens model misfit or "
-                         "a moving board)")
+            flags.append(Flag("views", "note", f"views disagree: sd {name} x{pinhole[name]:.1f}",
+                              f"views disagree beyond the corner noise{pooled}: sd {name} x"
+                              f"{pinhole[name]:.1f} from their scatter (used; lens model misfit "
+                              "or a moving board)"))
     board = (scatter or {}).get("board_point", {}) if (scatter or {}).get("applied", True) else {}
     misprint = {nm: board["factor"][nm] for nm in board.get("flagged", [])
                 if nm in ("fx", "fy", "cx", "cy")}
     if misprint:
         name = max(misprint, key=misprint.get)
-        flags.append(f"corners of one board point disagree across views beyond the corner "
-                     f"noise: sd {name} x{np.sqrt(1 + board['excess'][name]):.1f} from them "
-                     "(used; a misprinted or bent board)")
+        grown = np.sqrt(1 + board["excess"][name])
+        flags.append(Flag("board", "note", f"board not as printed: sd {name} x{grown:.1f}",
+                          f"corners of one board point disagree across views beyond the "
+                          f"corner noise: sd {name} x{grown:.1f} from them (used; a "
+                          "misprinted or bent board)"))
     flags += _model_choice_flags(res.info.get("model_choice"), res.sd)
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
@@ -141,15 +217,21 @@ def conditioning_flags(res: CalibrationResult, image_size: tuple[int, int]) -> l
         jackknife = scatter.get("unchecked_factor", {}).get(name, np.nan)
         sized = (f"; x{used:.1f} from leaving views out (used)"
                  if used > 1.0 and np.isclose(views_part, jackknife, rtol=1e-9) else "")
-        flags.append(f"{name} rests on {few[name]:.1f} effective views (fewer than "
-                     f"{MIN_VIEWS:.0f}): its sigma cannot be checked against their scatter"
-                     + sized)
+        rests = (f"rests on {few[name]:.1f} effective views (fewer than {MIN_VIEWS:.0f})"
+                 if np.isfinite(few[name]) else "has effective views that cannot be counted")
+        flags.append(Flag("few_views", "warning",
+                          f"{name} rests on {few[name]:.1f} views" if np.isfinite(few[name])
+                          else f"{name}'s views not counted",
+                          f"{name} {rests}: its sigma cannot be checked against their "
+                          "scatter" + sized))
     if not res.converged:
-        flags.append(f"did not converge ({res.info.get('stop_reason', 'unknown reason')})")
+        why = res.info.get("stop_reason", "unknown reason")
+        flags.append(Flag("not_converged", "error", "did not converge",
+                          f"did not converge ({why})"))
     return flags
 
 
-def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[str]:
+def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[Flag]:
     """A step whose sigmas the other lens model's spread widened by more than
     :data:`MODEL_CHOICE_FLAG` (``info['model_choice']``, zoom-wide), or whose other model, at
     least as likely as the chosen one, could not be fitted."""
@@ -157,9 +239,10 @@ def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[st
         return []
     weight, shift = choice["weight"], choice.get("shift")
     if shift is None:
-        return ([f"lens model uncertain ({choice['other']} model's weight {weight:.2f}), and "
-                 f"it could not be fitted ({choice.get('why', 'unknown reason')}): its "
-                 "uncertainty is not in the sigmas"] if weight >= 0.5 else [])
+        return ([Flag("model_choice", "warning", "lens model uncertain",
+                      f"lens model uncertain ({choice['other']} model's weight {weight:.2f}), "
+                      f"and it could not be fitted ({choice.get('why', 'unknown reason')}): "
+                      "its uncertainty is not in the sigmas")] if weight >= 0.5 else [])
     grown = {}
     for name in ("fx", "fy", "cx", "cy"):
         added = weight * shift.get(name, 0.0) ** 2
@@ -169,8 +252,10 @@ def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[st
     name = max(grown, key=grown.get, default=None)
     if name is None or grown[name] <= MODEL_CHOICE_FLAG:
         return []
-    return [f"lens model uncertain ({choice['other']} model's weight {weight:.2f}): sd {name} "
-            f"x{grown[name]:.1f} from what it would change ({shift[name]:+.2f} px, used)"]
+    return [Flag("model_choice", "note", f"lens model uncertain: sd {name} x{grown[name]:.1f}",
+                 f"lens model uncertain ({choice['other']} model's weight {weight:.2f}): sd "
+                 f"{name} x{grown[name]:.1f} from what it would change ({shift[name]:+.2f} px, "
+                 "used)")]
 
 
 def split_halves(obs: Observations) -> tuple[Observations, Observations]:

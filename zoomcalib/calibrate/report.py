@@ -139,13 +139,25 @@ def _summary(run: CalibrateRun, steps: list[str]) -> str:
             f"<td>{r.cx:.2f} &plusmn; {r.sd.get('cx', np.nan):.2f}</td>"
             f"<td>{r.cy:.2f} &plusmn; {r.sd.get('cy', np.nan):.2f}</td><td>{r.rms_px:.3f}</td>"
             f"<td>{len(r.per_view_rms_px)}</td>"
-            f"<td class='text {'bad' if flags else 'ok'}'>{_e('; '.join(flags) or 'none')}</td>"
-            "</tr>")
+            + _flags_cell(run.flag_records.get(s), flags) + "</tr>")
     head = "<th>status</th>" if run.status else ""
     return ("<table><tr><th>step</th><th>zoom</th><th>backend</th>" + head +
             "<th>fx [px]</th><th>fy [px]</th>"
             "<th>cx [px]</th><th>cy [px]</th><th>RMS [px]</th><th>views</th><th>flags</th></tr>"
             + "".join(rows) + "</table>")
+
+
+def _flags_cell(records: list | None, details: list[str]) -> str:
+    """The summary table's flags: each flag's severity and few words, the most severe first,
+    and behind a link its full text and what to do (the texts alone where no records are)."""
+    if not records:
+        text = _e("; ".join(details) or "none")
+        return f"<td class='text {'bad' if details else 'ok'}'>{text}</td>"
+    short = "<br>".join(f"<b>{_e(f.severity)}</b> {_e(f.text)}" for f in records)
+    long = "".join(f"<li>{_e(f.detail)}. <i>To do:</i> {_e(f.action)}.</li>" for f in records)
+    worst = records[0].severity
+    return (f"<td class='text {'ok' if worst == 'note' else 'bad'}'>{short}"
+            f"<details><summary>details, what to do</summary><ul>{long}</ul></details></td>")
 
 
 def _rejected_mask(result: CalibrationResult, obs: Observations) -> list[np.ndarray]:

@@ -95,7 +95,10 @@ class CalibrateRun:
     ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``);
     ``status`` each step's :class:`~zoomcalib.calibrate.status.StepStatus` (``ok``,
     ``imprecise``, ``unusable``, with reasons and remedies); ``budget`` and
-    ``budget_sessions`` the residual budget per step and per capture session (when asked).
+    ``budget_sessions`` the residual budget per step and per capture session (when asked);
+    ``flags`` per step the full texts of its flags, ``flag_records`` the same as
+    :class:`~zoomcalib.calibrate.checks.Flag` records (severity, few words, one action), the
+    most severe first (:func:`set_step_flags`).
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -116,6 +119,7 @@ class CalibrateRun:
     zoom_wide: object | None = None
     cross_validation: object | None = None
     flags: dict[str, list[str]] = field(default_factory=dict)
+    flag_records: dict[str, list] = field(default_factory=dict)
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
     status: dict[str, StepStatus] = field(default_factory=dict)
@@ -334,7 +338,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
                                                workers, board_shape == "points")
-    run.flags = _step_flags(run)
+    set_step_flags(run)
     run.status = _step_statuses(run)
     for step, st in run.status.items():
         if not st.usable:
@@ -447,6 +451,7 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
                        for s, p in provenance.items()},
         "left_out": run.left_out, "copies": run.copies, "ignored_images": run.ignored,
         "table_backend": run.table_backend, "flags": run.flags,
+        "flag_records": {s: [f.to_dict() for f in fl] for s, fl in run.flag_records.items()},
         "status": {s: st.to_dict() for s, st in run.status.items()}}
     if run.cross_validation is not None:
         meta["cross_validation"] = run.cross_validation.to_dict()
@@ -739,14 +744,16 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
                           pool=True)
 
 
-def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
-    """Per step, why its table row is not to be trusted (conditioning and cross-validation)."""
-    from .checks import Z_LIMIT, conditioning_flags
+def set_step_flags(run: CalibrateRun) -> None:
+    """Per step, why its table row is not to be trusted (conditioning and cross-validation):
+    ``run.flag_records`` (:class:`~zoomcalib.calibrate.checks.Flag`, the most severe first) and
+    ``run.flags`` (their full texts)."""
+    from .checks import Z_LIMIT, Flag, by_severity, step_flags
 
-    flags = {}
+    records = {}
     for step in run.results:
         res = run.results[step][run.table_backend[step]]
-        reasons = conditioning_flags(res, run.observations[step].image_size)
+        reasons = step_flags(res, run.observations[step].image_size)
         cv = run.cross_validation
         if cv is not None and step in cv.z:
             bad = [f"{q} {z:+.1f}" for q, z in cv.z[step].items() if not abs(z) <= Z_LIMIT]
@@ -754,12 +761,15 @@ def _step_flags(run: CalibrateRun) -> dict[str, list[str]]:
             if proj > Z_LIMIT:
                 bad.append(f"projection {proj:.1f}")
             if bad:
-                reasons.append("halves disagree (z: " + ", ".join(bad) + ")")
+                reasons.append(Flag("halves", "warning", f"halves disagree: z {bad[0]}",
+                                    "halves disagree (z: " + ", ".join(bad) + ")"))
         if cv is not None and step in cv.failures:
-            reasons.append(f"halves not calibrated: {cv.failures[step]}")
+            reasons.append(Flag("halves_failed", "note", "halves not calibrated",
+                                f"halves not calibrated: {cv.failures[step]}"))
         if reasons:
-            flags[step] = reasons
-    return flags
+            records[step] = by_severity(reasons)
+    run.flag_records = records
+    run.flags = {s: [f.detail for f in fl] for s, fl in records.items()}
 
 
 def _step_statuses(run: CalibrateRun) -> dict[str, StepStatus]:

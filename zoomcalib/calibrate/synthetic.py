@@ -108,7 +108,13 @@ def calibrated_run(sweep: Sweep, backend: str = "opencv", cross_validate: bool =
     calibrate job makes it without images: each step calibrated with ``backend``
     (``"opencv"``, ``"bundle"`` or ``"zoom-wide"``), flags, optional two-halves check, and the
     zoom model when there are four or more steps."""
-    from .run import CalibrateRun, _calibrate_once, _cross_validate, _step_flags, step_file_stems
+    from .run import (
+        CalibrateRun,
+        _calibrate_once,
+        _cross_validate,
+        set_step_flags,
+        step_file_stems,
+    )
 
     steps = list(sweep.observations)
     run = CalibrateRun(stems=step_file_stems(steps))
@@ -126,7 +132,7 @@ def calibrated_run(sweep: Sweep, backend: str = "opencv", cross_validate: bool =
     run.table_backend = {s: backend for s in steps}
     if cross_validate:
         run.cross_validation = _cross_validate(run, "standard", None)
-    run.flags = _step_flags(run)
+    set_step_flags(run)
     if len(steps) >= 4:
         from ..zoom import ZoomModel
 
