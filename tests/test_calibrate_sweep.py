@@ -34,6 +34,7 @@ def test_default_calibration_of_a_rendered_sweep_is_within_its_sigmas(rendered):
     rows = {r["step"]: r for r in read_zoom_table(out / "zoom_calibration.csv")}
     assert {r["backend"] for r in rows.values()} == {"zoom-wide"}
     assert {r["mode"] for r in rows.values()} == {"zoom-wide"}
+    z = []
     for step in truth["steps"]:
         K = np.asarray(step["K"])
         row = rows[step["step"]]
@@ -42,6 +43,9 @@ def test_default_calibration_of_a_rendered_sweep_is_within_its_sigmas(rendered):
             # 4 combined sigma; the sigma itself must be small enough to be useful
             assert abs(row[q] - true) < 4 * row[f"sd_{q}"], (step["step"], q, row[q], true)
             assert row[f"sd_{q}"] < 5.0
+            z.append((row[q] - true) / row[f"sd_{q}"])
+    # and not too wide: for honest sigmas an RMS z below 0.3 has a probability under 1e-3
+    assert np.sqrt(np.mean(np.square(z))) > 0.3, np.round(z, 2)
 
 
 def test_cross_validation_is_reported_everywhere(rendered):
@@ -50,8 +54,9 @@ def test_cross_validation_is_reported_everywhere(rendered):
     cv = doc["meta"]["cross_validation"]
     assert cv["backend"] == "zoom-wide"
     assert set(cv["steps"]) == {s["step"] for s in truth["steps"]}
-    for step in cv["steps"].values():
-        assert all(abs(z) < 4.0 for z in step["z"].values()), step["z"]
+    z = [v for step in cv["steps"].values() for v in step["z"].values()]
+    assert all(abs(v) < 4.0 for v in z), z
+    assert np.sqrt(np.mean(np.square(z))) > 0.3, z  # both ways, as above
     assert "cross-validation (zoom-wide" in res.output
     assert (out / "cross_validation.png").stat().st_size > 10_000
 

@@ -350,12 +350,18 @@ def test_a_step_that_cannot_start_is_left_out_not_fatal(rng):
         assert abs(r.fx / truth[name]["fx"] - 1) < 0.003
 
 
-def _recovered_within(zw, truth, limit=4.0):
-    # 4 sigma: a 1-in-16000 event per value for honest Gaussian sigmas
+def _recovered_within(zw, truth, limit=4.0, lowest_rms=0.3):
+    """Both sides: every cx, cy within ``limit`` of its sigma of the truth (4: a 1-in-16000
+    event per value for honest Gaussian sigmas), and their RMS z above ``lowest_rms`` (for 8-14
+    honest z, an RMS below 0.3 has a probability under 1e-4: sigmas over 3 times too wide)."""
+    z = []
     for name, t in truth.items():
         for q in ("cx", "cy"):
             err = getattr(zw.results[name], q) - t[q]
             assert abs(err) < limit * zw.results[name].sd[q], (name, q, err)
+            z.append(err / zw.results[name].sd[q])
+    rms = float(np.sqrt(np.mean(np.square(z))))
+    assert rms > lowest_rms, (rms, np.round(z, 2))
 
 
 def test_zoom_model_follows_a_curved_path(rng):
