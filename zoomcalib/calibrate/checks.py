@@ -21,6 +21,11 @@ rational model and five distortion terms was uncertain enough that the other mod
 widened one of those sigmas by more than 25 % (``info['model_choice']``, zoom-wide), or when
 its solve did not converge.
 
+Each flag is a :class:`Flag`: a severity (``note``: the sigmas already carry it; ``warning``:
+the row may be off by more than its sigmas, or is barely determined; ``error``: not a
+calibration), a few words with the number that matters, the full reason and one action
+(:data:`ACTIONS`); :func:`step_flags` returns them, :func:`conditioning_flags` their full texts.
+
 *Cross-validation* (the check mrcal calls its most important): each step's views are split into
 two halves (even and odd images; views of nearly one pose count as one and stay together), each
 half is calibrated on its own as the full set was, and
