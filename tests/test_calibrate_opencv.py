@@ -436,6 +436,22 @@ def test_write_calibration_round_trip(tmp_path, zc_obs, zc_result):
         fs.release()
 
 
+def test_a_meta_entry_too_long_for_the_yaml_stays_in_the_json_only(tmp_path, zc_result):
+    # OpenCV writes a YAML string of at most 4096 characters: a long entry of the run's meta
+    # (one not yet listed as JSON-only) is left out of meta_json, named, not a failure
+    rng = np.random.default_rng(5)
+    meta = {"pattern": SPEC, "long_report": {f"k{i}": rng.normal(size=40).tolist()
+                                             for i in range(20)}}
+    jpath, ypath = write_calibration(tmp_path, {"a": {"opencv": zc_result}}, meta)
+    assert json.loads(jpath.read_text())["meta"] == meta
+    fs = cv2.FileStorage(str(ypath), cv2.FILE_STORAGE_READ)
+    try:
+        brief = json.loads(fs.getNode("meta_json").string())
+    finally:
+        fs.release()
+    assert brief == {"pattern": SPEC, "in_calibration_json_only": ["long_report"]}
+
+
 def test_write_calibration_flat_folder_opencv_names(tmp_path, zc_result):
     _, ypath = write_calibration(tmp_path, {".": {"opencv": zc_result}},
                                  {"image_size": [640, 480]})

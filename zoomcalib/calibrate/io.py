@@ -160,7 +160,25 @@ def _entry(res: CalibrationResult) -> dict:
 
 #: ``meta`` entries too long for one YAML string (OpenCV's limit); calibration.json has them
 #: (of ``status`` the YAML keeps each step's status word).
-_JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags", "residual_budget")
+_JSON_ONLY_META = ("cross_validation", "zoom_wide", "detections", "flags", "flag_records",
+                   "residual_budget")
+#: OpenCV writes a YAML string of at most 4096 characters; ``meta_json`` stays below with room
+#: for the escapes of its quotes.
+_YAML_STRING_MAX = 4000
+
+
+def _brief_json(brief: dict) -> str:
+    """``brief`` as JSON within OpenCV's YAML string limit: the longest entries are left out
+    (named under ``"in_calibration_json_only"``) until it fits."""
+    brief, left_out = dict(brief), []
+    while True:
+        text = json.dumps(brief | ({"in_calibration_json_only": left_out} if left_out else {}),
+                          default=_plain)
+        if len(text) + text.count('"') <= _YAML_STRING_MAX or not brief:
+            return text
+        longest = max(brief, key=lambda k: len(json.dumps(brief[k], default=_plain)))
+        left_out.append(longest)
+        del brief[longest]
 
 
 def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult]],
@@ -177,7 +195,7 @@ def _write_yaml(path: Path, results: Mapping[str, Mapping[str, CalibrationResult
         if isinstance(meta.get("status"), Mapping):  # the statuses; reasons and advice: JSON
             brief["status"] = {s: v.get("status") if isinstance(v, Mapping) else v
                                for s, v in meta["status"].items()}
-        fs.write("meta_json", json.dumps(brief, default=_plain))
+        fs.write("meta_json", _brief_json(brief))
         prefixes = _yaml_prefixes(results)
         fs.startWriteStruct("entries", cv2.FileNode_SEQ)
         for prefix, *_ in prefixes:
