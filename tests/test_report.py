@@ -313,3 +313,25 @@ def test_flags_reach_the_summary_with_severity_and_action_and_the_report_with_de
             assert html.escape(f["text"], quote=True) in text
             assert html.escape(f["action"], quote=True) in text
     assert "<summary>details, what to do</summary>" in text
+
+
+def test_the_residual_cloud_is_named_by_what_a_test_finds_in_it():
+    # hidden: the same corner noise alone, with a radial error of the size of the noise (a
+    # k1 the model missed), with a smooth field that is not radial, and stretched along y
+    rng = np.random.default_rng(11)
+    centre = np.array([640.0, 360.0])
+    points = rng.uniform([0, 0], [1280, 720], (800, 2))
+    noise = rng.normal(0, 0.2, (800, 2))
+    d = points - centre
+    r = np.linalg.norm(d, axis=1, keepdims=True) / 734.0
+    radial = 0.3 * r**2 * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    smooth = np.column_stack([0.25 * np.sin(points[:, 1] / 300.0), 0 * points[:, 0]])
+    words = {}
+    for name, e in (("noise", noise), ("radial", noise + radial), ("smooth", noise + smooth),
+                    ("elongated", noise * [1.0, 2.5])):
+        words[name], numbers = quality.residual_pattern(points, e, centre)
+    assert words["noise"].startswith("a round cloud, no pattern"), words
+    assert words["radial"].startswith("a radial pattern"), words
+    assert words["smooth"].startswith("a smooth field"), words
+    assert words["elongated"].startswith("an elongated cloud: sd 2."), words
+    assert quality.residual_pattern(points[:5], noise[:5], centre)[0].startswith("too few")

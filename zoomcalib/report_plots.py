@@ -83,9 +83,11 @@ def per_view_figure(names: Sequence[str], rms_px: np.ndarray, marked: dict[str, 
 
 
 def residual_figure(points: np.ndarray, residuals: np.ndarray, rejected: np.ndarray,
-                    image_size: tuple[int, int]) -> tuple[bytes, float]:
+                    image_size: tuple[int, int], pattern: str = "") -> tuple[bytes, float]:
     """Residual vectors over the image (arrows scaled, coloured by length) and their directions
-    (dx, dy scatter); ``rejected`` (n,) bool marks the observations the fit rejected.
+    (dx, dy scatter, titled with ``pattern``, what a test found in them:
+    :func:`~zoomcalib.calibrate.quality.residual_pattern`); ``rejected`` (n,) bool marks the
+    observations the fit rejected.
 
     Parameters
     ----------
@@ -129,7 +131,8 @@ def residual_figure(points: np.ndarray, residuals: np.ndarray, rejected: np.ndar
     ax1.set_aspect("equal")
     ax1.set_xlabel("dx [px]")
     ax1.set_ylabel("dy [px]")
-    ax1.set_title("residual directions (a round cloud: no pattern)", fontsize=9)
+    ax1.set_title(f"residual directions: {pattern}" if pattern else "residual directions",
+                  fontsize=9, wrap=True)
     ax1.legend(loc="upper right", fontsize=7)
     fig.subplots_adjust(left=0.06, right=0.97, bottom=0.12, top=0.9, wspace=0.25)
     return _png(fig), scale

@@ -32,6 +32,7 @@ from .quality import (
     observed_region,
     projection_difference,
     projection_uncertainty,
+    residual_pattern,
     view_geometry,
 )
 from .result import CalibrationResult, Observations
@@ -201,10 +202,12 @@ def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> st
     points = np.concatenate([p for _, p in obs.views])
     resid = np.concatenate(residual_vectors(res, obs))
     rejected = np.concatenate(masks)
-    png, scale = figs.residual_figure(points, resid, rejected, obs.image_size)
+    pattern, _ = residual_pattern(points[~rejected], resid[~rejected],
+                                  np.array([res.cx, res.cy]))
+    png, scale = figs.residual_figure(points, resid, rejected, obs.image_size, pattern)
     parts.append(f"<h3>Residuals</h3>{_img(png, f'residuals of step {step}')}"
                  f"<p>Arrows drawn {scale:.0f} times their length; residual = projected minus "
-                 f"observed.</p>")
+                 f"observed. The residuals show {_e(pattern)}.</p>")
     geometry = view_geometry(res, obs)
     problems, summary = coverage_verdict(points, obs.image_size, geometry)
     parts.append("<h3>Coverage</h3>" + _img(figs.coverage_figure(
