@@ -335,3 +335,18 @@ def test_the_residual_cloud_is_named_by_what_a_test_finds_in_it():
     assert words["smooth"].startswith("a smooth field"), words
     assert words["elongated"].startswith("an elongated cloud: sd 2."), words
     assert quality.residual_pattern(points[:5], noise[:5], centre)[0].startswith("too few")
+
+
+def test_image_labels_keep_what_tells_them_apart():
+    from zoomcalib.report_plots import per_view_figure, short_labels
+
+    names = [f"live_ch0_2025080509{m:02d}{s:02d}.png" for m, s in ((22, 46), (23, 1), (37, 55))]
+    labels, prefix = short_labels(names)
+    assert prefix == "live_ch0_2025080509" and labels == ["2246.png", "2301.png", "3755.png"]
+    assert [prefix + t for t in labels] == names
+    # a prefix that is a whole name, or too short to matter, is kept
+    assert short_labels(["a.png", "a.png.bak"]) == (["a.png", "a.png.bak"], "")
+    assert short_labels(["view1.png", "view2.png"]) == (["1.png", "2.png"], "view")
+    assert short_labels(["im1", "im2"])[1] == ""
+    png = per_view_figure(names, np.array([0.5, 0.7, 0.4]), {}, ["live_ch0_20250805093000.png"])
+    assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) is not None

@@ -8,11 +8,13 @@ its unit accompanies every colour that encodes a value.
 from __future__ import annotations
 
 import io
+import os
 from collections.abc import Sequence
 
 import numpy as np
 
 __all__ = ["per_view_figure", "residual_figure", "coverage_figure", "uncertainty_figure",
+           "short_labels",
            "zoom_range_figure"]
 
 _DPI = 80
@@ -58,7 +60,7 @@ def per_view_figure(names: Sequence[str], rms_px: np.ndarray, marked: dict[str, 
     e.g. '3 points rejected') in red with the reason; ``absent`` images (not in the fit) as
     empty labelled slots."""
     plt = _pyplot()
-    labels = list(names) + list(absent)
+    labels, prefix = short_labels(list(names) + list(absent))
     fig, ax = plt.subplots(figsize=(min(4.0 + 0.28 * len(labels), 14.0), 3.4))
     x = np.arange(len(labels))
     colours = [_MARK if n in marked else "tab:blue" for n in names]
@@ -74,12 +76,24 @@ def per_view_figure(names: Sequence[str], rms_px: np.ndarray, marked: dict[str, 
                     va="center")
     ax.set_ylim(0, (2.6 if marked else 1.3) * top)  # room for the rotated reasons
     ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
-    ax.set_xlabel("image")
+    ax.set_xlabel(f"image (names after the common prefix {prefix!r})" if prefix else "image")
     ax.set_ylabel("reprojection RMS [px]")
     ax.set_title("per-image reprojection error (red: rejected points; hatched: not in the fit)",
                  fontsize=9)
-    fig.subplots_adjust(bottom=0.38, left=0.1, right=0.98, top=0.9)
+    longest = max((len(t) for t in labels), default=1)
+    fig.subplots_adjust(bottom=min(0.12 + 0.017 * longest, 0.6), left=0.1, right=0.98, top=0.9)
     return _png(fig)
+
+
+def short_labels(names: Sequence[str], min_prefix: int = 4) -> tuple[list[str], str]:
+    """``names`` without their common prefix (when it is at least ``min_prefix`` characters and
+    leaves every name something), and that prefix (empty when kept): a row of frame names
+    such as ``live_ch0_20250805092246.png`` differs only in its last characters."""
+    names = [str(n) for n in names]
+    prefix = os.path.commonprefix(names) if len(names) > 1 else ""
+    if len(prefix) < min_prefix or any(len(n) == len(prefix) for n in names):
+        return names, ""
+    return [n[len(prefix):] for n in names], prefix
 
 
 def residual_figure(points: np.ndarray, residuals: np.ndarray, rejected: np.ndarray,
