@@ -221,7 +221,7 @@ def test_report_loads_in_a_browser_with_every_figure(report, tmp_path):
     path, steps = report
     text = path.read_text(encoding="utf-8")
     page = _check_structure(text, steps)
-    assert len(page.images) == 4 * len(steps) + 1
+    assert len(page.images) == 5 * len(steps) + 1
     dom = _chromium_dom(path, tmp_path / "profile")
     if dom is not None:
         assert re.search(r'<body[^>]*data-images-loaded="all"', dom), dom[:500]
@@ -350,3 +350,23 @@ def test_image_labels_keep_what_tells_them_apart():
     assert short_labels(["im1", "im2"])[1] == ""
     png = per_view_figure(names, np.array([0.5, 0.7, 0.4]), {}, ["live_ch0_20250805093000.png"])
     assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) is not None
+
+
+def test_distortion_map_and_board_outlines():
+    # a pure k1: a pixel at normalised radius r images at r (1 + k1 r^2), so the map at the
+    # image corner is f k1 r^3 (r of the undistorted ray, solved here by fixed point)
+    K = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])
+    res = CalibrationResult("opencv", K, np.array([-0.2, 0, 0, 0, 0]), {}, 0.1, np.zeros(1),
+                            np.zeros((1, 3)), np.array([[0.0, 0.0, 500.0]]))
+    xs, ys, shift = quality.distortion_map(res, (640, 480), columns=41)
+    rd = np.hypot(319.5, 239.5) / 800.0
+    r = rd
+    for _ in range(50):
+        r = rd / (1 - 0.2 * r**2)
+    assert shift[0, 0] == pytest.approx(800.0 * (r - rd), rel=1e-3)
+    assert shift[len(ys) // 2, len(xs) // 2] < 1e-3 * shift[0, 0]
+    board = np.array([[0.0, 0, 0], [100, 0, 0], [100, 50, 0], [0, 50, 0]])
+    outline = quality.board_outlines(res, board)
+    assert outline.shape == (1, 5, 3)
+    np.testing.assert_allclose(outline[0, :4], board + [0, 0, 500])
+    np.testing.assert_allclose(outline[0, 4], outline[0, 0])

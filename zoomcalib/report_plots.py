@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 __all__ = ["per_view_figure", "residual_figure", "coverage_figure", "uncertainty_figure",
-           "short_labels",
+           "short_labels", "lens_and_poses_figure",
            "zoom_range_figure"]
 
 _DPI = 80
@@ -289,4 +289,35 @@ def budget_figure(steps: Sequence[str], shares: dict[str, np.ndarray], named: np
     ax.grid(alpha=0.3, axis="y")
     ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.3, top=0.97)
+    return _png(fig)
+
+
+def lens_and_poses_figure(xs: np.ndarray, ys: np.ndarray, shift_px: np.ndarray,
+                          image_size: tuple[int, int], outlines: np.ndarray) -> bytes:
+    """Left: how far the distortion moves each pixel (px, a heat map with contours over the
+    image; :func:`~zoomcalib.calibrate.quality.distortion_map`). Right: every view's board
+    outline (views, 5, 3) in the camera frame (mm; the camera at the origin looking along +z),
+    seen from above and behind."""
+    plt = _pyplot()
+    fig = plt.figure(figsize=(11.5, 4.2))
+    ax0 = fig.add_subplot(1, 2, 1)
+    mesh = ax0.pcolormesh(xs, ys, shift_px, shading="auto", cmap="magma")
+    fig.colorbar(mesh, ax=ax0, label="distortion [px]", shrink=0.85)
+    if np.ptp(shift_px) > 0:
+        lines = ax0.contour(xs, ys, shift_px, levels=5, colors="w", linewidths=0.6)
+        ax0.clabel(lines, fontsize=7, fmt="%.3g")
+    _image_axes(ax0, image_size)
+    ax0.set_title(f"distortion: up to {np.max(shift_px):.3g} px over the image", fontsize=9)
+    ax1 = fig.add_subplot(1, 2, 2, projection="3d")
+    for k, outline in enumerate(outlines):
+        ax1.plot(outline[:, 0], outline[:, 2], -outline[:, 1], color=f"C{k % 10}", lw=0.9)
+    ax1.scatter([0], [0], [0], color="k", marker="^", s=30, label="camera")
+    ax1.set_xlabel("x [mm]", fontsize=8)
+    ax1.set_ylabel("z (depth) [mm]", fontsize=8)
+    ax1.set_zlabel("-y [mm]", fontsize=8)
+    ax1.tick_params(labelsize=6)
+    ax1.view_init(elev=25, azim=-60)
+    ax1.set_title(f"board poses of the {len(outlines)} views (camera frame)", fontsize=9)
+    ax1.legend(loc="upper left", fontsize=7)
+    fig.subplots_adjust(left=0.05, right=0.97, bottom=0.1, top=0.9, wspace=0.15)
     return _png(fig)

@@ -65,7 +65,7 @@ from .bundle import scaled_inverse
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",
-           "residual_pattern", "PATTERN_SHARE", "ELONGATION",
+           "residual_pattern", "PATTERN_SHARE", "ELONGATION", "distortion_map", "board_outlines",
            "intrinsics_covariance", "view_information", "projection_uncertainty", "projection_z",
            "projection_difference",
            "pixel_grid", "observed_region", "MIN_TILT_DEG", "MIN_REACH", "MIN_CELLS", "GRID",
@@ -436,3 +436,29 @@ def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarr
         return (f"an elongated cloud: sd {numbers['elongation']:.1f}x larger along one "
                 f"direction ({shares})"), numbers
     return f"a round cloud, no pattern ({shares} of the mean square)", numbers
+
+
+def distortion_map(result: CalibrationResult, image_size: tuple[int, int], columns: int = 40
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far the lens's distortion moves each pixel: the pixel grid of :func:`pixel_grid`
+    ``xs`` (C,), ``ys`` (R,) and, per grid point, the distance (px) between the pixel and where
+    its ray would image without distortion (the same camera matrix), (R, C)."""
+    xs, ys = pixel_grid(image_size, columns)
+    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    rays = _rays(result.K, result.dist, q)
+    straight = (rays[:, :2] / rays[:, 2:3]) @ result.K[:2, :2].T + result.K[:2, 2]
+    return xs, ys, np.linalg.norm(straight - q, axis=1).reshape(len(ys), len(xs))
+
+
+def board_outlines(result: CalibrationResult, board: np.ndarray) -> np.ndarray:
+    """Each view's board outline in the camera frame (views, 5, 3), the units of ``board``
+    (n, 3): the corners of the points' bounding rectangle in the board plane, closed, carried
+    by the view's pose ``Rt_cam_board``."""
+    lo, hi = board[:, :2].min(axis=0), board[:, :2].max(axis=0)
+    corners = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0],
+                        [lo[0], hi[1], 0], [lo[0], lo[1], 0]], float)
+    out = []
+    for rvec, tvec in zip(result.rvecs, result.tvecs, strict=True):
+        R = cv2.Rodrigues(np.asarray(rvec, float))[0]
+        out.append(corners @ R.T + np.asarray(tvec, float))
+    return np.array(out).reshape(-1, 5, 3)

@@ -28,7 +28,9 @@ from .quality import (
     GRID,
     MIN_REACH,
     ViewGeometry,
+    board_outlines,
     coverage_verdict,
+    distortion_map,
     observed_region,
     projection_difference,
     projection_uncertainty,
@@ -214,6 +216,14 @@ def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> st
         [p for _, p in obs.views], obs.image_size, geometry.tilt_deg, geometry.distance, GRID,
         MIN_REACH), f"coverage of step {step}") + _verdict(problems, summary))
     parts.append(_uncertainty(run, step, res, obs, geometry, distance_mm, points))
+    xs, ys, shift = distortion_map(res, obs.image_size)
+    board = res.object_points if res.object_points is not None else obs.object_points
+    parts.append("<h3>Lens distortion and board poses</h3>" + _img(figs.lens_and_poses_figure(
+        xs, ys, shift, obs.image_size, board_outlines(res, np.asarray(board, float))),
+        f"distortion and board poses of step {step}")
+        + f"<p>The distortion moves a pixel by up to {np.max(shift):.3g} px (at the image "
+          f"centre {shift[len(ys) // 2, len(xs) // 2]:.3g} px); the boards as the fit placed "
+          "them.</p>")
     parts.append("</section>")
     return "\n".join(parts)
 
