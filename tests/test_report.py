@@ -230,6 +230,8 @@ def test_report_loads_in_a_browser_with_every_figure(report, tmp_path):
             assert f'id="step-{s}"' in dom
         text = dom
     assert "Step zoom_01" in text and "The zoom range" in text
+    # every step says how its three confidence signals fit together
+    assert text.count("Reading the signals together") == len(steps)
 
 
 def test_report_names_the_rejected_and_the_left_out_images(report):

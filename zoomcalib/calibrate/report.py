@@ -271,7 +271,24 @@ def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Obse
               f"({'the median board distance' if distance_mm is None else 'chosen'}), from "
               f"the intrinsics' covariance and the poses: {centre:.3g} px at the image centre, "
               f"up to {_largest(sigma, inside)} px where points were detected (inside the "
-              f"dashed outline), {np.max(sigma):.3g} px at most over the image.{note}</p>")
+              f"dashed outline), {np.max(sigma):.3g} px at most over the image.{note}</p>"
+            + _reading(res, sigma, inside, diff))
+
+
+def _reading(res: CalibrationResult, sigma: np.ndarray, inside: np.ndarray,
+             diff: np.ndarray | None) -> str:
+    """How the table's sigmas, the uncertainty map and the even/odd map fit together."""
+    pp = max(res.sd.get("cx", np.nan), res.sd.get("cy", np.nan))
+    text = (f"<p><i>Reading the signals together.</i> The table's 1-sigma of the principal "
+            f"point ({pp:.3g} px here) is the principal point's own. The map above is where a "
+            "point at that distance projects: the views' poses take up what a small turn of "
+            "the camera would absorb, so at a narrow field a principal point known to tens "
+            f"of px can still project known to {_largest(sigma, inside)} px.")
+    if diff is not None:
+        text += (" The even/odd map allows no such turn and shows the halves' principal points "
+                 "apart whole; its z, in the halves' own sigmas, says whether that is "
+                 "expected.")
+    return text + "</p>"
 
 
 def _largest(values: np.ndarray, inside: np.ndarray) -> str:
