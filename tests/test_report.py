@@ -232,6 +232,8 @@ def test_report_loads_in_a_browser_with_every_figure(report, tmp_path):
     assert "Step zoom_01" in text and "The zoom range" in text
     # every step says how its three confidence signals fit together
     assert text.count("Reading the signals together") == len(steps)
+    # a run without its image folders says it cannot draw the worst image's corners
+    assert text.count("could not be read to draw its corners") == len(steps)
 
 
 def test_report_names_the_rejected_and_the_left_out_images(report):
@@ -258,7 +260,10 @@ def test_calibrate_writes_the_report_unless_told_not_to(rendered, tmp_path):
     res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "a")])
     assert res.exit_code == 0, res.output
     text = (tmp_path / "a" / "report.html").read_text(encoding="utf-8")
-    _check_structure(text, ["zoom_00", "zoom_01"])
+    page = _check_structure(text, ["zoom_00", "zoom_01"])
+    # the images are at hand: each step draws its worst one's corners (one figure more)
+    assert text.count("<h3>The image of the largest error</h3>") == 2
+    assert len(page.images) == 6 * 2 + 1
     assert "report.html" in (tmp_path / "a" / "manifest.json").read_text()
     res = CliRunner().invoke(main, [*args, "--report-distance", "250", "--no-report",
                                     "--out", str(tmp_path / "b")])

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 __all__ = ["per_view_figure", "residual_figure", "coverage_figure", "uncertainty_figure",
-           "short_labels", "lens_and_poses_figure",
+           "short_labels", "lens_and_poses_figure", "corners_figure",
            "zoom_range_figure"]
 
 _DPI = 80
@@ -320,4 +320,30 @@ def lens_and_poses_figure(xs: np.ndarray, ys: np.ndarray, shift_px: np.ndarray,
     ax1.set_title(f"board poses of the {len(outlines)} views (camera frame)", fontsize=9)
     ax1.legend(loc="upper left", fontsize=7)
     fig.subplots_adjust(left=0.05, right=0.97, bottom=0.1, top=0.9, wspace=0.15)
+    return _png(fig)
+
+
+def corners_figure(image: np.ndarray, detected: np.ndarray, projected: np.ndarray,
+                   name: str, scale: float) -> bytes:
+    """One image with its detected corners (green +) and the fit's projections of them (red
+    x), each joined by its residual drawn ``scale`` times its length; ``image`` grey or BGR,
+    ``detected`` and ``projected`` (n, 2) px."""
+    plt = _pyplot()
+    h, w = image.shape[:2]
+    fig, ax = plt.subplots(figsize=(8.0, 8.0 * h / w + 0.6))
+    shown = image if image.ndim == 2 else image[..., ::-1]
+    ax.imshow(shown, cmap="gray" if image.ndim == 2 else None, interpolation="nearest")
+    tips = detected + scale * (projected - detected)
+    ax.plot(np.stack([detected[:, 0], tips[:, 0]]), np.stack([detected[:, 1], tips[:, 1]]),
+            color="yellow", lw=0.7)
+    ax.plot(detected[:, 0], detected[:, 1], "+", color="lime", ms=4, label="detected")
+    ax.plot(tips[:, 0], tips[:, 1], "x", color=_MARK, ms=3,
+            label=f"projected (residual drawn x{scale:.0f})")
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_title(f"{name}: detected corners and the fit's projections", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlabel("x [px]")
+    ax.set_ylabel("y [px]")
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.08, top=0.94)
     return _png(fig)

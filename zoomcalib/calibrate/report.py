@@ -20,6 +20,7 @@ import html
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from .. import report_plots as figs
@@ -210,6 +211,7 @@ def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> st
     parts.append(f"<h3>Residuals</h3>{_img(png, f'residuals of step {step}')}"
                  f"<p>Arrows drawn {scale:.0f} times their length; residual = projected minus "
                  f"observed. The residuals show {_e(pattern)}.</p>")
+    parts.append(_worst_image(run, step, obs, resid, scale))
     geometry = view_geometry(res, obs)
     problems, summary = coverage_verdict(points, obs.image_size, geometry)
     parts.append("<h3>Coverage</h3>" + _img(figs.coverage_figure(
@@ -273,6 +275,30 @@ def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Obse
               f"up to {_largest(sigma, inside)} px where points were detected (inside the "
               f"dashed outline), {np.max(sigma):.3g} px at most over the image.{note}</p>"
             + _reading(res, sigma, inside, diff))
+
+
+def _worst_image(run: CalibrateRun, step: str, obs: Observations, resid: np.ndarray,
+                 scale: float) -> str:
+    """The image of the step's largest reprojection RMS with its corners and the fit's
+    projections drawn over it; a note when the image cannot be read (a report written from
+    results alone, or a file moved since)."""
+    rms = [np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in np.split(
+        resid, np.cumsum([len(p) for _, p in obs.views])[:-1])]
+    worst = int(np.argmax(rms))
+    name = _view_names(obs)[worst]
+    folder = run.step_dirs.get(step)
+    image = None if folder is None else cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        return (f"<p>The image of the largest error, {_e(name)} ({rms[worst]:.3g} px RMS), "
+                "could not be read to draw its corners.</p>")
+    detected = obs.views[worst][1]
+    start = int(np.sum([len(p) for _, p in obs.views[:worst]]))
+    projected = detected + resid[start:start + len(detected)]
+    return ("<h3>The image of the largest error</h3>"
+            + _img(figs.corners_figure(image, detected, projected, name, scale),
+                   f"corners of {name}")
+            + f"<p>{_e(name)}: {rms[worst]:.3g} px RMS; residuals drawn {scale:.0f} times "
+              "their length, as above.</p>")
 
 
 def _reading(res: CalibrationResult, sigma: np.ndarray, inside: np.ndarray,

@@ -98,7 +98,7 @@ class CalibrateRun:
     ``budget_sessions`` the residual budget per step and per capture session (when asked);
     ``flags`` per step the full texts of its flags, ``flag_records`` the same as
     :class:`~zoomcalib.calibrate.checks.Flag` records (severity, few words, one action), the
-    most severe first (:func:`set_step_flags`).
+    most severe first (:func:`set_step_flags`); ``step_dirs`` each step's image folder.
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -120,6 +120,7 @@ class CalibrateRun:
     cross_validation: object | None = None
     flags: dict[str, list[str]] = field(default_factory=dict)
     flag_records: dict[str, list] = field(default_factory=dict)
+    step_dirs: dict[str, Path] = field(default_factory=dict)
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
     status: dict[str, StepStatus] = field(default_factory=dict)
@@ -298,6 +299,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     steps = zoom_steps(folder)
     run = CalibrateRun(stems=step_file_stems(s[0] for s in steps))
     every_file = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
+    run.step_dirs = {step: Path(step_dir) for step, step_dir, _, _ in steps}
     _start_output_folder(out, run, every_file)
     step_files = {step: _without_copies(step, files, run, log)
                   for step, files in every_file.items()}
