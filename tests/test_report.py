@@ -377,3 +377,28 @@ def test_distortion_map_and_board_outlines():
     assert outline.shape == (1, 5, 3)
     np.testing.assert_allclose(outline[0, :4], board + [0, 0, 500])
     np.testing.assert_allclose(outline[0, 4], outline[0, 0])
+
+
+def test_fix_holds_intrinsics_in_the_per_step_opencv_fits(rendered, tmp_path):
+    import json
+
+    out = tmp_path / "fix"
+    res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern", "chessboard:9x6:25",
+                                    "--per-step", "--fix", "principal-point", "--fix", "k3",
+                                    "--fix", "aspect", "--workers", "1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "calibration.json").read_text())
+    assert doc["meta"]["fixed"] == ["principal-point", "k3", "aspect"]
+    for step, by_backend in doc["steps"].items():
+        assert list(by_backend) == ["opencv"]  # --fix: the OpenCV backend alone
+        e = by_backend["opencv"]
+        K = np.array(e["K"])
+        assert (K[0, 2], K[1, 2]) == (319.5, 239.5)  # the 640 x 480 image's centre
+        assert K[0, 0] == K[1, 1] and e["dist"][4] == 0.0
+        assert e["sd"]["cx"] == 0.0 and e["sd"]["k3"] == 0.0
+    # not where it cannot hold: the zoom-wide adjustment, the bundle
+    for extra in ([], ["--per-step", "--backend", "bundle"]):
+        res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern",
+                                        "chessboard:9x6:25", "--fix", "k3", *extra,
+                                        "--out", str(tmp_path / "no")])
+        assert res.exit_code == 2 and "--fix" in res.output, res.output

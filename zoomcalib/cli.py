@@ -632,6 +632,11 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--model", default="standard", show_default=True,
               type=click.Choice(["standard", "rational"]),
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
+@click.option("--fix", "fixed", multiple=True,
+              type=click.Choice(["principal-point", "aspect", "k1", "k2", "k3", "tangential"]),
+              help="Hold an intrinsic fixed in the per-step OpenCV fits (repeat for more): the "
+                   "principal point at the image centre, fy/fx at 1, k1, k2, k3 or p1, p2 at "
+                   "0. With --per-step (a single image set is one) and --backend opencv.")
 @click.option("--method", type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
               help="Detector; default: the target's usual one.")
 @click.option("--workers", default=0, show_default=True, type=click.IntRange(min=0),
@@ -648,8 +653,8 @@ def detect(folder, pattern, methods, workers, out):
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
 def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, residual_budget,
-              board_shape, model, method, workers, out, grid_points, camera_name, no_report,
-              report_distance):
+              board_shape, model, fixed, method, workers, out, grid_points, camera_name,
+              no_report, report_distance):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -676,8 +681,14 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     except (ValueError, FileNotFoundError) as exc:
         raise click.BadParameter(str(exc), param_hint="FOLDER") from None
     per_step = per_step or len(steps) < 2  # one set of images: nothing to adjust zoom-wide
-    backend = backend or ("both" if per_step else "opencv")
+    backend = backend or ("both" if per_step and not fixed else "opencv")
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
+    if fixed and not per_step:
+        raise click.BadParameter("the zoom-wide adjustment estimates every intrinsic; use "
+                                 "--per-step with --fix", param_hint="--fix")
+    if fixed and backend != "opencv":
+        raise click.BadParameter(f"the {backend} backend estimates every intrinsic; use "
+                                 "--backend opencv with --fix", param_hint="--fix")
     if model != "standard" and not per_step:
         raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
                                  f"--per-step with --model {model}", param_hint="--model")
@@ -696,7 +707,7 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
                                    camera_name=camera_name, report=not no_report,
                                    report_distance=report_distance, pp_model=pp_model,
                                    residual_budget=residual_budget,
-                                   board_shape=board_shape)
+                                   board_shape=board_shape, fixed=tuple(fixed))
     except KeyboardInterrupt:
         for m in messages:
             click.echo(m)

@@ -832,6 +832,26 @@ def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flag
     return best
 
 
+#: What a per-step OpenCV calibration can hold fixed (``calibrate --fix``), and OpenCV's flag
+#: for each: the principal point at the image centre, ``fy / fx`` at 1, a radial term at 0, the
+#: tangential terms p1, p2 at 0.
+FIXABLE = {"principal-point": cv2.CALIB_FIX_PRINCIPAL_POINT,
+           "aspect": cv2.CALIB_FIX_ASPECT_RATIO, "k1": cv2.CALIB_FIX_K1,
+           "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3,
+           "tangential": cv2.CALIB_ZERO_TANGENT_DIST}
+
+
+def fix_flags(names) -> int:
+    """OpenCV's flags holding ``names`` (keys of :data:`FIXABLE`) fixed; ValueError naming an
+    unknown one and the known ones."""
+    flags = 0
+    for name in names:
+        if name not in FIXABLE:
+            raise ValueError(f"cannot fix {name!r}; choose from {', '.join(FIXABLE)}")
+        flags |= FIXABLE[name]
+    return flags
+
+
 def calibrate_opencv_robust(obs: Observations, model: str = "standard", flags: int = 0,
                             fronto_parallel_deg: float | None = None) -> CalibrationResult:
     """:func:`calibrate_opencv` from OpenCV's own start and also from

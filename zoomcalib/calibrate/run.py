@@ -64,6 +64,7 @@ from .io import (
 )
 from .opencv_backend import (
     calibrate_opencv_robust,
+    fix_flags,
     observations_from_detections,
 )
 from .result import DIST_NAMES, CalibrationResult, Observations
@@ -98,7 +99,8 @@ class CalibrateRun:
     ``budget_sessions`` the residual budget per step and per capture session (when asked);
     ``flags`` per step the full texts of its flags, ``flag_records`` the same as
     :class:`~zoomcalib.calibrate.checks.Flag` records (severity, few words, one action), the
-    most severe first (:func:`set_step_flags`); ``step_dirs`` each step's image folder.
+    most severe first (:func:`set_step_flags`); ``step_dirs`` each step's image folder;
+    ``fix_flags`` OpenCV's flags of the intrinsics the per-step fits hold fixed.
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -121,6 +123,7 @@ class CalibrateRun:
     flags: dict[str, list[str]] = field(default_factory=dict)
     flag_records: dict[str, list] = field(default_factory=dict)
     step_dirs: dict[str, Path] = field(default_factory=dict)
+    fix_flags: int = 0
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
     status: dict[str, StepStatus] = field(default_factory=dict)
@@ -154,9 +157,14 @@ def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.nd
     return out
 
 
-def _calibrate_once(backend: str, obs: Observations, model: str) -> CalibrationResult:
+def _calibrate_once(backend: str, obs: Observations, model: str, flags: int = 0
+                    ) -> CalibrationResult:
     if backend == "opencv":  # near-fronto-parallel views (a zoom's long end): several starts
-        return calibrate_opencv_robust(obs, model=model, fronto_parallel_deg=FRONTO_PARALLEL_DEG)
+        return calibrate_opencv_robust(obs, model=model, flags=flags,
+                                       fronto_parallel_deg=FRONTO_PARALLEL_DEG)
+    if flags:
+        raise ValueError(f"the {backend} backend estimates every intrinsic; --fix is for "
+                         "--backend opencv")
     if backend == "bundle":
         from .bundle import calibrate_bundle
 
@@ -192,16 +200,18 @@ def correct_dot_centres(obs: Observations, result: CalibrationResult, radius: fl
 
 
 def _calibrate(backend: str, obs: Observations, model: str,
-               target: Target | None = None) -> CalibrationResult:
-    """Calibrate; for dot targets, iterate the dot-centre correction with the calibration
-    (three rounds: the correction changes by far less than the noise after the second)."""
-    res = _calibrate_once(backend, obs, model)
+               target: Target | None = None, flags: int = 0) -> CalibrationResult:
+    """Calibrate (OpenCV ``flags`` holding intrinsics fixed, :data:`~zoomcalib.calibrate.
+    opencv_backend.FIXABLE`); for dot targets, iterate the dot-centre correction with the
+    calibration (three rounds: the correction changes by far less than the noise after the
+    second)."""
+    res = _calibrate_once(backend, obs, model, flags)
     if target is None or not len(target.discs):
         return res
     raw = obs
     for _ in range(3):
         corrected, largest = correct_dot_centres(raw, res, float(target.discs[0, 2]))
-        res = _calibrate_once(backend, corrected, model)
+        res = _calibrate_once(backend, corrected, model, flags)
     res.info["dot_centre_correction_max_px"] = largest
     return res
 
@@ -239,8 +249,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
                      report_distance: float | None = None, pp_model: str = "angle2",
-                     residual_budget: bool = False, board_shape: str = "points"
-                     ) -> CalibrateRun:
+                     residual_budget: bool = False, board_shape: str = "points",
+                     fixed: tuple[str, ...] = ()) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -289,6 +299,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         The zoom-wide adjustment's board: height modes to degree 4 per capture session and a
         height for every point (``points``), or the modes alone (``modes``;
         ``board_points`` of :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
+    fixed : tuple of str
+        Intrinsics the per-step OpenCV fits hold (keys of
+        :data:`~zoomcalib.calibrate.opencv_backend.FIXABLE`: the principal point at the image
+        centre, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0). Only with the
+        OpenCV backend alone and no zoom-wide adjustment (ValueError otherwise).
 
     Returns
     -------
@@ -297,7 +312,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     target: Target = parse_pattern(pattern)
     out = Path(out)
     steps = zoom_steps(folder)
-    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps))
+    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fix_flags=fix_flags(fixed))
+    if fixed and (zoom_wide and len(steps) > 1 or set(backends) - {"opencv"}):
+        raise ValueError(f"fixed {', '.join(fixed)}: only the per-step OpenCV backend holds "
+                         "intrinsics fixed (--per-step --backend opencv)")
     every_file = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
     run.step_dirs = {step: Path(step_dir) for step, step_dir, _, _ in steps}
     _start_output_folder(out, run, every_file)
@@ -356,6 +374,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             for step in run.results]
 
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
+            "fixed": list(fixed),
             "detection_settings": settings}
     meta = _meta(run, {"folder": str(folder)} | call, provenance)
     if run.results:
@@ -435,7 +454,7 @@ def _calibrate_step(step: str, obs: Observations, backends: Sequence[str], model
     results = {}
     for backend in backends:
         try:
-            results[backend] = _calibrate(backend, obs, model, target)
+            results[backend] = _calibrate(backend, obs, model, target, run.fix_flags)
         except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
             msg = " ".join(str(exc).split())
             run.failures.append(f"step {step}: backend {backend} failed: {msg}")
@@ -738,7 +757,8 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
         out = {}
         for step, o in obs.items():
             try:
-                out[step] = _calibrate(run.table_backend[step], o, model, target)
+                out[step] = _calibrate(run.table_backend[step], o, model, target,
+                                       run.fix_flags)
             except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error):
                 continue
         return out
