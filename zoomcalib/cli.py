@@ -767,11 +767,15 @@ def _print_calibration(run) -> None:
             if not r.converged and run.table_backend.get(step) != name:  # the table's: flagged
                 click.echo(f"warning: step {step} ({name}) did not converge "
                            f"({r.info.get('stop_reason', 'no reason reported')})")
+    actions: dict[str, list[str]] = {}  # each action once, with the steps that need it
     for step, records in run.flag_records.items():
         click.echo(f"FLAGGED step {step} ({records[0].severity}): "
                    + "; ".join(f"{f.text} [{f.severity}]" for f in records))
-        for action in dict.fromkeys(f.action for f in records):
-            click.echo(f"  to do: {action}")
+        for f in records:
+            if step not in actions.setdefault(f.action, []):
+                actions[f.action].append(step)
+    for action, steps in actions.items():
+        click.echo(f"  to do ({', '.join(steps)}): {action}")
     _print_status(run)
 
 
