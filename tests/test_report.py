@@ -345,6 +345,14 @@ def test_the_residual_cloud_is_named_by_what_a_test_finds_in_it():
     assert words["smooth"].startswith("a smooth field"), words
     assert words["elongated"].startswith("an elongated cloud: sd 2."), words
     assert quality.residual_pattern(points[:5], noise[:5], centre)[0].startswith("too few")
+    # an error smooth within each of 8 views but of a random sign per view: pooled, nothing;
+    # view by view, a smooth field
+    view = np.arange(800) % 8
+    sign = rng.choice([-1.0, 1.0], 8)[view][:, None]
+    shifted = noise + sign * np.column_stack([0.2 * (points[:, 0] / 640 - 1), 0 * view])
+    assert quality.residual_pattern(points, shifted, centre)[0].startswith("a round cloud")
+    word = quality.residual_pattern(points, shifted, centre, view)[0]
+    assert word.startswith("a smooth field") and "within each view" in word, word
 
 
 def test_image_labels_keep_what_tells_them_apart():

@@ -386,8 +386,8 @@ PATTERN_SHARE = 0.10
 ELONGATION = 1.5
 
 
-def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarray
-                     ) -> tuple[str, dict[str, float]]:
+def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarray,
+                     view: np.ndarray | None = None) -> tuple[str, dict[str, float]]:
     """What the residuals of a fit show, in words, and the numbers behind it.
 
     ``points`` (n, 2) px where the corners were, ``residuals`` (n, 2) px (inliers), ``centre``
@@ -398,7 +398,10 @@ def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarr
       ``a rho + b rho^2 + c rho^3`` (``rho`` the radius over the largest radius): a distortion
       the lens model misses;
     - ``smooth``: each component fitted by a quadratic in the image coordinates (6 terms): a
-      board shape or a lens error smooth over the image;
+      board shape or a lens error smooth over the image; with ``view`` (n,) the view of each
+      residual, the quadratic is fitted view by view (views of 12 points or more), so an
+      error smooth within each view but different between views (a camera or a board that
+      moved, a focal length of the view's own) counts too;
     - ``elongation``: the ratio of the residual cloud's largest to smallest sd (no share).
 
     The words name the first of radial, smooth and elongated that reaches
@@ -419,10 +422,16 @@ def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarr
     basis = np.column_stack([rho, rho**2, rho**3])
     fit = basis @ np.linalg.lstsq(basis, along, rcond=None)[0]
     numbers["radial"] = float(np.sum(fit**2) / len(e) / ms)
-    x, y = ((p - p.mean(axis=0)) / np.maximum(p.std(axis=0), 1e-12)).T
-    quad = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-    smooth = quad @ np.linalg.lstsq(quad, e, rcond=None)[0]
-    numbers["smooth"] = float(np.sum(smooth**2) / len(e) / ms)
+    groups = np.zeros(len(e), int) if view is None else np.asarray(view)
+    explained = 0.0
+    for g in np.unique(groups):
+        on = groups == g
+        if on.sum() < 12:
+            continue
+        x, y = ((p[on] - p[on].mean(axis=0)) / np.maximum(p[on].std(axis=0), 1e-12)).T
+        quad = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+        explained += float(np.sum((quad @ np.linalg.lstsq(quad, e[on], rcond=None)[0]) ** 2))
+    numbers["smooth"] = explained / len(e) / ms
     sd = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(e.T)), 1e-300))
     numbers["elongation"] = float(sd[-1] / sd[0])
     shares = f"radial {numbers['radial']:.0%}, smooth {numbers['smooth']:.0%}"
@@ -430,8 +439,9 @@ def residual_pattern(points: np.ndarray, residuals: np.ndarray, centre: np.ndarr
         return (f"a radial pattern: {numbers['radial']:.0%} of the mean square follows the "
                 "radius (a distortion the model misses)"), numbers
     if numbers["smooth"] >= PATTERN_SHARE:
-        return (f"a smooth field: {numbers['smooth']:.0%} of the mean square is smooth over "
-                "the image (a board or lens error the model misses)"), numbers
+        where = "over the image" if view is None else "within each view"
+        return (f"a smooth field: {numbers['smooth']:.0%} of the mean square is smooth {where} "
+                "(a board, lens or view error the model misses)"), numbers
     if numbers["elongation"] >= ELONGATION:
         return (f"an elongated cloud: sd {numbers['elongation']:.1f}x larger along one "
                 f"direction ({shares})"), numbers

@@ -205,8 +205,9 @@ def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> st
     points = np.concatenate([p for _, p in obs.views])
     resid = np.concatenate(residual_vectors(res, obs))
     rejected = np.concatenate(masks)
+    view = np.concatenate([np.full(len(p), i) for i, (_, p) in enumerate(obs.views)])
     pattern, _ = residual_pattern(points[~rejected], resid[~rejected],
-                                  np.array([res.cx, res.cy]))
+                                  np.array([res.cx, res.cy]), view[~rejected])
     png, scale = figs.residual_figure(points, resid, rejected, obs.image_size, pattern)
     parts.append(f"<h3>Residuals</h3>{_img(png, f'residuals of step {step}')}"
                  f"<p>Arrows drawn {scale:.0f} times their length; residual = projected minus "
