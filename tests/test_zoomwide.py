@@ -553,14 +553,16 @@ def test_a_lens_model_choice_that_widens_a_sigma_is_flagged():
     sd = {q: float(np.hypot(0.5, np.sqrt(weight) * v)) for q, v in shift.items()}
     (flag,) = _model_choice_flags({"other": "rational", "weight": weight, "shift": shift}, sd)
     grown = np.hypot(0.5, np.sqrt(weight) * 2.5) / 0.5
-    assert flag.startswith("lens model uncertain (rational model's weight 0.92): sd fy x"
-                           f"{grown:.1f}")
+    assert flag.detail.startswith("lens model uncertain (rational model's weight 0.92): sd fy x"
+                                  f"{grown:.1f}")
+    assert (flag.kind, flag.severity) == ("model_choice", "note")
     small = {"fx": 0.01, "fy": 0.01, "cx": 0.11, "cy": 0.03}
     sd = {q: float(np.hypot(0.13, np.sqrt(0.06) * v)) for q, v in small.items()}
     assert _model_choice_flags({"other": "rational", "weight": 0.06, "shift": small}, sd) == []
     failed = {"other": "k1k2p1p2k3", "shift": None, "why": "k1+k2: no camera"}
-    assert "could not be fitted (k1+k2: no camera)" in _model_choice_flags(
-        failed | {"weight": 0.7}, {})[0]
+    (flag,) = _model_choice_flags(failed | {"weight": 0.7}, {})
+    assert "could not be fitted (k1+k2: no camera)" in flag.detail
+    assert flag.severity == "warning"
     assert _model_choice_flags(failed | {"weight": 0.3}, {}) == []
     assert _model_choice_flags(None, {}) == []
 
