@@ -121,6 +121,33 @@ def test_focal_range_that_does_not_fit_is_said_plainly(response, tmp_path):
         diagnose_table(ZoomTable.from_rows(rows, "t.csv"), response, fit_pitch=True)
 
 
+def test_a_lens_that_cannot_be_the_cameras_is_refused_before_its_curve_is_traced(
+        tmp_path, monkeypatch):
+    # the table's focal lengths need a pitch of 0.003 mm; at the default pitch they fall
+    # below the lens's range: refused from the lens's two ends, the dense EFL curve (801
+    # traced states, seconds and gigabytes) never built
+    from zoomcalib.diagnose import run as diagnose_run
+
+    rows, _ = synthetic_zoom_table(LENS, None, np.random.default_rng(1), pitch_mm=0.0030)
+    write_csv(tmp_path / "t.csv", rows)
+    grids = []
+    real_of = LensResponse.of.__func__
+
+    def recording(cls, lens, pitch_mm=0.00645, n_grid=801):
+        grids.append(n_grid)
+        return real_of(cls, lens, pitch_mm, n_grid)
+
+    monkeypatch.setattr(diagnose_run.LensResponse, "of", classmethod(recording))
+    with pytest.raises(FocalRangeError, match="outside lens 'laikin-10x'"):
+        diagnose_run.diagnose_input(tmp_path / "t.csv", tmp_path / "out", LENS, 0.00645)
+    assert grids == [2]
+    with pytest.raises(FocalRangeError, match="zoom ratio"):
+        rows[0]["fx"] *= 0.3
+        write_csv(tmp_path / "t.csv", rows)
+        diagnose_run.diagnose_input(tmp_path / "t.csv", tmp_path / "out", LENS, "auto")
+    assert grids == [2, 2]
+
+
 def test_table_errors_name_file_and_row():
     rows, _ = synthetic_zoom_table(LENS, None, np.random.default_rng(2))
     bad = [dict(r) for r in rows]

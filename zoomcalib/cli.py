@@ -965,7 +965,9 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     doc = d.to_dict()
     if d.pitch_fit:
         click.echo(f"pixel pitch fitted: {d.pitch_mm:.5g} +- {d.pitch_fit['sd_mm']:.2g} mm"
-                   + (" (at an end of the admissible range: not determined by the data)"
+                   + (" (at an end of the admissible range: not determined by the data; "
+                      f"the lens {d.response.lens.name!r} may not be this camera's, and the "
+                      "diagnosis below assumes it is)"
                       if d.pitch_fit["at_range_end"] else ""))
     _print_diagnosis(d, doc)
     click.echo(f"wrote {out}/diagnosis.json, report.md, path.png, residuals.png")

@@ -251,7 +251,8 @@ def _setting_lines(diag: Diagnosis, doc: dict) -> list[str]:
                       " mm)")
             if diag.pitch_fit["at_range_end"]:
                 pitch += (" **at an end of the admissible range: the data do not determine the "
-                          "pitch; give it with --pixel-pitch**")
+                          f"pitch; give it with --pixel-pitch. The lens {diag.response.lens.name}"
+                          " may not be this camera's, and what follows assumes it is**")
         efl = t.fx * diag.pitch_mm
         lines.append(f"- pixel pitch {pitch}; measured focal lengths {efl.min():.2f}-"
                      f"{efl.max():.2f} mm (lens states {diag.z.min():.3f}-{diag.z.max():.3f})")

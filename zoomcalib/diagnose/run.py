@@ -22,7 +22,7 @@ from ..calibrate.result import Observations
 from ..optics.mechanics import Tolerances
 from ..optics.prescription import Prescription
 from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
-from .model import LensResponse, moving_groups
+from .model import DEFAULT_PITCH_MM, LensResponse, moving_groups
 from .report import write_diagnosis
 from .response import RowCalibration
 from .table import ZoomTable
@@ -233,12 +233,6 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     if left_out:
         log(f"{table_path}: left out the unusable step{'s' if len(left_out) > 1 else ''} "
             f"{', '.join(left_out)} (status column)")
-    if source.is_dir():
-        table.calibrations = _row_calibrations(table, cal)
-    elif lens is not None:
-        table.calibrations, why = _calibrations_beside(table, table_path)
-        if table.calibrations is None:
-            log(f"{table_path}: the group terms use the paraxial image shift ({why})")
     check_table_size(table.zoom, table.fx, table.source, groups)
     fit_pitch = isinstance(pixel_pitch, str)
     if fit_pitch and pixel_pitch != "auto":
@@ -246,7 +240,21 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     if lens is None:
         response, fit_pitch = None, False
     else:
-        response = LensResponse.of(lens, 0.00645 if fit_pitch else float(pixel_pitch))
+        pitch = DEFAULT_PITCH_MM if fit_pitch else float(pixel_pitch)
+        # a lens that cannot be this camera's is said first, from the lens's two ends, before
+        # its dense EFL curve is traced or any calibration loaded
+        ends = LensResponse.of(lens, pitch, n_grid=2)
+        if fit_pitch:
+            ends.pitch_range(table.fx, table.source)
+        else:
+            ends.state_of_focal(table.fx, table.source)
+        response = LensResponse.of(lens, pitch)
+    if source.is_dir():
+        table.calibrations = _row_calibrations(table, cal)
+    elif lens is not None:
+        table.calibrations, why = _calibrations_beside(table, table_path)
+        if table.calibrations is None:
+            log(f"{table_path}: the group terms use the paraxial image shift ({why})")
     diag = diagnose_table(table, response, tolerances, fit_pitch=fit_pitch)
     if response is not None:
         diag = resolve_with_distortion(
