@@ -148,6 +148,36 @@ def test_a_lens_that_cannot_be_the_cameras_is_refused_before_its_curve_is_traced
     assert grids == [2, 2]
 
 
+def _lens_free_rows(rng, jump_px: float) -> list[dict]:
+    # 10 steps, fx 1150-11500 px; the principal point on a smooth path in log f, plus, per
+    # row, a jump of jump_px sd that no smooth path follows; sigmas 2 px
+    fx = np.geomspace(1150.0, 11500.0, 10)
+    u = np.log(fx / fx[0])
+    cx = 660 + 8 * u + rng.normal(0, 2, 10) + rng.normal(0, jump_px, 10)
+    cy = 370 - 30 * u + rng.normal(0, 2, 10) + rng.normal(0, jump_px, 10)
+    return [{"step": f"s{i}", "zoom": float(i + 1), "fx": fx[i], "fy": fx[i], "cx": cx[i],
+             "cy": cy[i], "sd_cx": 2.0, "sd_cy": 2.0} for i in range(10)]
+
+
+def test_without_a_lens_a_path_that_does_not_predict_is_unexplained(tmp_path):
+    # hidden: jumps of 150 px between steps (a real PTZ sweep's per-step rows jump so): a
+    # scatter far beyond the rows' own sigmas, said as the finding, not 'none'
+    diag = diagnose_table(ZoomTable.from_rows(_lens_free_rows(np.random.default_rng(4), 150.0),
+                                              "t.csv"), None)
+    check = diag.explained
+    assert diag.cause == "unexplained" and check["explained"] is False, check
+    # the jumps are 75 times the rows' sigmas; the path's fitted scatter says so
+    assert check["noise_scale"] > 20 and "the table's own sigmas" in check["remaining"]
+    # the same path without the jumps: checked, explained, nothing named
+    null = diagnose_table(ZoomTable.from_rows(_lens_free_rows(np.random.default_rng(4), 0.0),
+                                              "t.csv"), None)
+    assert null.cause == "none" and null.explained["explained"] is True, null.explained
+    assert null.explained["noise_scale"] < 2 and null.explained["cv_norm_rms"] < 3
+    from zoomcalib.diagnose.report import report_markdown
+
+    assert "no lens model, nothing simulated" in report_markdown(diag, diag.to_dict())
+
+
 def test_table_errors_name_file_and_row():
     rows, _ = synthetic_zoom_table(LENS, None, np.random.default_rng(2))
     bad = [dict(r) for r in rows]

@@ -81,6 +81,9 @@ ALPHA = 0.01
 #: the rows may scatter up to this factor more than the table's sigmas and the tolerance
 #: file's play say (RMS over the rows) and the model still explain them
 NOISE_SCALE_MAX = 3.0
+#: a fit whose held-out rows miss by more than this many of their sigmas (RMS, ``cv_norm``)
+#: does not explain the table, whatever else could be checked (honest fits: about 1-2)
+CV_NORM_MAX = 10.0
 #: degree of the capture-order drift the fit check tests against (the drift causes go to 3)
 ORDER_TEST_DEGREE = 5
 #: most causes selected together
@@ -529,7 +532,8 @@ def fit_check(fit: LinearFit, ctx: Context, groups: np.ndarray,
     dict with ``explained`` (True, False, or None when nothing could be tested), ``tests``
     (per test its F, q, dof, p_value and ``significant``), ``chi2_dof_assumed`` and
     ``noise_scale`` (None without sigmas or lens model) and ``remaining`` (what the fit leaves
-    unexplained, in words).
+    unexplained, in words). Whatever else can be checked, a fit whose held-out rows miss by
+    more than :data:`CV_NORM_MAX` of their sigmas (``cv_norm_rms``) does not explain the table.
     """
     tests = {name: _f_test(fit, ctx, extra) for name, extra in _structure_terms(ctx, groups)}
     tested = [t for t in tests.values() if t["tested"]]
@@ -548,8 +552,25 @@ def fit_check(fit: LinearFit, ctx: Context, groups: np.ndarray,
         if scale > NOISE_SCALE_MAX:
             remaining.append(f"scatter {scale:.1f}x what the table's sigmas and the tolerance "
                              f"file's play allow (more than {NOISE_SCALE_MAX:g}x)")
-    explained = None if not tested and not assumed else not remaining
+    elif ctx.table.has_sd and shape is not None:
+        # no play to weigh it against (no lens model): the table's own sigmas alone
+        scale = float(np.sqrt(np.mean(fit.variance / np.maximum(shape.measured_var, 1e-300))))
+        chi2_assumed = float(np.sum(fit.residual_px ** 2 / shape.measured_var[:, None])
+                             / max(2 * ctx.table.n - fit.rank, 1))
+        assumed = True
+        if scale > NOISE_SCALE_MAX:
+            remaining.append(f"scatter {scale:.1f}x the table's own sigmas (more than "
+                             f"{NOISE_SCALE_MAX:g}x): the path leaves what the rows' "
+                             "calibrations do not allow")
+    held_out = fit.cv_norm_rms()
+    if held_out > CV_NORM_MAX:
+        remaining.append(f"held-out rows missed by {held_out:.3g} of their sigmas (RMS; more "
+                         f"than {CV_NORM_MAX:g}): the model does not predict the rows it did not "
+                         "see")
+    explained = (None if not tested and not assumed and held_out <= CV_NORM_MAX
+                 else not remaining)
     return {"explained": explained, "tests": tests, "chi2_dof_assumed": chi2_assumed,
+            "cv_norm_rms": held_out, "cv_norm_max": CV_NORM_MAX,
             "noise_scale": scale, "alpha": ALPHA, "noise_scale_max": NOISE_SCALE_MAX,
             "remaining": "; ".join(remaining)}
 

@@ -80,7 +80,9 @@ def plot_path(diag: Diagnosis, path: str | Path) -> Path:
     ax.set_ylabel("cy [px]")
     ax.legend(fontsize=7, loc="best")
     fig.colorbar(sc, ax=ax, label=ZOOM_LABEL, shrink=0.8)
-    ax.set_title(wrap_title(f"Principal point: measured vs simulated ({diag.table.source})",
+    against = ("simulated through the lens model" if diag.response is not None
+               else "a smooth path in log f (no lens model: nothing simulated)")
+    ax.set_title(wrap_title(f"Principal point: measured vs {against} ({diag.table.source})",
                             5.0), fontsize=9)
     fig.savefig(path)
     plt.close(fig)
@@ -209,8 +211,10 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
             f"{s['cause']} ({s['reason']})" for s in doc["skipped"])]
     lines += ["", f"Rule: {doc['selection']['rule']} (bic_margin "
               f"{doc['selection']['bic_margin']:g}).", "",
-              "Figures: `path.png` (measured vs simulated principal point), `residuals.png` "
-              "(residuals before and after the extension).", ""]
+              "Figures: `path.png` (the measured principal point against "
+              + ("the path simulated through the lens model" if diag.response is not None
+                 else "a smooth path in log f: no lens model, nothing simulated")
+              + "), `residuals.png` (residuals before and after the extension).", ""]
     return "\n".join(lines)
 
 
@@ -270,8 +274,9 @@ def _check_lines(check: dict) -> list[str]:
              + (f" ({check['remaining']})" if check["remaining"] else ""), ""]
     if check.get("noise_scale") is not None:
         lines += [f"Scatter {check['noise_scale']:.3g}x what the table's sigmas and the "
-                  f"tolerance file claim (limit {check['noise_scale_max']:g}); chi2/dof at that "
-                  f"noise {check['chi2_dof_assumed']:.3g}.", ""]
+                  f"tolerance file claim (the table's sigmas alone without a lens model; limit "
+                  f"{check['noise_scale_max']:g}); chi2/dof at that noise "
+                  f"{check['chi2_dof_assumed']:.3g}.", ""]
     lines += ["| structure left over | F | dof | p | significant |", "|---|---|---|---|---|"]
     for name, t in check["tests"].items():
         lines.append(f"| {name} | {t['F']:.3g} | {t['q']}, {t['dof']} | {t['p_value']:.2g} | "
