@@ -72,7 +72,7 @@ import numpy as np
 import scipy.optimize
 
 from ..pool import map_in_processes
-from .bundle import calibrate_bundle
+from .bundle import calibrate_bundle, fit_similarity
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 
@@ -380,12 +380,8 @@ def _off_plane_rms(X: np.ndarray, nominal: np.ndarray | None = None) -> float:
     if nominal is None:
         centred = X - X.mean(axis=0)
         return float(np.linalg.svd(centred, compute_uv=False)[-1] / math.sqrt(len(X)))
-    a, b = nominal - nominal.mean(axis=0), X - X.mean(axis=0)
-    u, sv, vt = np.linalg.svd(b.T @ a)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    R = u @ d @ vt
-    scale = float(np.trace(np.diag(sv) @ d) / np.sum(a**2))
-    return float(np.sqrt(np.mean(np.sum((b - scale * a @ R.T) ** 2, axis=1))))
+    scale, R, t = fit_similarity(nominal, X)
+    return float(np.sqrt(np.mean(np.sum((X - scale * nominal @ R.T - t) ** 2, axis=1))))
 
 
 # ----------------------------------------------------------------------------------------------

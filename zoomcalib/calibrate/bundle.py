@@ -173,6 +173,7 @@ import cv2
 import numpy as np
 import scipy.linalg
 import scipy.sparse
+from skimage.transform import SimilarityTransform
 
 from zoomcalib.calibrate.result import (
     DIST_NAMES,
@@ -611,7 +612,8 @@ def _shape_modes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    r"""Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991).
+    r"""Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991; scikit-image's
+    :class:`~skimage.transform.SimilarityTransform`).
 
     Parameters
     ----------
@@ -622,15 +624,17 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray,
     s : float
     R : (3, 3) ndarray
     t : (3,) ndarray
+
+    Raises
+    ------
+    ValueError
+        When the points do not determine a similarity (scikit-image's reason).
     """
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ np.diag(d) @ Vt
-    s = float((S * d).sum() / (a * a).sum() * len(src))
-    return s, R, md - s * R @ ms
+    fit = SimilarityTransform.from_estimate(np.asarray(src, float), np.asarray(dst, float))
+    if not fit:
+        raise ValueError(f"no similarity between the point sets: {fit}")
+    s = float(fit.scale)
+    return s, fit.params[:3, :3] / s, fit.params[:3, 3].copy()
 
 
 # --------------------------------------------------------------------------------------------
