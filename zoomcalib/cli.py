@@ -464,11 +464,19 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
               help="Centre of the distortion relative to the principal point, DX,DY px (OpenCV's "
                    "model, which calibration fits: 0,0).")
 @_testbed_options
+@click.option("--sharpen", help="The camera's sharpening, AMOUNT,SIGMA_PX: an unsharp mask "
+                                "(1 + AMOUNT) I - AMOUNT G_SIGMA * I on each frame, e.g. 0.8,1.2.")
+@click.option("--zoom-jitter", default=0.0, show_default=True, type=click.FloatRange(min=0),
+              help="A zoom that does not return: each view's focal length scaled by e^s, s of "
+                   "this sd (0.01: 1 %).")
+@click.option("--retape-at", type=click.IntRange(min=1),
+              help="Steps from this index (0-based) see the board re-taped: another waving "
+                   "surface, a session column in steps.csv.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
                  pp_span, pp_runout, lens, lensfun, dist_centre, wave, psf, airy_radius, halo,
-                 ellipse, jpeg_quality, seed, out):
+                 ellipse, jpeg_quality, sharpen, zoom_jitter, retape_at, seed, out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
     fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
@@ -479,7 +487,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
     path, poses and true points per step).
     """
     from .render.image import Radiometry
-    from .render.sweep import render_zoom_sweep
+    from .render.sweep import CaptureEffects, render_zoom_sweep
 
     _parse_target(pattern)
     fx = _two_numbers(fx_range, "--fx")
@@ -498,6 +506,14 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
     elif lensfun is not None:
         raise click.BadParameter("only with --lens", param_hint="--lensfun")
     lens_options["dist_centre_px"] = _two_numbers(dist_centre, "--dist-centre")
+    if retape_at is not None and retape_at >= steps:
+        raise click.BadParameter(f"{retape_at}: the sweep's steps are 0-{steps - 1}",
+                                 param_hint="--retape-at")
+    try:
+        effects = CaptureEffects(None if sharpen is None else _two_numbers(sharpen, "--sharpen"),
+                                 zoom_jitter, retape_at)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--sharpen") from None
     _check_out_folder(out)
     with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
         try:
@@ -506,7 +522,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                                     optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
                                     supersample=supersample, progress=bar.update,
                                     pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout,
-                                    **lens_options)
+                                    effects=effects, **lens_options)
         except RuntimeError as exc:
             raise click.ClickException(str(exc)) from None
     for st in doc["steps"]:

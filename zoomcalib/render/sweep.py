@@ -26,14 +26,25 @@ middle fifth of the image; a view is kept when every point lies 10 px inside the
 
 Layout written by :func:`render_zoom_sweep`::
 
-    OUT/steps.csv            step, zoom (= fx, px), sequence
+    OUT/steps.csv            step, zoom (= fx, px), sequence (and session, with a re-taping)
     OUT/truth.json           settings, board surface, the principal-point path
                              (``pp_path``: kind and its drawn errors), and per step:
                              zoom, K, dist, camera,
-                             psf_sigma_px, per view: file, rvec, tvec (board -> camera, mm),
-                             points_px (true, OpenCV convention), visible; render_s
+                             psf_sigma_px, board_session, per view: file, rvec, tvec (board ->
+                             camera, mm), points_px (true, OpenCV convention), visible,
+                             focal_scale (e^{s_v}); effects; render_s
                              (wall clock) and render_cpu_s (CPU time of the process)
     OUT/fx_NNNNN/view_YY.png (or .jpg)   NNNNN = fx rounded to px
+
+Capture effects
+---------------
+:class:`CaptureEffects` imitates what a real PTZ camera's set carries beside the lens: the
+camera's sharpening (an unsharp mask on the quantised frame, :func:`~zoomcalib.render.image.
+sharpen_image`), a zoom that does not return to the same focal length between views (each
+view's ``fx``, ``fy`` scaled by ``e^{s_v}``, ``s_v ~ N(0, zoom_jitter)``), and a paper board
+re-taped between capture sessions (the steps from ``retape_at`` on see a second board surface,
+drawn like the first; ``steps.csv`` then has a ``session`` column). Their draws come from seeds
+of their own, so a render without them is the same as before they existed.
 
 The folder names hold one number each (the rounded fx), so
 :func:`zoomcalib.calibrate.io.zoom_steps` reads the zoom from ``steps.csv`` (exact fx) or, without
@@ -44,7 +55,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -55,11 +66,19 @@ from ..camera import CameraModel, Sensor
 from ..io import write_csv, write_json
 from ..targets import Target, parse_pattern
 from .dataset import check_jpeg_quality, clear_previous_render, write_image
-from .image import BoardSurface, Optics, Radiometry, camera_mapping, project_points, render_image
+from .image import (
+    BoardSurface,
+    Optics,
+    Radiometry,
+    camera_mapping,
+    project_points,
+    render_image,
+    sharpen_image,
+)
 from .pp_path import PP_PATHS, bowed_path, traced_path
 
-__all__ = ["SWEEP_SENSOR", "sweep_cameras", "principal_point_path", "sweep_poses",
-           "render_zoom_sweep"]
+__all__ = ["SWEEP_SENSOR", "CaptureEffects", "sweep_cameras", "principal_point_path",
+           "sweep_poses", "render_zoom_sweep"]
 
 SWEEP_SENSOR = Sensor(1280, 720, 0.003)  # a video camera's frame, 3 um pixels
 MARGIN_PX = 10.0
@@ -120,6 +139,28 @@ def principal_point_path(fx_range: tuple[float, float], steps: int, kind: str = 
     return fx, path, record
 
 
+@dataclass(frozen=True)
+class CaptureEffects:
+    """What a real capture adds to the lens (module docstring, Capture effects).
+
+    ``sharpen``: ``(amount, sigma_px)`` of the camera's unsharp mask, or None; ``zoom_jitter``:
+    sd of each view's log focal scale ``s_v`` (0: none); ``retape_at``: index of the first step
+    that sees the re-taped board (None: one board for the sweep)."""
+
+    sharpen: tuple[float, float] | None = None
+    zoom_jitter: float = 0.0
+    retape_at: int | None = None
+
+    def __post_init__(self):
+        if self.sharpen is not None and not (self.sharpen[0] >= 0 and self.sharpen[1] > 0):
+            raise ValueError(f"sharpen {self.sharpen}: give AMOUNT >= 0 and SIGMA_PX > 0")
+        if not self.zoom_jitter >= 0:
+            raise ValueError(f"zoom_jitter {self.zoom_jitter}: give an sd >= 0")
+        if self.retape_at is not None and self.retape_at < 1:
+            raise ValueError(f"retape_at {self.retape_at}: the first re-taped step's index, "
+                             ">= 1")
+
+
 def _rotation(axis_angle) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis_angle, dtype=float).reshape(3, 1))[0]
 
@@ -175,7 +216,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
                       fill: float = 0.7, tilt_deg: tuple[float, float] = (40.0, 3.0),
                       supersample: int = 3, pixel_pitch_mm: float = 0.003,
                       progress: Callable[[int], None] | None = None,
-                      distortion_source: dict | None = None, **camera_options) -> dict:
+                      distortion_source: dict | None = None,
+                      effects: CaptureEffects | None = None, **camera_options) -> dict:
     """Render a zoom sweep (layout and conventions in the module docstring).
 
     Parameters
@@ -200,6 +242,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     distortion_source : dict, optional
         Where a ``dist`` given in ``camera_options`` comes from (e.g. a lensfun lens), written
         to ``truth.json`` as ``distortion``.
+    effects : CaptureEffects, optional
+        Sharpening, zoom jitter per view and a re-taped board (module docstring).
     **camera_options
         ``pp_offset_px``, ``pp_drift_px``, ``k1_short``, ``pp_path``, ``pp_span_px``,
         ``pp_runout``, ``dist``, ``dist_centre_px`` of :func:`sweep_cameras`; a traced path is
@@ -219,7 +263,13 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
     target = parse_pattern(pattern)
     # the path's seed is one child more than the board's and the steps': earlier renders stay
-    surface_seed, *step_seeds, path_seed = np.random.SeedSequence(seed).spawn(steps + 2)
+    children = np.random.SeedSequence(seed).spawn(steps + 4)
+    surface_seed, *step_seeds, path_seed = children[:steps + 2]
+    retape_seed, jitter_seed = children[steps + 2:]
+    effects = effects or CaptureEffects()
+    if effects.retape_at is not None and effects.retape_at >= steps:
+        raise ValueError(f"retape_at {effects.retape_at}: the sweep has {steps} steps")
+    jitter = np.random.default_rng(jitter_seed)
     camera_options.setdefault("pp_seed", path_seed)
     cameras = sweep_cameras(fx_range, steps, sensor, **camera_options)
     path_options = {k[3:]: camera_options[k] for k in ("pp_drift_px", "pp_span_px", "pp_runout",
@@ -230,6 +280,12 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     if isinstance(board_surface, int | float):
         surface = BoardSurface.random(target.extent_mm, float(board_surface),
                                       np.random.default_rng(surface_seed))
+    surfaces = [surface]
+    if effects.retape_at is not None:  # the same kind of board, waving otherwise
+        amplitude = (float(board_surface) if isinstance(board_surface, int | float)
+                     else max((abs(m[0]) for m in getattr(surface, "modes", ())), default=0.5))
+        surfaces.append(BoardSurface.random(target.extent_mm, amplitude or 0.5,
+                                            np.random.default_rng(retape_seed)))
     out = Path(out)
     clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -239,21 +295,28 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         rng = np.random.default_rng(step_seeds[i])
         name = f"fx_{round(cam.fx):05d}"
         (out / name).mkdir(exist_ok=True)
-        mapping = camera_mapping(cam)
+        session = int(effects.retape_at is not None and i >= effects.retape_at)
         view_docs = []
         for j, (R, t) in enumerate(sweep_poses(target, cam, views, max_tilt[i], rng, fill)):
-            view = render_image(target, mapping, R, t, sensor, optics, radiometry, rng,
-                                supersample, surface=surface)
-            file = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality)
-            view_docs.append({"file": f"{name}/{file.name}", **view.truth_dict()})
+            scale = float(np.exp(jitter.normal(0.0, effects.zoom_jitter)))
+            seen = cam if scale == 1.0 else replace(cam, fx=cam.fx * scale, fy=cam.fy * scale)
+            view = render_image(target, camera_mapping(seen), R, t, sensor, optics, radiometry,
+                                rng, supersample, surface=surfaces[session])
+            image = view.image if effects.sharpen is None else sharpen_image(view.image,
+                                                                             *effects.sharpen)
+            file = write_image(out / name / f"view_{j:02d}", image, jpeg_quality)
+            view_docs.append({"file": f"{name}/{file.name}", **view.truth_dict(),
+                              "focal_scale": scale})
             if progress is not None:
                 progress(1)
         doc_steps.append({"step": name, "zoom": cam.fx, "K": cam.K.tolist(),
                           "dist": cam.dist.tolist(), "camera": cam.to_dict(),
-                          "max_tilt_deg": float(max_tilt[i]),
+                          "max_tilt_deg": float(max_tilt[i]), "board_session": session,
                           "psf_sigma_px": float(view.sigma_px), "views": view_docs})
-        rows.append({"step": name, "zoom": cam.fx, "sequence": i})
-    write_csv(out / "steps.csv", rows, ["step", "zoom", "sequence"])
+        rows.append({"step": name, "zoom": cam.fx, "sequence": i}
+                    | ({"session": f"board{session + 1}"} if len(surfaces) > 1 else {}))
+    write_csv(out / "steps.csv", rows, ["step", "zoom", "sequence"]
+              + (["session"] if len(surfaces) > 1 else []))
     doc = {
         "format": "zoomcalib-sweep-truth", "zoomcalib_version": __version__,
         "pattern": pattern, "sensor": asdict(sensor), "seed": seed,
@@ -261,6 +324,8 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         "optics": asdict(optics), "radiometry": asdict(radiometry),
         "supersample": supersample, "jpeg_quality": jpeg_quality,
         "board_surface": None if surface is None else surface.to_dict(),
+        "board_surfaces": [None if b is None else b.to_dict() for b in surfaces],
+        "effects": asdict(effects),
         "pp_path": path_record,
         "distortion": {**(distortion_source or (
             {"kind": "fading", "k1_short": camera_options.get("k1_short", -0.12)}
