@@ -390,7 +390,7 @@ def test_distortion_map_and_board_outlines():
     np.testing.assert_allclose(outline[0, 4], outline[0, 0])
 
 
-def test_fix_holds_intrinsics_in_the_per_step_opencv_fits(rendered, tmp_path):
+def test_fix_holds_intrinsics_per_step_and_zoom_wide(rendered, tmp_path):
     import json
 
     out = tmp_path / "fix"
@@ -407,9 +407,21 @@ def test_fix_holds_intrinsics_in_the_per_step_opencv_fits(rendered, tmp_path):
         assert (K[0, 2], K[1, 2]) == (319.5, 239.5)  # the 640 x 480 image's centre
         assert K[0, 0] == K[1, 1] and e["dist"][4] == 0.0
         assert e["sd"]["cx"] == 0.0 and e["sd"]["k3"] == 0.0
-    # not where it cannot hold: the zoom-wide adjustment, the bundle
-    for extra in ([], ["--per-step", "--backend", "bundle"]):
-        res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern",
-                                        "chessboard:9x6:25", "--fix", "k3", *extra,
-                                        "--out", str(tmp_path / "no")])
-        assert res.exit_code == 2 and "--fix" in res.output, res.output
+    # the zoom-wide adjustment holds them too
+    out = tmp_path / "fix_zoom_wide"
+    res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern", "chessboard:9x6:25",
+                                    "--fix", "principal-point", "--fix", "tangential",
+                                    "--workers", "1", "--out", str(out)])
+    assert res.exit_code in (0, 3), res.output
+    doc = json.loads((out / "calibration.json").read_text())
+    rows = [by_backend["zoom-wide"] for by_backend in doc["steps"].values()]
+    assert len(rows) == len(doc["steps"]) >= 2
+    for e in rows:
+        K = np.array(e["K"])
+        assert (K[0, 2], K[1, 2]) == (319.5, 239.5) and e["dist"][2:4] == [0.0, 0.0]
+        assert {"cx", "cy", "p1", "p2"} <= set(e["info"]["fixed"])
+    # not where it cannot hold: the bundle
+    res = CliRunner().invoke(main, ["calibrate", str(rendered), "--pattern",
+                                    "chessboard:9x6:25", "--fix", "k3", "--per-step",
+                                    "--backend", "bundle", "--out", str(tmp_path / "no")])
+    assert res.exit_code == 2 and "--fix" in res.output, res.output

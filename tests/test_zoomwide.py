@@ -683,3 +683,27 @@ def test_the_steps_own_fits_in_two_processes_give_the_same_adjustment(rng):
     for step in obs:
         np.testing.assert_array_equal(one.results[step].K, two.results[step].K)
         np.testing.assert_array_equal(one.results[step].dist, two.results[step].dist)
+
+
+def test_held_intrinsics_stay_held_and_the_rest_is_recovered():
+    # a camera whose principal point is the image centre, with square pixels and no decentring
+    # or k3: holding them is then right, and the rest must be found as well as when free
+    rng = np.random.default_rng(12)
+    centre = np.array([(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2])
+    obs, truth, _ = sweep_observations(rng, steps=5, views=9,
+                                       pp=lambda u: np.tile(centre, (len(u), 1)))
+    held = calibrate_zoom_wide(obs, fixed=("principal-point", "aspect", "tangential", "k3"))
+    free = calibrate_zoom_wide(obs)
+    for name, r in held.results.items():
+        assert (r.cx, r.cy) == tuple(centre) and r.fy == r.fx
+        assert not np.any(r.dist[2:]), r.dist
+        assert {"cx", "cy", "p1", "p2", "k3"} <= set(r.info["fixed"])
+        assert r.info["basin"]["why"] == "the principal point is held"
+        z = (r.fx - truth[name]["fx"]) / r.sd["fx"]
+        assert abs(z) < 4, (name, r.fx, truth[name]["fx"], r.sd["fx"])
+        # fewer unknowns, no wider a sigma than the free adjustment's (small slack: the
+        # view-scatter factors are re-estimated)
+        assert r.sd["fx"] <= 1.2 * free.results[name].sd["fx"]
+    assert held.aspect == 1.0 and held.aspect_sd == 0.0
+    with pytest.raises(ValueError, match="cannot fix 'skew'"):
+        calibrate_zoom_wide(obs, fixed=("skew",))

@@ -650,9 +650,9 @@ def detect(folder, pattern, methods, workers, out):
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")
 @click.option("--fix", "fixed", multiple=True,
               type=click.Choice(["principal-point", "aspect", "k1", "k2", "k3", "tangential"]),
-              help="Hold an intrinsic fixed in the per-step OpenCV fits (repeat for more): the "
-                   "principal point at the image centre, fy/fx at 1, k1, k2, k3 or p1, p2 at "
-                   "0. With --per-step (a single image set is one) and --backend opencv.")
+              help="Hold an intrinsic fixed (repeat for more): the principal point at the "
+                   "image centre, fy/fx at 1, k1, k2, k3 or p1, p2 at 0. In the zoom-wide "
+                   "adjustment and the OpenCV fits; not with the bundle backend.")
 @click.option("--method", type=click.Choice(["sb", "classic", "circles", "charuco", "model"]),
               help="Detector; default: the target's usual one.")
 @click.option("--workers", default=0, show_default=True, type=click.IntRange(min=0),
@@ -699,9 +699,6 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     per_step = per_step or len(steps) < 2  # one set of images: nothing to adjust zoom-wide
     backend = backend or ("both" if per_step and not fixed else "opencv")
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
-    if fixed and not per_step:
-        raise click.BadParameter("the zoom-wide adjustment estimates every intrinsic; use "
-                                 "--per-step with --fix", param_hint="--fix")
     if fixed and backend != "opencv":
         raise click.BadParameter(f"the {backend} backend estimates every intrinsic; use "
                                  "--backend opencv with --fix", param_hint="--fix")

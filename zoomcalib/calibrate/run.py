@@ -100,7 +100,8 @@ class CalibrateRun:
     ``flags`` per step the full texts of its flags, ``flag_records`` the same as
     :class:`~zoomcalib.calibrate.checks.Flag` records (severity, few words, one action), the
     most severe first (:func:`set_step_flags`); ``step_dirs`` each step's image folder;
-    ``fix_flags`` OpenCV's flags of the intrinsics the per-step fits hold fixed.
+    ``fixed`` the intrinsics held (names of :data:`~zoomcalib.calibrate.opencv_backend.
+    FIXABLE`) and ``fix_flags`` OpenCV's flags for them in the per-step fits.
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -123,6 +124,7 @@ class CalibrateRun:
     flags: dict[str, list[str]] = field(default_factory=dict)
     flag_records: dict[str, list] = field(default_factory=dict)
     step_dirs: dict[str, Path] = field(default_factory=dict)
+    fixed: tuple[str, ...] = ()
     fix_flags: int = 0
     skipped_images: dict[str, list[str]] = field(default_factory=dict)
     zoom_source: dict[str, str | None] = field(default_factory=dict)
@@ -300,10 +302,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         height for every point (``points``), or the modes alone (``modes``;
         ``board_points`` of :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
     fixed : tuple of str
-        Intrinsics the per-step OpenCV fits hold (keys of
+        Intrinsics the per-step OpenCV fits and the zoom-wide adjustment hold (keys of
         :data:`~zoomcalib.calibrate.opencv_backend.FIXABLE`: the principal point at the image
-        centre, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0). Only with the
-        OpenCV backend alone and no zoom-wide adjustment (ValueError otherwise).
+        centre, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0). Not with the
+        bundle backend (ValueError).
 
     Returns
     -------
@@ -312,10 +314,12 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     target: Target = parse_pattern(pattern)
     out = Path(out)
     steps = zoom_steps(folder)
-    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fix_flags=fix_flags(fixed))
-    if fixed and (zoom_wide and len(steps) > 1 or set(backends) - {"opencv"}):
-        raise ValueError(f"fixed {', '.join(fixed)}: only the per-step OpenCV backend holds "
-                         "intrinsics fixed (--per-step --backend opencv)")
+    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fixed=tuple(fixed),
+                       fix_flags=fix_flags(fixed))
+    if fixed and set(backends) - {"opencv"}:
+        raise ValueError(f"fixed {', '.join(fixed)}: the bundle estimates every intrinsic; "
+                         "the OpenCV backend and the zoom-wide adjustment hold them "
+                         "(--backend opencv)")
     every_file = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
     run.step_dirs = {step: Path(step_dir) for step, step_dir, _, _ in steps}
     _start_output_folder(out, run, every_file)
@@ -714,7 +718,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
                if run.results.get(s) else o for s, o in obs.items()}
     try:
         zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions,
-                                 workers=workers, board_points=board_points)
+                                 workers=workers, board_points=board_points, fixed=run.fixed)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -749,6 +753,7 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
         return cross_validate(run.observations,
                               lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
                                                             sessions=sessions,
+                                                            fixed=run.fixed,
                                                             workers=workers,
                                                             board_points=board_points).results,
                               backend)

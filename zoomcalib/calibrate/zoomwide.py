@@ -467,9 +467,10 @@ class _State:
     aspect: float = float("nan")
     heights: np.ndarray | None = None
 
-    def vector(self, free: np.ndarray) -> np.ndarray:
-        """The unknowns in column order (``free`` (S, 12) selects the free intrinsics)."""
-        shared = [] if np.isnan(self.aspect) else [self.aspect]
+    def vector(self, free: np.ndarray, aspect_free: bool = True) -> np.ndarray:
+        """The unknowns in column order (``free`` (S, 12) selects the free intrinsics; the
+        shared aspect ratio is one unless it is held, ``aspect_free`` False)."""
+        shared = [] if np.isnan(self.aspect) or not aspect_free else [self.aspect]
         return np.concatenate([self.cams[free], self.modes, shared,
                                np.column_stack([self.rvecs, self.tvecs]).ravel()])
 
@@ -523,7 +524,7 @@ class _ZoomProblem:
                  tau: dict[str, float],
                  board_prior_mm: float, order: dict[str, int] | None = None,
                  forms: dict[str, _Form] | None = None, shared_aspect: bool = False,
-                 session: np.ndarray | None = None):
+                 session: np.ndarray | None = None, aspect_held: bool = False):
         self.steps, self.board, self.phi = steps, board, modes_basis
         # each step's board session: its own height amplitudes (``n_basis`` per session)
         self.session = (np.zeros(len(steps), int) if session is None
@@ -537,8 +538,9 @@ class _ZoomProblem:
         self.n_basis = modes_basis.shape[1]
         self.n_modes = self.n_basis * (int(self.session.max()) + 1)
         self.shared_aspect = shared_aspect
-        self.aspect_col = self.n_cam + self.n_modes if shared_aspect else -1
-        self.n_glob = self.n_cam + self.n_modes + int(shared_aspect)
+        aspect_free = shared_aspect and not aspect_held
+        self.aspect_col = self.n_cam + self.n_modes if aspect_free else -1
+        self.n_glob = self.n_cam + self.n_modes + int(aspect_free)
         self.view_start = np.cumsum([0] + [s.n_views for s in steps])
         self.n_unknowns = self.n_glob + 6 * int(self.view_start[-1])
         self.prior_rows = self._prior_rows()
@@ -594,7 +596,7 @@ class _ZoomProblem:
                 self._jacobian_entries(s, step, out[1:], row0, rows, cols, vals, state)
             row0 += 2 * int(sel.sum())
         r = np.concatenate(res)
-        x = state.vector(self.free)
+        x = state.vector(self.free, self.aspect_col >= 0)
         prior = self.prior_rows @ x
         r = np.concatenate([r, prior])
         if not jacobian:
@@ -614,7 +616,7 @@ class _ZoomProblem:
             Jc = Jc.copy()
             Jc[:, :, 0] += state.aspect * Jc[:, :, 1]
         blocks, cols = [Jc[:, :, free]], [self.cam_col[s, free]]
-        if self.shared_aspect:
+        if self.aspect_col >= 0:
             blocks.append(state.cams[s, 0] * Jc[:, :, 1:2])
             cols.append(np.array([self.aspect_col]))
         if self.n_basis:
@@ -675,7 +677,7 @@ class _ZoomProblem:
             GP = by_view @ np.einsum("nik,nij->nkj", G, P).reshape(len(views), -1)
             W[cols, v0:v1] += GP.reshape(n_local, len(cols), 6).transpose(1, 0, 2)
         r = np.concatenate(res)
-        prior = self.prior_rows @ state.vector(self.free)
+        prior = self.prior_rows @ state.vector(self.free, self.aspect_col >= 0)
         glob = self.prior_rows[:, :self.n_glob]
         U += (glob.T @ glob).toarray()
         g_glob += glob.T @ prior
@@ -687,8 +689,9 @@ class _ZoomProblem:
         cams[self.free] += delta[:self.n_cam]
         modes = state.modes + delta[self.n_cam:self.n_cam + self.n_modes]
         aspect = state.aspect
-        if self.shared_aspect:
+        if self.aspect_col >= 0:
             aspect = float(aspect + delta[self.aspect_col])
+        if self.shared_aspect:
             cams[:, 1] = aspect * cams[:, 0]
         pose = delta[self.n_glob:].reshape(-1, 6)
         return _State(cams, modes, state.rvecs + pose[:, :3], state.tvecs + pose[:, 3:],
@@ -862,27 +865,29 @@ def _map_steps(function, items: list, workers: int) -> list:
     return map_in_processes(function, items, workers)
 
 
-def _initial_step(name: str, obs: Observations, select: bool, decentring: bool):
+def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
+                  held_terms: tuple[str, ...] = ()):
     """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
-    it could not be started or None)``."""
-    seed = _robust_start(obs)
+    it could not be started or None)``; no term of ``held_terms`` is chosen."""
+    seed = _robust_start(obs, held_terms)
     held = select_distortion(obs, start=seed) if select else None
-    terms = {name: (with_decentring(held.terms, decentring) if select
-                    else DISTORTION_SETS["k1k2p1p2k3"])}
+    terms = {name: _without(with_decentring(held.terms, decentring) if select
+                            else DISTORTION_SETS["k1k2p1p2k3"], held_terms)}
     try:
-        return terms[name], held, _opencv_start(name, obs, terms, seed), None
+        return terms[name], held, _opencv_start(name, obs, terms, seed, held_terms), None
     except ValueError as exc:
         return terms[name], held, None, str(exc)
 
 
 def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
-             workers: int = 1):
+             workers: int = 1, held_terms: tuple[str, ...] = ()):
     """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
     step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
     start from :func:`_robust_start`, not from OpenCV's own start. Steps run in ``workers``
     processes."""
     terms, held, init, skipped = {}, {}, {}, {}
-    items = [(name, obs, select, decentring) for name, obs in observations.items()]
+    items = [(name, obs, select, decentring, held_terms)
+             for name, obs in observations.items()]
     for (name, *_), (term, choice, start, why) in zip(
             items, _map_steps(_initial_step, items, workers), strict=True):
         terms[name] = term
@@ -895,18 +900,21 @@ def _initial(observations: Mapping[str, Observations], select: bool, decentring:
     return terms, held, init, skipped
 
 
-def _robust_start(obs: Observations) -> CalibrationResult | None:
-    """A calibration with k1 that does not depend on OpenCV's own start
+def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
+                  ) -> CalibrationResult | None:
+    """A calibration with k1 (unless held) that does not depend on OpenCV's own start
     (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried),
     or None when no start gives a camera."""
     try:
-        return calibrate_opencv_robust(obs, flags=_distortion_flags(("k1",)))
+        return calibrate_opencv_robust(obs, flags=_distortion_flags(
+            _without(("k1",), held_terms)))
     except (ValueError, RuntimeError):
         return None
 
 
 def _opencv_start(name: str, obs: Observations, terms: dict,
-                  seed: CalibrationResult | None = None) -> CalibrationResult:
+                  seed: CalibrationResult | None = None, held_terms: tuple[str, ...] = ()
+                  ) -> CalibrationResult:
     """OpenCV with the step's chosen terms, then with k1 alone, then with no distortion (a
     long-end step whose distortion OpenCV cannot separate): the start the adjustment then
     improves. Each from OpenCV's own start and from ``seed`` (:func:`_robust_start`), the
@@ -916,7 +924,7 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
     (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_multistart`).
     ``terms[name]`` is set to the set used; ValueError when no set gives a camera."""
     reasons = []
-    for attempt in dict.fromkeys((terms[name], ("k1",), ())):
+    for attempt in dict.fromkeys((terms[name], _without(("k1",), held_terms), ())):
         flags = _distortion_flags(attempt)
         candidates, reason = [], "no start"
         guesses = [{}] + ([] if seed is None else [_guess(seed, attempt)])
@@ -934,6 +942,25 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
             return min(candidates, key=lambda r: r.rms_px)
         reasons.append(f"{'+'.join(attempt) or 'no distortion'}: {reason}")
     raise ValueError(f"step {name}: no starting calibration ({'; '.join(reasons)})")
+
+
+#: The intrinsics ``fixed`` of :func:`calibrate_zoom_wide` can hold, as the per-step OpenCV
+#: backend's (:data:`~zoomcalib.calibrate.opencv_backend.FIXABLE`), and the distortion terms
+#: each holds at zero.
+FIXABLE = {"principal-point": (), "aspect": (), "k1": ("k1",), "k2": ("k2",), "k3": ("k3",),
+           "tangential": ("p1", "p2")}
+
+
+def _held_terms(fixed: tuple[str, ...]) -> tuple[str, ...]:
+    """The distortion terms ``fixed`` holds at zero; ValueError naming an unknown name."""
+    for name in fixed:
+        if name not in FIXABLE:
+            raise ValueError(f"cannot fix {name!r}; choose from {', '.join(FIXABLE)}")
+    return tuple(t for name in fixed for t in FIXABLE[name])
+
+
+def _without(terms: tuple[str, ...], held_terms: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(t for t in terms if t not in held_terms)
 
 
 def _free_mask(names: list[str], terms: Mapping[str, tuple[str, ...]]) -> np.ndarray:
@@ -1114,7 +1141,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         prior_strength: Mapping[str, float] | None = None,
                         decentring: bool = True, shared_aspect: bool = True,
                         sessions: Mapping[str, str] | None = None,
-                        workers: int = 1) -> ZoomWideResult:
+                        fixed: tuple[str, ...] = (), workers: int = 1) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -1160,6 +1187,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         The capture session of each step: steps of different sessions see boards of their
         own shape (a paper board re-taped between sessions), steps of one session share
         it. Default: one session.
+    fixed : tuple of str
+        Intrinsics held at every step (keys of :data:`FIXABLE`, as OpenCV's ``CALIB_FIX_*``
+        flags of the per-step fits): the principal point at the image centre ``((w - 1) / 2,
+        (h - 1) / 2)``, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0. A held
+        principal point skips the basin check; a held term is never chosen.
     workers : int
         Processes for the steps' own OpenCV fits (the distortion-term choice by held-out views
         and the starts); the results do not depend on it.
@@ -1175,17 +1207,26 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         steps are given.
     """
     _check_options(pp_model, prior_strength)
+    held_terms = _held_terms(tuple(fixed))
     board = _common_board(observations)
-    terms, held, init, skipped = _initial(observations, select, decentring, workers)
+    terms, held, init, skipped = _initial(observations, select, decentring, workers,
+                                          held_terms)
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
                          + "; ".join(skipped.values()))
     state, free, sds = _start(init, terms)
-    if shared_aspect:  # started at the median of the steps' own ratios
-        state.aspect = float(np.median(state.cams[:, 1] / state.cams[:, 0]))
+    aspect_held = "aspect" in fixed
+    shared_aspect = shared_aspect or aspect_held
+    if shared_aspect:  # started at the median of the steps' own ratios, or held at 1
+        state.aspect = 1.0 if aspect_held else float(np.median(state.cams[:, 1]
+                                                                / state.cams[:, 0]))
         state.cams[:, 1] = state.aspect * state.cams[:, 0]
         free[:, 1] = False
+    if "principal-point" in fixed:
+        w, h = observations[names[0]].image_size
+        state.cams[:, 2:4] = (w - 1) / 2.0, (h - 1) / 2.0
+        free[:, 2:4] = False
     u = np.log(state.cams[:, 0])
     chain_idx = _chains(u, [str((chains or {}).get(n, "")) for n in names])
     phi = (board_height_modes(board, board_degree) if board_degree >= 2
@@ -1202,12 +1243,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
         return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
-                            order, forms, shared_aspect, session)
+                            order, forms, shared_aspect, session, aspect_held)
 
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
         problem, state, free, max_rounds, observations, bool(select and phi.shape[1]), init,
-        terms, held, decentring, workers)
+        terms, held, decentring, workers, held_terms)
     forms = _Form.of(pp_model, np.exp(u),
                      0.5 * np.hypot(*observations[names[0]].image_size))
     if joint_cov is not None:
@@ -1241,7 +1282,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
             r.info["prior_share"] = _prior_share(r, joint_cov, s)
-    _add_model_choice_spread(result, observations, held, decentring)
+    _add_model_choice_spread(result, observations, held, decentring, held_terms)
     return result
 
 
@@ -1251,7 +1292,8 @@ OTHER_MODEL_MIN_WEIGHT = 0.01
 
 
 def _add_model_choice_spread(result: ZoomWideResult, observations: Mapping[str, Observations],
-                             held: Mapping[str, TermChoice], decentring: bool = True) -> None:
+                             held: Mapping[str, TermChoice], decentring: bool = True,
+                             held_terms: tuple[str, ...] = ()) -> None:
     """Where a step's choice between the rational model and five terms is uncertain, add what
     the other model would change to the variance of the step's fx, fy, cx, cy (in ``sd`` and
     the joint covariance's diagonal), as model averaging does (Buckland, Burnham & Augustin
@@ -1275,9 +1317,12 @@ def _add_model_choice_spread(result: ZoomWideResult, observations: Mapping[str, 
         other = RATIONAL_TERMS if not choice.rational else DISTORTION_SETS[choice.five_terms]
         record: dict = {"other": "rational" if not choice.rational else choice.five_terms,
                         "weight": weight}
+        sets = [_without(with_decentring(t, decentring), held_terms)
+                for t in (choice.terms, other)]
+        if sets[0] == sets[1]:
+            continue
         try:
-            shift = _model_shift(observations[name], res,
-                                 [with_decentring(t, decentring) for t in (choice.terms, other)])
+            shift = _model_shift(observations[name], res, sets)
         except RuntimeError as exc:
             res.info["model_choice"] = record | {"shift": None, "why": str(exc)}
             continue
@@ -1317,6 +1362,8 @@ def _prior_share(result: CalibrationResult, joint_cov, s: int) -> dict[str, floa
     sd = result.info.get("sd_noise_model", result.sd)
     out = {}
     for q in SELECTED:
+        if not sd.get(q):  # held
+            continue
         var0 = float(joint_cov([s], PARAMS.index(q))[0, 0])
         out[q] = float(np.clip(1.0 - sd[q] ** 2 / var0, 0.0, 1.0))
     return out
@@ -1351,7 +1398,8 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
 def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
                       observations: Mapping[str, Observations], reselect: bool,
                       init: Mapping[str, CalibrationResult], terms: dict, held: dict,
-                      decentring: bool = True, workers: int = 1):
+                      decentring: bool = True, workers: int = 1,
+                      held_terms: tuple[str, ...] = ()):
     """The solve without the smoothness prior (``problem(free)`` builds it). With
     ``reselect`` the distortion terms are then chosen again on the board's estimated shape
     (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
@@ -1366,15 +1414,18 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
     if reselect and _select_on_board(
             observations, init, [unsmoothed.points(solve.state, s)
                                  for s in range(len(init))], terms, held, decentring,
-            workers):
+            workers, held_terms):
         free = _free_mask(list(init), terms)
-        free[:, 1] = not unsmoothed.shared_aspect
+        free[:, 1:4] = unsmoothed.free[:, 1:4]  # fy, cx, cy as they were (shared or held)
         state = solve.state
         state.cams[:, 4:][~free[:, 4:]] = 0.0
         unsmoothed = problem(free)
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
         iterations += more
-    basins = _move_to_best_basins(unsmoothed, solve.state, observations, workers)
+    if unsmoothed.free[:, 2].any():
+        basins = _move_to_best_basins(unsmoothed, solve.state, observations, workers)
+    else:
+        basins = [BasinCheck(None, False, why="the principal point is held")] * len(init)
     if any(b.moved for b in basins):
         state = solve.state
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
@@ -1447,7 +1498,8 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
 def _select_on_board(observations: Mapping[str, Observations],
                      init: Mapping[str, CalibrationResult], board_points: list[np.ndarray],
                      terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice],
-                     decentring: bool = True, workers: int = 1) -> bool:
+                     decentring: bool = True, workers: int = 1,
+                     held_terms: tuple[str, ...] = ()) -> bool:
     """Choose each started step's distortion terms again, by held-out views on the board's
     estimated shape (``board_points``, one (n, 3) array per step of ``init``, in its order;
     :func:`select_distortion`, steps in ``workers`` processes); ``terms`` and ``held`` are
@@ -1459,8 +1511,9 @@ def _select_on_board(observations: Mapping[str, Observations],
         if not choice.excess_se_px2:
             continue  # too few views, or no set could be fitted: keep the flat-board choice
         held[name] = choice
-        changed |= with_decentring(choice.terms, decentring) != terms[name]
-        terms[name] = with_decentring(choice.terms, decentring)
+        chosen = _without(with_decentring(choice.terms, decentring), held_terms)
+        changed |= chosen != terms[name]
+        terms[name] = chosen
     return changed
 
 
@@ -1667,8 +1720,8 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel],
             "covariance_ridge": prob.covariance_ridge,
         })
     modes_sd = np.sqrt(np.diag(cov)[n_cam:n_cam + n_modes])
-    aspect_sd = (float(np.sqrt(cov[prob.aspect_col, prob.aspect_col])) if prob.shared_aspect
-                 else float("nan"))
+    aspect_sd = (float(np.sqrt(cov[prob.aspect_col, prob.aspect_col])) if prob.aspect_col >= 0
+                 else 0.0 if prob.shared_aspect else float("nan"))
     return ZoomWideResult(results, cov[:n_cam, :n_cam], columns, state.modes.copy(), modes_sd,
                           tau, terms, held, solve.converged, solve.stop_reason, iterations,
                           zoom_models={k: m.to_dict() for k, m in models.items()},
@@ -1694,7 +1747,9 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
     sd = {p: float(np.sqrt(cov[cols[j], cols[j]])) if cols[j] >= 0 else 0.0
           for j, p in enumerate(reported)}
     shared = prob.shared_aspect and cols[0] >= 0
-    if shared:  # fy = a fx: var = a^2 var fx + fx^2 var a + 2 a fx cov(fx, a)
+    if shared and prob.aspect_col < 0:  # fy = a fx, a held
+        sd["fy"] = float(state.aspect * np.sqrt(cov[cols[0], cols[0]]))
+    elif shared:  # fy = a fx: var = a^2 var fx + fx^2 var a + 2 a fx cov(fx, a)
         i, k, a = cols[0], prob.aspect_col, state.aspect
         sd["fy"] = float(np.sqrt(max(a * a * cov[i, i] + fx * fx * cov[k, k]
                                      + 2 * a * fx * cov[i, k], 0.0)))
