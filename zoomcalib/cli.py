@@ -702,9 +702,6 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     if fixed and backend != "opencv":
         raise click.BadParameter(f"the {backend} backend estimates every intrinsic; use "
                                  "--backend opencv with --fix", param_hint="--fix")
-    if model != "standard" and not per_step:
-        raise click.BadParameter(f"the zoom-wide adjustment fits the standard model; use "
-                                 f"--per-step with --model {model}", param_hint="--model")
     if camera_name is not None and not re.fullmatch(r"[A-Za-z0-9_]+", camera_name):
         raise click.BadParameter(f"{camera_name!r}: ROS camera names are letters, digits and _",
                                  param_hint="--camera-name")

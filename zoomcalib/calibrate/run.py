@@ -274,8 +274,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         Receives one-line messages (skipped images and steps).
     zoom_wide : bool
         For a zoom set of 2 or more steps, also calibrate all steps together
-        (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`; the rational model only where a
-        step's held-out views choose it); its
+        (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`; with ``model`` standard the
+        rational model only where a step's held-out views choose it, with rational at every
+        step); its
         results (backend ``"zoom-wide"``) make the zoom table. ``backends`` still run per step.
     cross_validate : bool
         Calibrate the even and the odd images of every step apart, as the table's backend did,
@@ -706,11 +707,6 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     a failure is logged and recorded (the per-step results stay)."""
     from .zoomwide import calibrate_zoom_wide
 
-    if model != "standard":
-        run.failures.append(f"zoom-wide: the {model} model is not supported; the table uses "
-                            "the per-step results (use --per-step to silence this)")
-        log(run.failures[-1])
-        return
     obs = dict(run.observations)
     if len(target.discs):  # dot centres: corrected with each step's own calibration first
         radius = float(target.discs[0, 2])
@@ -718,7 +714,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
                if run.results.get(s) else o for s, o in obs.items()}
     try:
         zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions,
-                                 workers=workers, board_points=board_points, fixed=run.fixed)
+                                 workers=workers, board_points=board_points, fixed=run.fixed,
+                                 model=model)
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -753,7 +750,7 @@ def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str
         return cross_validate(run.observations,
                               lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
                                                             sessions=sessions,
-                                                            fixed=run.fixed,
+                                                            fixed=run.fixed, model=model,
                                                             workers=workers,
                                                             board_points=board_points).results,
                               backend)

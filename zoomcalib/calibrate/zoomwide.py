@@ -866,13 +866,15 @@ def _map_steps(function, items: list, workers: int) -> list:
 
 
 def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
-                  held_terms: tuple[str, ...] = ()):
+                  held_terms: tuple[str, ...] = (), model: str = "standard"):
     """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
-    it could not be started or None)``; no term of ``held_terms`` is chosen."""
+    it could not be started or None)``; no term of ``held_terms`` is chosen. Without
+    ``select`` the terms are ``model``'s all (five, or the rational model's eight)."""
     seed = _robust_start(obs, held_terms)
     held = select_distortion(obs, start=seed) if select else None
-    terms = {name: _without(with_decentring(held.terms, decentring) if select
-                            else DISTORTION_SETS["k1k2p1p2k3"], held_terms)}
+    every = DISTORTION_SETS["rational" if model == "rational" else "k1k2p1p2k3"]
+    terms = {name: _without(with_decentring(held.terms, decentring) if select else every,
+                            held_terms)}
     try:
         return terms[name], held, _opencv_start(name, obs, terms, seed, held_terms), None
     except ValueError as exc:
@@ -880,13 +882,13 @@ def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
 
 
 def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
-             workers: int = 1, held_terms: tuple[str, ...] = ()):
+             workers: int = 1, held_terms: tuple[str, ...] = (), model: str = "standard"):
     """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
     step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
     start from :func:`_robust_start`, not from OpenCV's own start. Steps run in ``workers``
     processes."""
     terms, held, init, skipped = {}, {}, {}, {}
-    items = [(name, obs, select, decentring, held_terms)
+    items = [(name, obs, select, decentring, held_terms, model)
              for name, obs in observations.items()]
     for (name, *_), (term, choice, start, why) in zip(
             items, _map_steps(_initial_step, items, workers), strict=True):
@@ -1141,7 +1143,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                         prior_strength: Mapping[str, float] | None = None,
                         decentring: bool = True, shared_aspect: bool = True,
                         sessions: Mapping[str, str] | None = None,
-                        fixed: tuple[str, ...] = (), workers: int = 1) -> ZoomWideResult:
+                        fixed: tuple[str, ...] = (), model: str = "standard",
+                        workers: int = 1) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -1192,6 +1195,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         flags of the per-step fits): the principal point at the image centre ``((w - 1) / 2,
         (h - 1) / 2)``, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0. A held
         principal point skips the basin check; a held term is never chosen.
+    model : {'standard', 'rational'}
+        ``standard``: each step's terms chosen as ``select`` says (the rational model only
+        where its held-out views choose it); ``rational``: OpenCV's eight terms at every step,
+        no choice (``select`` is then ignored): what ``CALIB_RATIONAL_MODEL`` fits per step.
     workers : int
         Processes for the steps' own OpenCV fits (the distortion-term choice by held-out views
         and the starts); the results do not depend on it.
@@ -1207,10 +1214,13 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         steps are given.
     """
     _check_options(pp_model, prior_strength)
+    if model not in ("standard", "rational"):
+        raise ValueError(f"model must be 'standard' or 'rational', got {model!r}")
     held_terms = _held_terms(tuple(fixed))
+    select = select and model == "standard"
     board = _common_board(observations)
     terms, held, init, skipped = _initial(observations, select, decentring, workers,
-                                          held_terms)
+                                          held_terms, model)
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
