@@ -64,3 +64,24 @@ def test_a_start_in_the_right_basin_stays():
     assert not check.moved and check.why is None
     assert check.fit.cy == pytest.approx(right.cy, abs=0.1 * right.sd["cy"])
     assert len(check.profile) == 14 and min(c for _, _, c in check.profile) > 0
+
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_the_other_basin_is_found_from_either_side(seed):
+    obs, truth = _narrow_step(np.random.default_rng(seed))
+    wrong = _fit_from(obs, 620.0, 500.0, 0.1)
+    right = _fit_from(obs, truth["cx"] + 20, truth["cy"] - 20, 0.0)
+    from_right = best_basin(obs, right.K, right.dist, FLAGS, NOISE_PX)
+    from_wrong = best_basin(obs, wrong.K, wrong.dist, FLAGS, NOISE_PX)
+    assert not from_right.moved and from_wrong.moved
+    for check, other in ((from_right, wrong), (from_wrong, wrong)):
+        # the basin not chosen is the one OpenCV reaches from the wrong start, p1 of the
+        # other sign, and costs more (over 100 noise variances at this noise)
+        assert check.second is not None
+        assert abs(check.second.cy - other.cy) < 3 * other.sd["cy"], (check.second.cy, other.cy)
+        assert np.sign(check.second.dist[2]) != np.sign(truth["p1"])
+        assert check.second_excess > 100
+        assert check.to_dict()["second"]["cy"] == pytest.approx(check.second.cy)
+    # both sides end at the same camera
+    assert from_right.fit.cy == pytest.approx(from_wrong.fit.cy, abs=0.1 * right.sd["cy"])

@@ -15,6 +15,16 @@ rows (then of columns, at the best row), every other intrinsic and each view's p
 OpenCV from no decentring; a free fit from the grid's best fit is compared with a free fit from
 the given camera, and the lower cost wins by more than :data:`MIN_GAIN` noise variances. The
 fits use the board's estimated 3-D points, so a waving board does not make a basin of its own.
+
+A free fit also starts from the other basin that the decentring predicts (:func:`_mirrored`):
+where a step has k1, the same centre of distortion is reached with the decentring negated and
+the principal point ``2 f (p2, p1) / k1`` away. The profile alone can miss that basin when it
+lies far off in both coordinates, its rows being held at the given (wrong) column.
+
+The basin not chosen is reported (``BasinCheck.second``) when its principal point is distinct
+from the chosen one's (more than :data:`DISTINCT_SD` of their combined sigma apart): the best
+free fit, from the profile's starts, the mirrored one or the given camera, that lands
+elsewhere, with its cost.
 """
 
 from __future__ import annotations
@@ -35,6 +45,9 @@ GRID_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-6)
 #: The other basin replaces the given one when its cost is lower by more than this many noise
 #: variances (a likelihood ratio of exp(MIN_GAIN / 2)).
 MIN_GAIN = 9.0
+#: Two basins are distinct when their principal points lie more than this many of their
+#: combined sigmas (the fits' own, ``hypot`` over cx and cy) apart.
+DISTINCT_SD = 3.0
 
 
 @dataclass
@@ -46,7 +59,9 @@ class BasinCheck:
     squared reprojection errors (px^2) from the given camera and from the profile's best;
     ``profile``: per grid value tried, ``(axis, value px, cost px^2)`` (``inf``: no camera);
     ``why``: why nothing was checked, else None; ``start_px``: the given camera's principal
-    point ``(cx, cy)``, px.
+    point ``(cx, cy)``, px; ``second``: the free fit in the best distinct basin not chosen
+    (None when every fit found lands in the chosen one), ``second_cost_px2`` its cost;
+    ``noise_px``: the corner noise the costs are compared in.
     """
 
     fit: CalibrationResult | None
@@ -56,6 +71,21 @@ class BasinCheck:
     other_cost_px2: float = float("nan")
     profile: list[tuple[str, float, float]] | None = None
     why: str | None = None
+    second: CalibrationResult | None = None
+    second_cost_px2: float = float("nan")
+    noise_px: float = float("nan")
+
+    @property
+    def chosen_cost_px2(self) -> float:
+        """The cost of the chosen basin's fit, px^2."""
+        return self.other_cost_px2 if self.moved else self.cost_px2
+
+    @property
+    def second_excess(self) -> float:
+        """How much costlier the basin not chosen is, in noise variances (NaN without one)."""
+        if self.second is None:
+            return float("nan")
+        return float((self.second_cost_px2 - self.chosen_cost_px2) / self.noise_px**2)
 
     def summary(self) -> str:
         """What moved, in words (empty when nothing did)."""
@@ -75,6 +105,11 @@ class BasinCheck:
                "other_cost_px2": number(self.other_cost_px2), "why": self.why}
         if self.moved and self.fit is not None:
             out |= {"cx": self.fit.cx, "cy": self.fit.cy, "summary": self.summary()}
+        if self.second is not None:
+            out["second"] = {"cx": self.second.cx, "cy": self.second.cy,
+                             "fx": self.second.fx, "p1": float(self.second.dist[2]),
+                             "cost_px2": number(self.second_cost_px2),
+                             "excess_noise_variances": number(self.second_excess)}
         return out
 
 
@@ -140,23 +175,85 @@ def best_basin(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int,
     given = (float(K[0, 2]), float(K[1, 2]))
     here = _fit(obs, K, dist, flags)
     if here is None:
-        return BasinCheck(None, False, given, why="no fit from the given camera is a camera")
-    start = dist.copy()
-    start[2:4] = 0.0  # no decentring: the grid point's own basin, not the given one's
-    profile, best = [], (np.inf, here.K, start)
+        return BasinCheck(None, False, given, why="no fit from the given camera is a camera",
+                          noise_px=noise_px)
+    profile, ends = _profile(obs, here.K, here.dist, flags)
+    starts = [ends[i] for i in _starts([c for _, _, c in profile])] + _mirrored(here, obs)
+    fits = [f for f in (_fit(obs, K0, d0, flags) for K0, d0 in starts) if f is not None]
+    cost_here = _cost(here)
+    best = min(fits, key=_cost, default=None)
+    moved = best is not None and _cost(best) < cost_here - MIN_GAIN * noise_px**2
+    chosen = best if moved else here
+    others = [f for f in [here, *fits] if _distinct(f, chosen)]
+    second = min(others, key=_cost, default=None)
+    return BasinCheck(chosen, moved, given, cost_here,
+                      np.inf if best is None else _cost(best), profile, None, second,
+                      np.nan if second is None else _cost(second), noise_px)
+
+
+def _profile(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
+             ) -> tuple[list[tuple[str, float, float]], list[tuple[np.ndarray, np.ndarray]]]:
+    """The cost held at :data:`GRID`'s rows (cx at ``K``'s), then at its columns (at the best
+    row): per grid value ``(axis, value px, cost px^2)`` and the camera matrix and distortion
+    its fit ended at. A row is fitted from no decentring and from the decentring of ``dist``
+    negated (each basin's decentring has its own sign), the lower kept; a column from no
+    decentring."""
+    none, flipped = dist.copy(), dist.copy()
+    none[2:4] = 0.0
+    flipped[2:4] *= -1.0
+    profile, ends, best = [], [], (np.inf, K)
     w, h = obs.image_size
-    for axis, size in (("cy", h), ("cx", w)):
+    for axis, size, starts in (("cy", h, (none, flipped)), ("cx", w, (none,))):
         column = (1, 2) if axis == "cy" else (0, 2)
         for fraction in GRID:
             trial = best[1].copy()
             trial[column] = fraction * size
-            cost, K_end, dist_end = _held_point_cost(obs, trial, start, flags)
+            cost, K_end, dist_end = min((_held_point_cost(obs, trial, d, flags)
+                                         for d in starts), key=lambda fit: fit[0])
             profile.append((axis, float(trial[column]), cost))
+            ends.append((K_end, dist_end))
             if cost < best[0]:
-                best = (cost, K_end, dist_end)
-    other = None if not np.isfinite(best[0]) else _fit(obs, best[1], best[2], flags)
-    cost_here = _cost(here)
-    if other is None or _cost(other) >= cost_here - MIN_GAIN * noise_px**2:
-        return BasinCheck(here, False, given, cost_here,
-                          np.inf if other is None else _cost(other), profile)
-    return BasinCheck(other, True, given, cost_here, _cost(other), profile)
+                best = (cost, K_end)
+    return profile, ends
+
+
+def _starts(costs: list[float]) -> list[int]:
+    """The profile's entries a free fit starts from: its lowest, and the lowest other local
+    minimum of the row profile (the first ``len(GRID)`` entries), if any."""
+    costs = np.asarray(costs, float)
+    if not np.any(np.isfinite(costs)):
+        return []
+    lowest = int(np.argmin(costs))
+    rows = np.r_[np.inf, costs[:len(GRID)], np.inf]
+    minima = [i for i in range(len(GRID)) if np.isfinite(rows[i + 1])
+              and rows[i + 1] <= rows[i] and rows[i + 1] <= rows[i + 2] and i != lowest]
+    return [lowest] + sorted(minima, key=lambda i: costs[i])[:1]
+
+
+def _mirrored(fit: CalibrationResult, obs: Observations
+              ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The start in the other basin of :func:`best_basin`'s module docstring: over a narrow
+    field, decentring ``(p1, p2)`` acts as the radial term moved off the principal point by
+    ``f (p2, p1) / k1`` (normalised ``(x, y) k1 r^2`` about a centre moved by ``d`` gains
+    ``k1 (3 x^2 + y^2, 2 x y) d_x``, the ``p2`` pattern), so the same centre of distortion
+    is reached from a principal point ``2 f (p2, p1) / k1`` away with the decentring negated.
+    Empty where the step has no k1 or that point lies more than an image size outside the
+    image."""
+    k1, p1, p2 = float(fit.dist[0]), float(fit.dist[2]), float(fit.dist[3])
+    if k1 == 0.0 or (p1 == 0.0 and p2 == 0.0):
+        return []
+    K, dist = fit.K.copy(), fit.dist.copy()
+    K[0, 2] -= 2.0 * fit.fx * p2 / k1
+    K[1, 2] -= 2.0 * fit.fy * p1 / k1
+    dist[2:4] *= -1.0
+    size = np.asarray(obs.image_size, float)
+    if np.any(K[:2, 2] < -size) or np.any(K[:2, 2] > 2 * size):
+        return []
+    return [(K, dist)]
+
+
+def _distinct(a: CalibrationResult, b: CalibrationResult) -> bool:
+    """The two fits' principal points lie more than :data:`DISTINCT_SD` combined sigmas
+    apart."""
+    var = sum(a.sd[q] ** 2 + b.sd[q] ** 2 for q in ("cx", "cy"))
+    return bool(np.hypot(a.cx - b.cx, a.cy - b.cy) > DISTINCT_SD * np.sqrt(var))
