@@ -53,3 +53,12 @@ def test_view_scatter_is_a_note_with_its_factor():
     # the same message as before, in full, for the files that keep the text
     assert flags[0].detail.startswith("views disagree beyond the corner noise: sd cy x9.7")
     assert isinstance(flags[0], Flag)
+
+
+def test_a_second_basin_near_in_cost_is_a_warning():
+    second = {"cx": 540.0, "cy": 580.0, "fx": 1000.0, "p1": 0.2, "cost_px2": 1.0}
+    near = _result(basin={"moved": False, "second": second | {"excess_noise_variances": 4.0}})
+    kinds = {f.kind: f for f in step_flags(near, (1280, 720))}
+    assert kinds["basin"].severity == "warning" and "(540, 580)" in kinds["basin"].detail
+    far = _result(basin={"moved": False, "second": second | {"excess_noise_variances": 300.0}})
+    assert step_flags(far, (1280, 720)) == []

@@ -60,6 +60,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .basins import MIN_GAIN
 from .result import CalibrationResult, Observations
 from .scatter import MIN_VIEWS, pooled_over_steps, view_groups
 
@@ -103,6 +104,8 @@ ACTIONS = {
     "halves": "compare the halves' maps in the report: a board or camera that changed between "
               "frames is the usual cause; recapture the step in one go",
     "halves_failed": "add views: each half needs enough to be calibrated on its own",
+    "basin": "add views with the board in the image corners and tilted 20-45 degrees, where "
+             "the two basins' decentring differs most",
 }
 
 
@@ -212,6 +215,14 @@ def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag
                           f"corner noise: sd {name} x{grown:.1f} from them (used; a "
                           "misprinted or bent board)"))
     flags += _model_choice_flags(res.info.get("model_choice"), res.sd)
+    second = (res.info.get("basin") or {}).get("second")
+    if second and second.get("excess_noise_variances") is not None \
+            and second["excess_noise_variances"] < MIN_GAIN:
+        flags.append(Flag("basin", "warning", "a second basin for the principal point",
+                          f"a second basin puts the principal point at ({second['cx']:.0f}, "
+                          f"{second['cy']:.0f}) px for {second['excess_noise_variances']:.1f} "
+                          f"noise variances more cost (fewer than {MIN_GAIN:g}): the views "
+                          "barely tell the two apart"))
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
     if few:
