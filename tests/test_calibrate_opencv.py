@@ -499,3 +499,20 @@ def test_only_a_truncated_pinhole_sigma_flags_the_step(zc_result):
     res.info["sd_check"]["ratio"] = {"fx": 1e-3, "k3": 1e-5}
     (flag,) = [f for f in conditioning_flags(res, (640, 480)) if "near-singular" in f]
     assert "OpenCV's sd fx" in flag and "1/1000 of" in flag
+
+
+def test_only_the_pose_sigma_warning_is_silenced_where_poses_are_unused():
+    import warnings
+
+    import pytest
+
+    from zoomcalib.calibrate.opencv_backend import _NO_POSE_SIGMA, pose_sigmas_unused
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with pose_sigmas_unused():
+            warnings.warn(f"opencv: {_NO_POSE_SIGMA} (negative variance) for 2 parameters",
+                          RuntimeWarning, stacklevel=1)
+    assert seen == []
+    with pytest.warns(RuntimeWarning, match="overflow"), pose_sigmas_unused():
+        warnings.warn("overflow in exp", RuntimeWarning, stacklevel=1)

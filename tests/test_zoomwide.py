@@ -724,3 +724,24 @@ def test_the_rational_model_at_every_step_when_asked(rng):
             assert abs(z) < 4, (name, q, getattr(r, q), truth[name][q], r.sd[q])
     with pytest.raises(ValueError, match="model must be"):
         calibrate_zoom_wide(obs, model="fisheye")
+
+
+def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatch):
+    import zoomcalib.calibrate.zoomwide as zoomwide
+
+    obs, _, _ = sweep_observations(rng, steps=2, views=8, fx_range=(2300.0, 3000.0))
+    step = obs["step0"]
+    few = select_distortion(Observations(step.object_points, step.views[:5], step.image_size))
+    assert few.terms == DISTORTION_SETS["k1k2p1p2k3"] and "fewer than 6" in few.why
+    real = zoomwide.held_out_errors
+
+    def rational_fails(o, terms, *args):
+        if "k4" in terms:
+            raise RuntimeError("held-out fit of the rational model diverged")
+        return real(o, terms, *args)
+
+    monkeypatch.setattr(zoomwide, "held_out_errors", rational_fails)
+    choice = select_distortion(step)
+    assert choice.why is None and list(choice.failed) == ["rational"]
+    assert "diverged" in choice.to_dict()["failed"]["rational"]
+    assert not choice.rational

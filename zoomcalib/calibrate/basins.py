@@ -29,13 +29,12 @@ elsewhere, with its cost.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from .opencv_backend import calibrate_opencv, not_a_camera
+from .opencv_backend import calibrate_opencv, not_a_camera, pose_sigmas_unused
 from .result import CalibrationResult, Observations, one_opencv_thread
 
 #: Rows (and columns) of the profile, as fractions of the image's height (width).
@@ -121,8 +120,7 @@ def _fit(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
          ) -> CalibrationResult | None:
     """OpenCV from ``K`` and ``dist`` (aspect ratio held), or None when that is no camera."""
     try:
-        with warnings.catch_warnings():  # a pose's sigma is not used here
-            warnings.simplefilter("ignore", RuntimeWarning)
+        with pose_sigmas_unused():  # a pose's sigma is not used here
             fit = calibrate_opencv(obs, flags=flags, fix_aspect=True, K_guess=K, dist_guess=dist)
     except (ValueError, RuntimeError, cv2.error):
         return None

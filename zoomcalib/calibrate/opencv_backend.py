@@ -47,6 +47,7 @@ Flag quirks of OpenCV 5.0 handled here
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
@@ -77,6 +78,7 @@ __all__ = [
     "calibrate_opencv_multistart",
     "calibrate_opencv_robust",
     "not_a_camera",
+    "pose_sigmas_unused",
     "calibrate_opencv_ro",
     "default_fixed_point",
     "flag_names",
@@ -603,6 +605,21 @@ def _invalid_sd(sd: np.ndarray, names: list[str]) -> list[str]:
     return [names[i] for i in np.flatnonzero(~(sd >= 0))]
 
 
+#: The start of the warning :func:`_check_sd` gives for pose or target sigmas OpenCV could not
+#: compute (:func:`pose_sigmas_unused` silences it alone).
+_NO_POSE_SIGMA = "OpenCV gives no valid 1-sigma"
+
+
+@contextlib.contextmanager
+def pose_sigmas_unused():
+    """Silence, inside the block, only the warning that some pose or target 1-sigmas are not
+    numbers (the intrinsics' are checked regardless): for callers that use the camera alone,
+    such as held-out fits and profiles."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=f".*{_NO_POSE_SIGMA}", category=RuntimeWarning)
+        yield
+
+
 def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None:
     """Refuse a result whose camera 1-sigmas are invalid; flag invalid pose or target ones in
     ``info['sd_invalid']`` with a ``RuntimeWarning``."""
@@ -613,7 +630,7 @@ def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None
                            f"({len(invalid)} parameters affected): OpenCV's covariance is not "
                            "positive semi-definite at its solution")
     res.info["sd_invalid"] = invalid
-    warnings.warn(f"{res.backend}: OpenCV gives no valid 1-sigma (negative variance) for "
+    warnings.warn(f"{res.backend}: {_NO_POSE_SIGMA} (negative variance) for "
                   f"{len(invalid)} parameters: {', '.join(invalid[:6])}"
                   f"{' ...' if len(invalid) > 6 else ''} (listed in info['sd_invalid'])",
                   RuntimeWarning, stacklevel=3)

@@ -730,6 +730,12 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
     for step, res in zw.results.items():
         if res.info.get("basin", {}).get("moved"):
             log(f"zoom-wide: step {step}: {res.info['basin']['summary']}")
+        choice = res.info.get("distortion_choice") or {}
+        if choice.get("why"):
+            log(f"zoom-wide: step {step}: distortion terms not chosen ({choice['why']})")
+        elif choice.get("failed"):
+            log(f"zoom-wide: step {step}: term sets not fitted on held-out views, so not "
+                f"candidates: {', '.join(choice['failed'])}")
         run.results[step]["zoom-wide"] = res
         # a per-step backend that failed here is reported, but the step's result is complete
         run.backend_failures.pop(step, None)

@@ -120,7 +120,6 @@ in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -139,6 +138,7 @@ from .opencv_backend import (
     calibrate_opencv_multistart,
     calibrate_opencv_robust,
     not_a_camera,
+    pose_sigmas_unused,
 )
 from .result import CalibrationResult, Observations
 from .scatter import ViewScatter, noise_share, view_groups, view_scatter
@@ -292,8 +292,7 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     idx = np.arange(obs.n_views)
     squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
-        with warnings.catch_warnings():  # a pose's sigma is not used here
-            warnings.simplefilter("ignore", RuntimeWarning)
+        with pose_sigmas_unused():  # a pose's sigma is not used here
             res = calibrate_opencv(_subset(obs, train), flags=flags, **guess)
         if (why := not_a_camera(res, obs.image_size)) is not None:
             raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
@@ -322,6 +321,9 @@ class TermChoice:
     ``five_terms``: the best five-term set's name; ``rational_log_ratio``: the mean and the
     standard error of the per-view log ratio of the rational model's held-out mean squared
     error over that set's (:func:`_log_ratio`), None where not both could be fitted.
+    ``failed``: per term set that could not be fitted on the held-out halves, why (such a set
+    is not a candidate); ``why``: why no choice was made (too few views, no set fitted), else
+    None, the terms then all five.
     """
 
     terms: tuple[str, ...]
@@ -330,6 +332,8 @@ class TermChoice:
     board: str = "flat"
     five_terms: str = "k1k2p1p2k3"
     rational_log_ratio: tuple[float, float] | None = None
+    failed: dict[str, str] = field(default_factory=dict)
+    why: str | None = None
 
     @property
     def rational(self) -> bool:
@@ -353,7 +357,8 @@ class TermChoice:
                 "excess_se_px2": self.excess_se_px2, "board": self.board,
                 "five_terms": self.five_terms,
                 "rational_log_ratio": (None if self.rational_log_ratio is None
-                                       else list(self.rational_log_ratio))}
+                                       else list(self.rational_log_ratio)),
+                "failed": dict(self.failed), "why": self.why}
 
 
 def select_distortion(obs: Observations, tolerance: float = 0.01,
@@ -377,16 +382,18 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
     set's error and hides such terms.
     """
     if obs.n_views < 6:
-        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"])
-    per_view = {}
+        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"],
+                          why=f"{obs.n_views} views, fewer than 6: all five terms")
+    per_view, failed = {}, {}
     for name, terms in DISTORTION_SETS.items():
         try:
             per_view[name] = held_out_errors(obs, terms, board_points, start)
-        except (ValueError, RuntimeError):
-            continue
+        except (ValueError, RuntimeError) as exc:
+            failed[name] = " ".join(str(exc).split())
     board = "flat" if board_points is None else "estimated"
     if not per_view:
-        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board)
+        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
+                          why="no term set could be fitted on held-out views: all five terms")
     n_points = {k: c.sum() for k, (_, c) in per_view.items()}
     mse = {k: sq.sum() / n_points[k] if n_points[k] else np.inf
            for k, (sq, _) in per_view.items()}
@@ -402,7 +409,7 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
         chosen = "rational"
     return TermChoice(DISTORTION_SETS[chosen],
                       {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
-                      {k: se[k] for k in per_view}, board, best, ratio)
+                      {k: se[k] for k in per_view}, board, best, ratio, failed)
 
 
 def _log_ratio(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray]
@@ -1352,8 +1359,7 @@ def _model_shift(obs: Observations, res: CalibrationResult, term_sets: list[tupl
     fits = []
     for terms in term_sets:
         try:
-            with warnings.catch_warnings():  # a pose's sigma is not used here
-                warnings.simplefilter("ignore", RuntimeWarning)
+            with pose_sigmas_unused():  # a pose's sigma is not used here
                 fit = calibrate_opencv(on_board, flags=_distortion_flags(terms),
                                        **_guess(res, terms))
         except (ValueError, cv2.error) as exc:
