@@ -420,3 +420,6 @@ def test_zoom_steps_exif_focal_length(tmp_path):
     steps = {s[0]: s for s in zoom_steps(tmp_path)}
     assert steps["tele"][2] == 35.0 and steps["tele"][3]["zoom_source"] == "exif"
     assert steps["wide"][2] is None and steps["wide"][3]["zoom_source"] is None
+    # the unreadable ones are said, with the first reason, not silently unknown
+    assert "EXIF unreadable in" in steps["wide"][3]["zoom_note"]
+    assert "zoom_note" not in steps["tele"][3]

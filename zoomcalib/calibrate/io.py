@@ -488,8 +488,10 @@ def zoom_from_name(name: str) -> float | None:
     return float(found[0]) if len(found) == 1 else None
 
 
-def exif_focal_length(path: str | os.PathLike) -> float | None:
-    """The EXIF FocalLength (tag 0x920A, mm) of an image, or None when absent or unreadable.
+def exif_focal_length(path: str | os.PathLike, errors: list[str] | None = None
+                      ) -> float | None:
+    """The EXIF FocalLength (tag 0x920A, mm) of an image, or None when absent or unreadable;
+    why it could not be read is appended to ``errors`` (``"<file>: <reason>"``) when given.
 
     Uses Pillow when it is installed; without Pillow, returns None.
     """
@@ -503,7 +505,9 @@ def exif_focal_length(path: str | os.PathLike) -> float | None:
             value = exif.get_ifd(0x8769).get(0x920A)  # Exif sub-IFD, FocalLength
             if value is None:
                 value = exif.get(0x920A)
-    except Exception:  # noqa: BLE001 - any unreadable file simply has no focal length
+    except Exception as exc:  # noqa: BLE001 - Pillow raises many kinds; said in ``errors``
+        if errors is not None:
+            errors.append(f"{Path(path).name}: {' '.join(str(exc).split()) or type(exc).__name__}")
         return None
     if value is None:
         return None
@@ -517,9 +521,17 @@ def exif_focal_length(path: str | os.PathLike) -> float | None:
     return f if math.isfinite(f) and f > 0 else None
 
 
-def _exif_zoom(folder: Path) -> float | None:
-    values = [f for f in (exif_focal_length(p) for p in image_files(folder)) if f is not None]
-    return float(np.median(values)) if values else None
+def _exif_zoom(folder: Path) -> tuple[float | None, dict]:
+    """The median EXIF focal length of the folder's images (None without one) and the step's
+    extras: ``zoom_source`` and, when some images' EXIF could not be read, ``zoom_note``."""
+    files, errors = image_files(folder), []
+    values = [f for f in (exif_focal_length(p, errors) for p in files) if f is not None]
+    zoom = float(np.median(values)) if values else None
+    extras: dict = {"zoom_source": "exif" if zoom is not None else None}
+    if errors:
+        extras["zoom_note"] = (f"EXIF unreadable in {len(errors)} of {len(files)} images "
+                               f"(first: {errors[0]})")
+    return zoom, extras
 
 
 def _natural_key(name: str):
@@ -690,9 +702,7 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
             zoom, extras = table["."]
             extras = dict(extras)
         else:
-            zoom = _exif_zoom(root)
-            if zoom is not None:
-                extras = {"zoom_source": "exif"}
+            zoom, extras = _exif_zoom(root)
         return [(".", root, zoom, extras)]
     if not subdirs:
         exts = ", ".join(IMAGE_EXTENSIONS)
@@ -716,8 +726,8 @@ def zoom_steps(folder: str | os.PathLike) -> list[tuple[str, Path, float | None,
         if zoom is not None:
             steps.append((p.name, p, zoom, {"zoom_source": "name"}))
             continue
-        zoom = _exif_zoom(p)
-        steps.append((p.name, p, zoom, {"zoom_source": "exif" if zoom is not None else None}))
+        zoom, extras = _exif_zoom(p)
+        steps.append((p.name, p, zoom, extras))
     return steps
 
 

@@ -342,6 +342,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         run.observations[step] = obs
         run.zoom[step] = zoom
         run.zoom_source[step] = extras.get("zoom_source")
+        if extras.get("zoom_note"):
+            log(f"step {step}: {extras['zoom_note']}"
+                + ("; its zoom is unknown" if zoom is None else ""))
         step_results = _calibrate_step(step, obs, backends, model, target, run, log)
         if not step_results and not zoom_wide:
             run.backend_failures.pop(step, None)
