@@ -341,7 +341,9 @@ def _touch_images(folder, n=2):
 def test_zoom_steps_flat_folder(tmp_path):
     _touch_images(tmp_path)
     steps = zoom_steps(tmp_path)
-    assert steps == [(".", tmp_path, None, {"zoom_source": None})]
+    assert [s[:3] for s in steps] == [(".", tmp_path, None)]
+    assert steps[0][3]["zoom_source"] is None  # empty files: no EXIF, and that is said
+    assert steps[0][3]["zoom_note"].startswith("EXIF unreadable in 2 of 2 images")
 
 
 def test_zoom_steps_from_folder_names(tmp_path):
