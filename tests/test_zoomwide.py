@@ -745,3 +745,27 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     assert choice.why is None and list(choice.failed) == ["rational"]
     assert "diverged" in choice.to_dict()["failed"]["rational"]
     assert not choice.rational
+
+
+@pytest.mark.parametrize("limit", ["iteration cap", "damping limit"])
+def test_a_solve_that_stops_short_says_why_and_is_not_converged(rng, monkeypatch, limit):
+    import functools
+
+    import zoomcalib.calibrate.zoomwide as zoomwide
+
+    obs, _, _ = sweep_observations(rng, steps=3, views=8, fx_range=(2300.0, 6000.0))
+    if limit == "iteration cap":  # one iteration cannot reach the optimum from OpenCV's start
+        monkeypatch.setattr(zoomwide, "_levenberg_marquardt", functools.partial(
+            zoomwide._levenberg_marquardt, max_iterations=1))
+    else:  # no trial step lowers the cost: the damping grows until it gives up
+        evaluate = zoomwide._ZoomProblem.evaluate
+
+        def no_trial_is_better(self, state, jacobian=True):
+            out = evaluate(self, state, jacobian)
+            return out if jacobian else np.full_like(out, np.inf)
+
+        monkeypatch.setattr(zoomwide._ZoomProblem, "evaluate", no_trial_is_better)
+    zw = calibrate_zoom_wide(obs, select=False)
+    assert not zw.converged and zw.stop_reason == limit
+    assert all(not r.info["converged"] and r.info["stop_reason"] == limit
+               for r in zw.results.values())

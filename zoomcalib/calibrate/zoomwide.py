@@ -765,12 +765,17 @@ def _schur_step(U, W, V, g_glob, g_pose, lam: float):
 def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int = 50,
                          tol: float = 1e-9) -> _Solve:
     """Marquardt-scaled LM with the poses eliminated (:func:`_schur_step`). Stops when the
-    relative decrease of the cost falls below ``tol`` (``"tolerance"``), at the iteration cap,
-    or when the damping passes 1e12 without a decrease (``"damping limit"``)."""
+    Gauss-Newton step from the current state is predicted to lower the cost by less than
+    ``tol`` of it (``"tolerance"``: the quadratic model says nothing is left to gain, whatever
+    the damping of the last step was), at the iteration cap (``"iteration cap"``), or when the
+    damping passes 1e12 without a decrease (``"damping limit"``); the last two are not
+    converged."""
     r, blocks = prob.normal_equations(state)
     cost = float(r @ r)
     lam = 1e-4
     for it in range(1, max_iterations + 1):
+        if _predicted_decrease(blocks, _schur_step(*blocks, _GAUSS_NEWTON)) < tol * cost:
+            return _Solve(state, cost, it - 1, True, "tolerance")
         while True:
             delta = _schur_step(*blocks, lam)
             if delta is not None:
@@ -782,13 +787,30 @@ def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int 
             lam *= 10.0
             if lam > 1e12:
                 return _Solve(state, cost, it, False, "damping limit")
-        decrease = (cost - cost_t) / max(cost, 1e-300)
         state, cost = trial, cost_t
         lam = max(lam / 10.0, 1e-12)
-        if decrease < tol:
-            return _Solve(state, cost, it, True, "tolerance")
         r, blocks = prob.normal_equations(state)
+    if _predicted_decrease(blocks, _schur_step(*blocks, _GAUSS_NEWTON)) < tol * cost:
+        return _Solve(state, cost, max_iterations, True, "tolerance")
     return _Solve(state, cost, max_iterations, False, "iteration cap")
+
+
+#: The damping of the step the stop rule predicts from: Gauss-Newton's, with a ridge of 1e-9 of
+#: each column's own curvature so that a barely determined direction does not make it singular.
+_GAUSS_NEWTON = 1e-9
+
+
+def _predicted_decrease(blocks: _NormalBlocks, delta: np.ndarray | None) -> float:
+    """The decrease of the cost ``|r|^2`` that the quadratic model predicts for the undamped
+    step ``delta`` (``A delta = -g``): ``-2 g^T delta - delta^T A delta = delta^T A delta``,
+    from the normal blocks. ``inf`` without a step (a singular system: no prediction)."""
+    if delta is None:
+        return np.inf
+    U, W, V = blocks.U, blocks.W, blocks.V
+    d_glob, d_pose = delta[:len(U)], delta[len(U):].reshape(len(V), 6)
+    quad = (d_glob @ U @ d_glob + 2.0 * d_glob @ W @ d_pose.ravel()
+            + np.einsum("vi,vij,vj->", d_pose, V, d_pose))
+    return float(max(quad, 0.0))
 
 
 # ----------------------------------------------------------------------------------------------
