@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from zoomcalib.calibrate import scatter
-from zoomcalib.calibrate.bundle import CAMERA_NAMES, _deletion_steps, calibrate_bundle
+from zoomcalib.calibrate.bundle import CAMERA_NAMES, calibrate_bundle
 from zoomcalib.calibrate.checks import conditioning_flags, cross_validate, split_halves
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.opencv_backend import (
@@ -28,6 +28,7 @@ from zoomcalib.calibrate.opencv_backend import (
 from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.scatter import (
     ViewScatter,
+    deletion_steps,
     noise_share,
     pooled_over_fits,
     pooled_over_steps,
@@ -287,7 +288,7 @@ def test_a_deletion_leaves_what_only_its_view_carries_and_moves_the_rest_exactly
     full = np.linalg.lstsq(X.reshape(-1, 5), y.ravel(), rcond=None)[0]
     A = np.einsum("vri,vrj->vij", X, X)
     g = np.einsum("vri,vr->vi", X, y - X @ full)
-    moves = _deletion_steps(A.sum(axis=0), A, g)
+    moves = deletion_steps(A.sum(axis=0), A, g)
     for v in range(8):
         keep = np.arange(8) != v
         columns = slice(0, 4) if v == 0 else slice(0, 5)

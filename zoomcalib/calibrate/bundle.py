@@ -181,7 +181,13 @@ from zoomcalib.calibrate.result import (
     Observations,
     one_opencv_thread,
 )
-from zoomcalib.calibrate.scatter import ViewScatter, noise_share, view_groups, view_scatter
+from zoomcalib.calibrate.scatter import (
+    ViewScatter,
+    deletion_steps,
+    noise_share,
+    view_groups,
+    view_scatter,
+)
 
 __all__ = ["calibrate_bundle", "rodrigues", "left_jacobian", "project_jacobian",
            "similarity_basis", "warp_basis", "shape_precision", "fit_similarity", "CAMERA_NAMES"]
@@ -819,7 +825,7 @@ class _Problem:
                 Jt, r = rows(v)
                 A += Jt.T @ Jt
                 g += Jt.T @ r
-            moves[group] = _deletion_steps(S, A[None], g[None])[0]
+            moves[group] = deletion_steps(S, A[None], g[None])[0]
         return moves[:, :self.nc] @ self.cam_map.T
 
     def camera_noise_share(self, s: _State, W: np.ndarray, V: np.ndarray,
@@ -967,52 +973,6 @@ class _Problem:
 #: Most camera and free target unknowns for which :meth:`_Problem.camera_deletions` solves
 #: once per view (a 10 x 10 board with its coordinates free has 312).
 DELETION_MAX_UNKNOWNS = 400
-#: Smallest eigenvalue of ``S - A_v`` (scaled to ``S``'s unit diagonal) in a direction that a
-#: view's deletion leaves determined. Leaving out a view that alone carries a direction (the
-#: rational model's numerator-denominator ridge at a step of few views) leaves eigenvalues at
-#: the rounding level: on the real zoom sweep's halves the squared pivots lie below 1e-6, none
-#: between 1e-6 and 1e-3. Solved as they are, such deletions made a step's factors jump from
-#: 1.1-2.0 to 5.6-37 when one corner of another step was dropped.
-DELETION_MIN_PIVOT = 1e-6
-#: A parameter whose share (scaled) in such a direction exceeds this has no deletion move.
-DELETION_NULL_SHARE = 0.01
-
-
-def _deletion_steps(S: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """``(S - A_v)^-1 g_v`` for each ``v`` (``S`` (k, k), ``A`` (m, k, k), ``g`` (m, k)), solved
-    by Cholesky scaled to ``S``'s unit diagonal.
-
-    Where ``S - A_v`` is singular up to rounding (not positive definite, or a squared pivot
-    below :data:`DELETION_MIN_PIVOT`) the view carries some direction alone: the move is solved
-    in the directions the other views determine (eigenvalues above the limit), and is NaN for
-    the parameters with more than :data:`DELETION_NULL_SHARE` of an undetermined direction."""
-    d = np.sqrt(np.clip(np.diag(S), 0.0, None))
-    scale = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
-    M = (S - A) * np.outer(scale, scale)
-    M[:, d == 0, d == 0] = 1.0
-    out = np.full(g.shape, np.nan)
-    for v in range(len(M)):
-        try:
-            factor = scipy.linalg.cho_factor(M[v], check_finite=False)
-            if np.min(np.diag(factor[0])) ** 2 > DELETION_MIN_PIVOT:
-                out[v] = scipy.linalg.cho_solve(factor, g[v] * scale, check_finite=False) * scale
-                continue
-        except np.linalg.LinAlgError:
-            pass
-        out[v] = _determined_move(M[v], g[v] * scale) * scale
-    return out
-
-
-def _determined_move(M: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """``M^+ g`` over the eigen-directions of ``M`` (k, k) above :data:`DELETION_MIN_PIVOT`;
-    NaN for the parameters that share in the others (:func:`_deletion_steps`)."""
-    w, U = np.linalg.eigh(M)
-    kept = w > DELETION_MIN_PIVOT
-    move = U[:, kept] @ ((U[:, kept].T @ g) / w[kept])
-    undetermined = np.any(np.abs(U[:, ~kept]) > DELETION_NULL_SHARE, axis=1)
-    return np.where(undetermined, np.nan, move)
-
-
 def _inverse_from_cholesky(c: np.ndarray) -> np.ndarray:
     """``A^-1`` from the upper Cholesky factor of ``A`` (``scipy.linalg.cho_factor``), by
     LAPACK ``potri``: a third of the work of solving against the identity."""

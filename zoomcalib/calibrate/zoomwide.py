@@ -132,7 +132,7 @@ import scipy.stats
 
 from ..pool import map_in_processes
 from .basins import BasinCheck, best_basin
-from .bundle import _deletion_steps, project_jacobian
+from .bundle import project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
     calibrate_opencv_multistart,
@@ -141,7 +141,7 @@ from .opencv_backend import (
     pose_sigmas_unused,
 )
 from .result import CalibrationResult, Observations
-from .scatter import ViewScatter, noise_share, view_groups, view_scatter
+from .scatter import ViewScatter, deletion_steps, noise_share, view_groups, view_scatter
 from .zoommodel import (
     CANDIDATES,
     ZoomModel,
@@ -1638,7 +1638,7 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     share = noise_share(camera_rows.T, A @ camera_rows.T, cov,
                         model_variance=np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
-                              camera_rows, lambda: _deletion_steps(S, A, g)[:, :prob.n_cam],
+                              camera_rows, lambda: deletion_steps(S, A, g)[:, :prob.n_cam],
                               share)
 
 
