@@ -746,6 +746,20 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     assert "diverged" in choice.to_dict()["failed"]["rational"]
     assert not choice.rational
 
+    def k1_places_no_third_view(o, terms, *args):
+        squared, count = real(o, terms, *args)
+        if terms == ("k1",):
+            squared[2], count[2] = 0.0, 0  # a view its intrinsics could not place
+        return squared, count
+
+    monkeypatch.setattr(zoomwide, "held_out_errors", k1_places_no_third_view)
+    choice = select_distortion(step)
+    assert choice.unplaced == {"k1": 1}
+    # every set is judged without that view: its squared errors are in none of them
+    squared, count = real(step, DISTORTION_SETS["k1k2"])
+    kept = np.arange(len(count)) != 2
+    assert choice.mse_px2["k1k2"] == pytest.approx(squared[kept].sum() / count[kept].sum())
+
 
 @pytest.mark.parametrize("limit", ["iteration cap", "damping limit"])
 def test_a_solve_that_stops_short_says_why_and_is_not_converged(rng, monkeypatch, limit):

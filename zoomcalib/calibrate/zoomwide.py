@@ -273,7 +273,8 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     """Squared reprojection errors of held-out views, two folds (even and odd views):
     intrinsics from one half with ``terms`` free, each view of the other half placed by
     ``cv2.solvePnP`` with those intrinsics. Returns per view the sum of squared errors (px^2)
-    and the number of points, both (V,); a view that cannot be placed counts 0 points.
+    and the number of points, both (V,); a view that cannot be placed has 0 points (the
+    caller sees it: :func:`select_distortion` judges every set on the views all placed).
     RuntimeError when a fold's fit is no camera
     (:func:`~zoomcalib.calibrate.opencv_backend.not_a_camera`).
 
@@ -306,7 +307,7 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
                     proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
                     squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
             except cv2.error:
-                continue                   # a view that cannot be placed counts 0 points
+                continue                   # not placed: 0 points, seen by the caller
     return squared, count
 
 
@@ -323,7 +324,9 @@ class TermChoice:
     error over that set's (:func:`_log_ratio`), None where not both could be fitted.
     ``failed``: per term set that could not be fitted on the held-out halves, why (such a set
     is not a candidate); ``why``: why no choice was made (too few views, no set fitted), else
-    None, the terms then all five.
+    None, the terms then all five. ``unplaced``: per term set, the held-out views its
+    intrinsics could not place (``cv2.solvePnP`` failed); every set is then judged on the
+    views all of them placed.
     """
 
     terms: tuple[str, ...]
@@ -334,6 +337,7 @@ class TermChoice:
     rational_log_ratio: tuple[float, float] | None = None
     failed: dict[str, str] = field(default_factory=dict)
     why: str | None = None
+    unplaced: dict[str, int] = field(default_factory=dict)
 
     @property
     def rational(self) -> bool:
@@ -358,7 +362,7 @@ class TermChoice:
                 "five_terms": self.five_terms,
                 "rational_log_ratio": (None if self.rational_log_ratio is None
                                        else list(self.rational_log_ratio)),
-                "failed": dict(self.failed), "why": self.why}
+                "failed": dict(self.failed), "why": self.why, "unplaced": dict(self.unplaced)}
 
 
 def select_distortion(obs: Observations, tolerance: float = 0.01,
@@ -391,9 +395,16 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
         except (ValueError, RuntimeError) as exc:
             failed[name] = " ".join(str(exc).split())
     board = "flat" if board_points is None else "estimated"
+    # a view one set cannot place is judged by none: the sets are compared on the same views
+    placed = np.all([c > 0 for _, c in per_view.values()], axis=0) if per_view else None
+    unplaced = {k: int(np.sum(c == 0)) for k, (_, c) in per_view.items() if np.any(c == 0)}
+    if per_view and placed.sum() < 2:
+        per_view = {}
     if not per_view:
         return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
-                          why="no term set could be fitted on held-out views: all five terms")
+                          why="no term set could be fitted on held-out views: all five terms",
+                          unplaced=unplaced)
+    per_view = {k: (sq[placed], c[placed]) for k, (sq, c) in per_view.items()}
     n_points = {k: c.sum() for k, (_, c) in per_view.items()}
     mse = {k: sq.sum() / n_points[k] if n_points[k] else np.inf
            for k, (sq, _) in per_view.items()}
@@ -409,7 +420,8 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
         chosen = "rational"
     return TermChoice(DISTORTION_SETS[chosen],
                       {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
-                      {k: se[k] for k in per_view}, board, best, ratio, failed)
+                      {k: se[k] for k in per_view}, board, best, ratio, failed,
+                      unplaced=unplaced)
 
 
 def _log_ratio(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray]
