@@ -145,3 +145,20 @@ def test_analytic_renderer_matches_blurred_brute_force(rng):
     # to 1e-3 px RMS (docs/model.md). Here: RMS within the reference's noise.
     assert np.sqrt(np.mean(shifts**2)) < 2.0e-3
     assert abs(np.mean(shifts)) < 5e-4
+
+
+def test_a_mapping_reused_across_views_renders_as_a_fresh_one(rng):
+    # the lattice of rays is kept per mapping; a mapping changed in place is unprojected again
+    sensor = Sensor(160, 120, 0.003)
+    target = parse_pattern("chessboard:5x4:10")
+    cam = CameraModel(200.0, 200.0, 80.5, 60.5, np.array([-0.2, 0.05, 0, 0, 0]), sensor)
+    R, t = _pose(rng, 300.0)
+    reused = camera_mapping(cam)
+    first = render_coverage(target, reused, R, t, sensor, 0.7, 1)
+    again = render_coverage(target, reused, R, t, sensor, 0.7, 1)
+    assert np.array_equal(first, again)
+    moved = CameraModel(200.0, 200.0, 84.5, 57.5, cam.dist, sensor)
+    reused.camera = moved  # the same mapping object, another camera
+    assert np.array_equal(render_coverage(target, reused, R, t, sensor, 0.7, 1),
+                          render_coverage(target, camera_mapping(moved), R, t, sensor, 0.7, 1))
+    assert not np.array_equal(first, render_coverage(target, reused, R, t, sensor, 0.7, 1))

@@ -46,6 +46,7 @@ along the axis at ``ellipse_angle_deg`` from the image u axis towards +v, and
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -370,6 +371,37 @@ def _intersect_surface(ray: np.ndarray, R: np.ndarray, t: np.ndarray,
                      f"{step:.2g} mm): the surface is too steep for this view")
 
 
+#: Each mapping's unprojected lattices (by the mapping's id), dropped when the mapping is: the
+#: rays through the lattice do not depend on the pose, and unprojecting through a traced lens's
+#: splines is most of a view's board coordinates.
+_LATTICES: dict[int, dict] = {}
+
+
+def _unprojected_lattice(mapping, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """``mapping.unproject`` of the lattice ``us x vs`` (row-major in ``(v, u)``), (M, 2),
+    computed once per mapping and lattice while the mapping lives and still unprojects three of
+    its points to the same rays (a mapping that cannot be weakly referenced is unprojected every
+    time)."""
+    owner = id(mapping)
+    if owner not in _LATTICES:
+        try:
+            weakref.finalize(mapping, _LATTICES.pop, owner, None)
+            _LATTICES[owner] = {}
+        except TypeError:
+            pass
+    cached = _LATTICES.get(owner, {})
+    key = (us[0], us[-1], len(us), vs[0], vs[-1], len(vs))
+    gv, gu = np.meshgrid(vs, us, indexing="ij")
+    grid = np.stack([gu.ravel(), gv.ravel()], -1)
+    if key in cached:  # a mapping changed in place since is unprojected again
+        probe = np.array([0, len(grid) // 2, len(grid) - 1])
+        if np.array_equal(mapping.unproject(grid[probe]), cached[key][probe]):
+            return cached[key]
+    cached[key] = mapping.unproject(grid)
+    cached[key].setflags(write=False)
+    return cached[key]
+
+
 def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
                       step_px: int = 4, surface: BoardSurface | None = None
                       ) -> tuple[RectBivariateSpline, RectBivariateSpline]:
@@ -393,7 +425,7 @@ def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
     us = np.arange(-2 * step_px, sensor.width_px + 2 * step_px, step_px, dtype=float)
     vs = np.arange(-2 * step_px, sensor.height_px + 2 * step_px, step_px, dtype=float)
     gv, gu = np.meshgrid(vs, us, indexing="ij")
-    xy = mapping.unproject(np.stack([gu.ravel(), gv.ravel()], -1))
+    xy = _unprojected_lattice(mapping, us, vs)
     ray = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)  # shape (M, 3)
     if surface is None or surface.is_flat:
         n = R[:, 2]
