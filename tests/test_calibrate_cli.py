@@ -202,8 +202,12 @@ def test_ctrl_c_during_detection_ends_at_once_and_keeps_the_finished_images(zoom
     out = tmp_path / "cal"
     cmd = [sys.executable, "-m", "zoomcalib.cli", "calibrate", str(folder), "--pattern",
            "chessboard:9x6:25", "--workers", "2", "--no-report", "--out", str(out)]
+    # a terminal's foreground job has SIGINT at its default; a job started in the background of
+    # a non-interactive shell (as a CI script may be) inherits it ignored, and Python then keeps
+    # ignoring it: the child restores the default, as the terminal's job would have it
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     workers: list[int] = []
     deadline = time.monotonic() + 60
     while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
