@@ -253,7 +253,7 @@ class _Folds:
         self.notes: dict[str, str] = {}
         self.off_plane: dict[str, list[float]] = {"board": [], "points": []}
         for f in range(int(group.max()) + 1):
-            train = _subset(obs, np.flatnonzero(group != f))
+            train = obs.subset(np.flatnonzero(group != f))
             models = {(): _train(train, start, terms, ())}
             for cause in _TRAINING:
                 if cause in self.notes:
@@ -270,7 +270,7 @@ class _Folds:
 
     def _model(self, f: int, training: tuple[str, ...]):
         if training not in self.models[f]:
-            train = _subset(self.obs, np.flatnonzero(self.group != f))
+            train = self.obs.subset(np.flatnonzero(self.group != f))
             self.models[f][training] = _train(train, self.start, self.terms, training)
         return self.models[f][training]
 
@@ -336,11 +336,6 @@ def _guess_dist(start: CalibrationResult, terms: tuple[str, ...], rational: bool
     d[:len(src)] = src
     d = np.array([v if k in terms else 0.0 for k, v in zip(_DIST, d, strict=True)])
     return d if rational else d[:5]
-
-
-def _subset(obs: Observations, views: np.ndarray) -> Observations:
-    return Observations(obs.object_points, [obs.views[v] for v in views], obs.image_size,
-                        [obs.names[v] for v in views] if obs.names else [])
 
 
 def _train(obs: Observations, start: CalibrationResult, terms: tuple[str, ...],

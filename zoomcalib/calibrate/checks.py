@@ -297,10 +297,7 @@ def random_halves(obs: Observations, count: int, rng: np.random.Generator
 
 def _halves(obs: Observations, first: np.ndarray) -> tuple[Observations, Observations]:
     """The views of ``obs`` where ``first`` (per view) is True, and the others."""
-    def pick(keep: np.ndarray) -> Observations:
-        return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
-                            [obs.names[i] for i in keep] if obs.names else [])
-    return pick(np.flatnonzero(first)), pick(np.flatnonzero(~first))
+    return obs.subset(np.flatnonzero(first)), obs.subset(np.flatnonzero(~first))
 
 
 @dataclass

@@ -50,6 +50,13 @@ class Observations:
     def n_observations(self) -> int:
         return int(sum(len(ids) for ids, _ in self.views))
 
+    def subset(self, views) -> Observations:
+        """The views of index ``views`` (in that order), with their names, on the same board
+        and image size (``n_fallback`` 0: the count is the whole set's, not per view)."""
+        views = [int(v) for v in views]
+        return Observations(self.object_points, [self.views[v] for v in views], self.image_size,
+                            [self.names[v] for v in views] if self.names else [])
+
 
 @dataclass
 class CalibrationResult:

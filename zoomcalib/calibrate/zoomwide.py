@@ -206,11 +206,6 @@ def board_height_modes(points: np.ndarray, max_degree: int = 4) -> np.ndarray:
     return np.column_stack(cols) if cols else np.zeros((len(xy), 0))
 
 
-def _subset(obs: Observations, keep: np.ndarray) -> Observations:
-    return Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
-                        [obs.names[i] for i in keep] if obs.names else [])
-
-
 def _distortion_flags(terms: tuple[str, ...]) -> int:
     flags = 0 if {"p1", "p2"} & set(terms) else cv2.CALIB_ZERO_TANGENT_DIST
     if set(RATIONAL_TERMS) & set(terms):
@@ -294,7 +289,7 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
         with pose_sigmas_unused():  # a pose's sigma is not used here
-            res = calibrate_opencv(_subset(obs, train), flags=flags, **guess)
+            res = calibrate_opencv(obs.subset(train), flags=flags, **guess)
         if (why := not_a_camera(res, obs.image_size)) is not None:
             raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
                                f"diverged: {why}")

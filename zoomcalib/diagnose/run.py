@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from ..calibrate.io import read_zoom_table
-from ..calibrate.result import Observations
 from ..optics.mechanics import Tolerances
 from ..optics.prescription import Prescription
 from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
@@ -162,8 +161,7 @@ def _calibrations_beside(table: ZoomTable, table_path: Path
             if not used or any(name not in index for name in used):
                 return None, f"step {step}: the calibration's views are not all in its detections"
             keep = [index[name] for name in used]
-            obs = Observations(obs.object_points, [obs.views[i] for i in keep], obs.image_size,
-                               used)
+            obs = obs.subset(keep)
             rows.append(RowCalibration(result, obs))
     except (OSError, ValueError) as exc:
         return None, str(exc)
