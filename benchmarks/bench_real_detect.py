@@ -16,7 +16,14 @@ CPU seconds on one core and the ratios compare the detectors in the same run:
 
 The refiner's residual (RMS of the window pixels about its fitted model, grey levels, median
 over corners) says how far the model is from the frames; on rendered frames of the same board
-it is near the noise, 2-3 DN (``benchmarks/bench_detect_flags.py`` renders).
+it is near the noise, 2-3 DN (``benchmarks/bench_detect_flags.py`` renders). It is split by
+where the pixels lie (:func:`residual_split`): ``edge`` within 1 px of either edge, ``flat``
+beyond 2.5 px of both (the squares' insides: noise, print, stains, compression), and the mean
+residual of the edge pixels by their side (``edge mean``: a profile the model misses shows
+there; edges that wander from pixel to pixel do not). ``sharp`` is the share of frames the
+refiner fitted with a sharpened PSF (:class:`~zoomcalib.detect.refine.SharpenedPSF`) and
+``gain`` the sampled corners' median residual under their own sharpened PSFs over that under
+their Gaussian blurs (``RefineResult.sharpening_gain``; 1: no better).
 
 With ``--calibrate`` each step is also calibrated with plain OpenCV
 (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, five distortion terms)
@@ -45,7 +52,13 @@ from zoomcalib.calibrate.opencv_backend import (  # noqa: E402
 )
 from zoomcalib.detect import detect_image  # noqa: E402
 from zoomcalib.detect.opencv import image_files  # noqa: E402
-from zoomcalib.detect.refine import refine_corners  # noqa: E402
+from zoomcalib.detect.refine import (  # noqa: E402
+    RefineResult,
+    _extract,
+    _window_grid,
+    refine_corners,
+    xjunction_image,
+)
 from zoomcalib.targets import parse_pattern  # noqa: E402
 
 METHODS = ("model", "sb", "classic")
@@ -73,7 +86,8 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, one process; "
           f"{args.frames} frames per step")
     print(f"{'step':>9} " + " ".join(f"{m + ' s':>9}" for m in METHODS)
-          + f" {'model/sb':>8} {'fallback':>9} {'resid DN':>8} {'blur px':>7}")
+          + f" {'model/sb':>8} {'fallback':>9} {'resid DN':>8} {'blur px':>7}"
+          f" {'edge':>5} {'flat':>5} {'edge mean':>9} {'sharp':>5} {'gain':>5}")
     total = {m: 0.0 for m in METHODS}
     counts = {"frames": 0, "corners": 0, "fallback": 0}
     residuals = []
@@ -82,7 +96,7 @@ def main() -> None:
         times = {m: [] for m in METHODS}
         detections = {m: [] for m in METHODS}
         fallback = corners = 0
-        resid, blur = [], []
+        resid, blur, split, sharp, gain = [], [], [], [], []
         for f in files:
             grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
             if grey is None:
@@ -102,6 +116,9 @@ def main() -> None:
                                  window=5, max_window=12)
             resid.append(np.median(fit.rms[fit.converged]))
             blur.append(float(np.median(fit.sigma)))
+            split.append(residual_split(grey, fit))
+            sharp.append(fit.sharpening is not None)
+            gain.append(fit.sharpening_gain)
         if not resid:
             print(f"{step.name:>9} no frame detected")
             continue
@@ -114,7 +131,10 @@ def main() -> None:
         residuals += resid
         print(f"{step.name:>9} " + " ".join(f"{mean[m]:9.3f}" for m in METHODS)
               + f" {mean['model'] / mean['sb']:8.2f} {100 * fallback / corners:8.2f}% "
-              f"{np.median(resid):8.1f} {np.median(blur):7.2f}")
+              f"{np.median(resid):8.1f} {np.median(blur):7.2f} "
+              + " ".join(f"{v:5.1f}" for v in np.median(split, axis=0)[:2])
+              + f" {np.median(split, axis=0)[2]:9.1f} {np.mean(sharp):5.2f} "
+              f"{np.nanmedian(gain) if np.any(np.isfinite(gain)) else np.nan:5.2f}")
         if args.calibrate:
             calibrations += [_calibrated(step.name, m, detections[m], target) for m in METHODS]
     n = max(counts["frames"], 1)
@@ -125,6 +145,39 @@ def main() -> None:
     if calibrations:
         print("plain OpenCV per step on each detector's corners (5 terms):")
         print("\n".join(calibrations))
+
+
+def residual_split(grey: np.ndarray, fit: RefineResult, window: int = 5
+                   ) -> tuple[float, float, float]:
+    """RMS residual (DN) of the converged corners' window pixels about their fitted model:
+    within 1 px of either edge, beyond 2.5 px of both; and the RMS over the two sides of an
+    edge of the edge pixels' mean residual (DN) on that side."""
+    ok = fit.converged
+    data, wts, origin = _extract(grey.astype(float), fit.points[ok], window)
+    xy = _window_grid(window)
+    local = fit.points[ok] - origin
+    args = dict(angles=fit.angles[ok], contrast=fit.contrast[ok], offset=fit.offset[ok])
+    psf = fit.sharpening
+    if psf is None:
+        model = xjunction_image(xy, local, sigma=fit.sigma[ok], **args)
+    else:
+        model = ((1 + psf.amount) * xjunction_image(xy, local, sigma=psf.sigma, **args)
+                 - psf.amount * xjunction_image(xy, local, sigma=psf.wide, **args))
+    resid = np.where(wts > 0, data - model, np.nan)
+    dist = []
+    for a in fit.angles[ok].T:
+        n = np.column_stack([-np.sin(a), np.cos(a)])
+        dist.append((xy[None, :, 0] - local[:, :1]) * n[:, :1]
+                    + (xy[None, :, 1] - local[:, 1:]) * n[:, 1:])
+    near = np.minimum(np.abs(dist[0]), np.abs(dist[1]))
+    level = (model - fit.offset[ok, None]) / fit.contrast[ok, None]
+    edge = near < 1.0
+    sides = [np.nanmean(resid[edge & (level > 0.5)]), np.nanmean(resid[edge & (level <= 0.5)])]
+
+    def rms(mask):
+        return float(np.sqrt(np.nanmean(resid[mask] ** 2)))
+
+    return rms(edge), rms(near > 2.5), float(np.sqrt(np.mean(np.square(sides))))
 
 
 def _calibrated(step: str, method: str, detections: list, target) -> str:

@@ -319,3 +319,10 @@ def test_a_sharpening_camera_is_said_and_its_corners_kept():
         assert sharpened.ok and sharpened.steep_edges and sharpened.n_fallback == 0
         back = Detection.from_dict(json.loads(json.dumps(sharpened.to_dict())))
         assert back.steep_edges and "steep_edges" not in plain.to_dict()
+
+
+def test_the_fitted_sharpening_goes_through_the_detections_file():
+    det = Detection("a.png", np.zeros((2, 2)), [0, 1], sharpening=(0.8, 0.9, 1.2))
+    back = Detection.from_dict(json.loads(json.dumps(det.to_dict())))
+    assert back.sharpening == (0.8, 0.9, 1.2)
+    assert "sharpening" not in Detection("b.png", np.zeros((2, 2)), [0, 1]).to_dict()

@@ -639,6 +639,12 @@ def _step_detections(out: Path, step: str, files: list[Path], target: Target, se
     if steep:
         log(f"step {step}: {steep} of {len(dets)} images have edges steeper than any blur makes "
             "(a camera that sharpens): their corners were fitted at a 0.5 px blur")
+    sharpened = [d.sharpening for d in dets if getattr(d, "sharpening", None) is not None]
+    if sharpened:
+        amount, radius = np.median([s[1] for s in sharpened]), np.median([s[2] for s in sharpened])
+        log(f"step {step}: {len(sharpened)} of {len(dets)} images are sharpened by the camera "
+            f"(an unsharp mask of amount {amount:.2f} at {radius:.2f} px, median): their "
+            "corners were fitted with it")
     return dets
 
 

@@ -142,6 +142,10 @@ class Detection:
         The image's edges are steeper than any Gaussian blur makes (a camera that sharpens):
         the ``model`` refiner fitted its corners at a fixed 0.5 px blur
         (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`).
+    sharpening : (float, float, float) or None
+        The camera's sharpening the ``model`` refiner fitted its corners with: the PSF
+        ``(sigma, amount, radius)`` (px, 1, px) of
+        :class:`~zoomcalib.detect.refine.SharpenedPSF`; None when a Gaussian blur was used.
     """
 
     file: str
@@ -153,6 +157,7 @@ class Detection:
     fallback: np.ndarray | None = None
     transient: bool = False
     steep_edges: bool = False
+    sharpening: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
@@ -179,14 +184,17 @@ class Detection:
 
     def to_dict(self) -> dict:
         """The detections-file entry ``{"file", "points", "ids", "error"[, "fallback",
-        "steep_edges"]}``, plain Python types; ``fallback`` (one bool per point) only when a point
-        fell back, ``steep_edges`` only when true."""
+        "steep_edges", "sharpening"]}``, plain Python types; ``fallback`` (one bool per point)
+        only when a point fell back, ``steep_edges`` only when true, ``sharpening`` (``[sigma,
+        amount, radius]``) only when fitted."""
         entry = {"file": self.file, "points": self.points.tolist(),
                  "ids": [int(i) for i in self.ids], "error": self.error}
         if self.n_fallback:
             entry["fallback"] = [bool(b) for b in self.fallback]
         if self.steep_edges:
             entry["steep_edges"] = True
+        if self.sharpening is not None:
+            entry["sharpening"] = [float(v) for v in self.sharpening]
         return entry
 
     @classmethod
@@ -197,7 +205,8 @@ class Detection:
         return cls(str(entry["file"]), np.asarray(entry.get("points") or [], float),
                    np.asarray(entry.get("ids") or [], np.int64), entry.get("error"),
                    str(entry.get("method", method)), tuple(entry.get("image_size", image_size)),
-                   entry.get("fallback"), steep_edges=bool(entry.get("steep_edges", False)))
+                   entry.get("fallback"), steep_edges=bool(entry.get("steep_edges", False)),
+                   sharpening=tuple(entry["sharpening"]) if entry.get("sharpening") else None)
 
 
 def default_method(target: Target) -> str:
@@ -564,7 +573,9 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
     see :func:`zoomcalib.detect.dots.dot_centre_bias`). Points whose fit did not converge keep
     OpenCV's position and are returned flagged (the third element, True where a point fell back);
     the fourth says whether the corners' edges were steeper than any blur makes
-    (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`).
+    (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`), the fifth the sharpened PSF
+    ``(sigma, amount, radius)`` they were fitted with, or None
+    (:attr:`~zoomcalib.detect.refine.RefineResult.sharpening`).
     """
     from .refine import refine_corners, refine_dots
 
@@ -596,7 +607,9 @@ def _detect_model(grey8: np.ndarray, best: np.ndarray, target: Target, window: i
                              max_window=min(_MAX_WINDOW, cap))
         refined = res.points
     out = np.where(res.converged[:, None], refined, pts)
-    return out, ids, ~res.converged, bool(getattr(res, "steep_edges", False))
+    psf = getattr(res, "sharpening", None)
+    return (out, ids, ~res.converged, bool(getattr(res, "steep_edges", False)),
+            None if psf is None else (psf.sigma, psf.amount, psf.radius))
 
 
 _MAX_WINDOW = 12  # px; the model fit's half-window grows with the blur up to this
@@ -674,7 +687,8 @@ def detect_image(image_or_path: str | os.PathLike | np.ndarray, target: Target |
         return Detection(label, error=f"{label}: {found}", method=method, image_size=size)
     points, ids, *extra = found
     return Detection(label, points, ids, None, method, size, extra[0] if extra else None,
-                     steep_edges=len(extra) > 1 and bool(extra[1]))
+                     steep_edges=len(extra) > 1 and bool(extra[1]),
+                     sharpening=extra[2] if len(extra) > 2 else None)
 
 
 def image_files(folder: str | os.PathLike) -> list[Path]:

@@ -38,6 +38,14 @@ with variances ``v_i = n_i^T S n_i`` and covariance ``n_1^T S n_2``, so the same
 with ``h = u_1 / sqrt(v_1)``, ``k = u_2 / sqrt(v_2)`` and ``rho = n_1^T S n_2 / sqrt(v_1 v_2)``:
 each edge is blurred by its own 1-D Gaussian, and the isotropic case is ``S = sigma^2 I``.
 
+*Sharpened frames.* Cameras that stream video sharpen their frames, ``I' = (1 + A) I - A
+(G_r * I)`` (an unsharp mask of amount ``A`` and radius ``r`` px), which makes edges
+overshoot on both sides; no Gaussian PSF does. The blurred pattern is linear in the PSF, so
+the sharpened image is ``(1 + A) P_sigma - A P_wide`` with ``wide = sqrt(sigma^2 + r^2)``: two
+evaluations of the model above (:class:`SharpenedPSF`). Its narrow Gaussian carries the
+position; the wide one is integrated over the pixel by the Gaussian pixel model below (it is
+wider than a pixel).
+
 *Pixel integration.* By default the blurred pattern is integrated over each pixel by an
 ``n_sub x n_sub`` Gauss-Legendre product rule (``pixel_model='quadrature'``, ``n_sub`` from
 :func:`auto_n_sub`: 3 nodes per axis at sigma = 0.7 px), which keeps the intensity error far
@@ -321,6 +329,79 @@ def _xj_eval(
         drho = dc / sd12 - 0.5 * rho_raw * (dv1 / v1 + dv2 / v2)
         jac[..., 6 + j] = av * (-0.5 * ghh * (dv1 / v1)[:, None] - 0.5 * gkk * (dv2 / v2)[:, None]
                                 + gr * drho[:, None])
+    return f, jac
+
+
+@dataclass(frozen=True)
+class SharpenedPSF:
+    """A Gaussian blur followed by a camera's unsharp mask, as one point spread function.
+
+    ``PSF = (1 + amount) G_sigma - amount G_wide``, ``wide = sqrt(sigma^2 + radius^2)``: the
+    frame blurred by ``G_sigma`` (px), then sharpened as ``I' = (1 + amount) I - amount
+    (G_radius * I)``. The blurred X-junction is linear in its PSF, so the model is the same
+    combination of two Gaussian X-junctions (:func:`_xj_eval_sharpened`). Its negative lobe
+    makes the overshoot on both sides of an edge that the cameras of video streams add and
+    no Gaussian blur makes.
+
+    Examples
+    --------
+    >>> round(SharpenedPSF(0.6, 0.8, 0.8).wide, 3)
+    1.0
+    """
+
+    sigma: float
+    amount: float
+    radius: float
+
+    @property
+    def wide(self) -> float:
+        """The wide Gaussian's sd, ``sqrt(sigma^2 + radius^2)``, px."""
+        return float(np.hypot(self.sigma, self.radius))
+
+
+# A fixed blur: an isotropic sd (px), covariance entries (S_xx, S_xy, S_yy) (px^2) or a
+# sharpened PSF
+Blur = float | np.ndarray | SharpenedPSF
+
+
+def _xj_eval_sharpened(
+    p: np.ndarray,
+    sigma: np.ndarray,
+    amount: np.ndarray,
+    radius: np.ndarray,
+    xy: np.ndarray,
+    pixel_model: PixelModel,
+    n_sub: int,
+    jacobian: bool = True,
+):
+    """The X-junction under a :class:`SharpenedPSF`, and its Jacobian.
+
+    ``f = (1 + A) f_sigma - A f_wide`` with ``f_s`` the Gaussian X-junction of
+    :func:`_xj_eval` at blur ``s`` and ``wide = sqrt(sigma^2 + radius^2)`` (``b`` and ``a``
+    enter both alike, so the combination keeps them). ``sigma, amount, radius`` are (K,).
+    The wide term is integrated over the pixel by the Gaussian pixel model when every
+    ``wide`` is at least ``_GAUSSIAN_PIXEL_SIGMA``, where that model is as exact as the
+    quadrature (module docstring).
+    The Jacobian's columns are ``df / d(cx, cy, alpha1, alpha2, a, b, log sigma, A, log
+    radius)``, with ``d log wide / d log sigma = sigma^2 / wide^2`` and ``d log wide /
+    d log radius = radius^2 / wide^2``.
+    """
+    wide = np.hypot(sigma, radius)
+    f1, j1 = _xj_eval(p, sigma, xy, pixel_model, n_sub, jacobian)
+    if np.all(wide >= _GAUSSIAN_PIXEL_SIGMA):  # where the Gaussian pixel model is as exact
+        f2, j2 = _xj_eval(p, wide, xy, "gaussian", 1, jacobian)
+    else:
+        f2, j2 = _xj_eval(p, wide, xy, pixel_model, n_sub, jacobian)
+    A = amount[:, None]
+    f = (1.0 + A) * f1 - A * f2
+    if not jacobian:
+        return f, None
+    jac = np.empty(f.shape + (9,))
+    jac[..., :6] = (1.0 + A)[..., None] * j1[..., :6] - A[..., None] * j2[..., :6]
+    w2 = wide * wide
+    jac[..., 6] = (1.0 + A) * j1[..., 6] - A * j2[..., 6] * (sigma * sigma / w2)[:, None]
+    jac[..., 7] = f1 - f2
+    jac[..., 8] = -A * j2[..., 6] * (radius * radius / w2)[:, None]
     return f, jac
 
 
@@ -734,8 +815,17 @@ class RefineResult:
         With ``sigma='shared'``: the corners' own fits put the blur below
         ``_STEEP_EDGE_BLUR`` while missing the image by more than ``_STEEP_EDGE_MISFIT`` of
         their contrast, the signature of edges steeper than any Gaussian blur makes (a camera
-        that sharpens); the blur was then fixed at ``_STEEP_EDGE_BLUR`` (see
-        :func:`refine_corners`).
+        that sharpens), and the sharpened PSF did not fit them better; the blur was then fixed
+        at ``_STEEP_EDGE_BLUR`` (see :func:`refine_corners`).
+    sharpening : SharpenedPSF or None
+        With ``sigma='shared'``: the sharpened PSF every corner was fitted with, when the
+        sampled corners chose it (:func:`refine_corners`); ``sigma`` is then its narrow
+        Gaussian's sd.
+    sharpening_gain : float
+        The sampled corners' median residual RMS under their own sharpened PSFs over that
+        under their own Gaussian blurs (below 1: the sharpened PSF fits better); NaN when not
+        tried (``sigma`` not ``'shared'``, ``sharpened=False``, fewer than 8 corners, or the
+        Gaussian fits within ``_SHARPEN_MIN_MISFIT`` of the contrast).
     """
 
     points: np.ndarray
@@ -749,6 +839,8 @@ class RefineResult:
     n_iter: np.ndarray
     psf_cov: np.ndarray
     steep_edges: bool = False
+    sharpening: SharpenedPSF | None = None
+    sharpening_gain: float = float("nan")
 
 
 def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
@@ -829,6 +921,7 @@ def refine_corners(
     chunk: int = 256,
     max_window: int | None = None,
     anisotropic: bool = True,
+    sharpened: bool = True,
 ) -> RefineResult:
     """Model-based subpixel refinement of chessboard X-junctions.
 
@@ -848,7 +941,19 @@ def refine_corners(
     exact (module docstring) and the fit ends on it. The covariance is ``s^2 (J^T J)^-1``
     (position block) with ``s^2 = RSS / (n - P)``.
 
-    With ``sigma='shared'``, when the sampled corners' fits put the blur below 0.5 px
+    With ``sigma='shared'`` and ``sharpened``, when the sampled corners' Gaussian fits miss
+    the image by more than 1.5 % of the contrast (``_SHARPEN_MIN_MISFIT``; renders at 2 DN
+    noise: 1.0 %), they are also fitted with their own :class:`SharpenedPSF`, a Gaussian blur
+    followed by an unsharp mask (``(1 + amount) G_sigma - amount G_wide``), the in-camera
+    sharpening of video streams. When at least half of those fits converge, the median
+    amount is above 0.05 and their median residual RMS is at most 0.85 times the Gaussian
+    fits' (``_SHARPEN_GAIN``), every corner is fitted with the median PSF (``sharpening``
+    says which; each evaluation costs two Gaussian ones). On unsharp-masked renders it
+    recovers the mask and brings the residual down to the noise (``tests/test_refine.py``);
+    on a real stream's frames the sharpened fits do not converge and do not fit better
+    (``sharpening_gain`` about 1; ``docs/performance.md``), and the choice below applies.
+
+    Otherwise, when the sampled corners' fits put the blur below 0.5 px
     (``_STEEP_EDGE_BLUR``) and their residual RMS exceeds 3 % (``_STEEP_EDGE_MISFIT``) of their
     contrast (median over the sample), the edges are steeper than any Gaussian blur with pixel
     integration makes: a camera sharpened them, and the blur the fit finds is no blur but the
@@ -898,6 +1003,8 @@ def refine_corners(
         outside it.
     anisotropic : bool
         With ``sigma='shared'``, allow the anisotropic PSF; False keeps the isotropic one.
+    sharpened : bool
+        With ``sigma='shared'``, allow the sharpened PSF; False keeps the Gaussian one.
 
     Returns
     -------
@@ -941,11 +1048,14 @@ def refine_corners(
     chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
               for s in range(0, K, chunk)]
     gaussian_only = pixel_model == "gaussian"
-    blur: float | np.ndarray | None = sigma
+    blur: Blur | None = sigma
     if sigma == "shared":
-        blur, misfit = _shared_blur(img, chunks, window, max_window, max_iter,
-                                    tol if gaussian_only else 1e-3, anisotropic)
-        if np.ndim(blur) == 0 and blur < _STEEP_EDGE_BLUR and misfit > _STEEP_EDGE_MISFIT:
+        blur, misfit, out.sharpening_gain = _shared_blur(
+            img, chunks, window, max_window, max_iter, tol if gaussian_only else 1e-3,
+            anisotropic, sharpened)
+        if isinstance(blur, SharpenedPSF):
+            out.sharpening = blur
+        elif np.ndim(blur) == 0 and blur < _STEEP_EDGE_BLUR and misfit > _STEEP_EDGE_MISFIT:
             blur, out.steep_edges = _STEEP_EDGE_BLUR, True
     if blur is not None:
         grown = _blur_window(blur, window, max_window)
@@ -1018,6 +1128,16 @@ _GAUSSIAN_PIXEL_SIGMA = 1.0  # px; a fixed or shared blur from which the cheap m
 _BLUR_SAMPLE = 64  # corners, spread over the image's list, whose own fits give the shared blur
 _STEEP_EDGE_BLUR = 0.5  # px: a shared blur below this with a large misfit is sharpening
 _STEEP_EDGE_MISFIT = 0.03  # of the contrast: the sampled corners' median residual RMS above it
+_SHARPEN_MAX_AMOUNT = 5.0  # largest unsharp-mask amount a sharpened PSF's fit may reach
+_SHARPEN_START = SharpenedPSF(0.7, 0.5, 1.0)  # start of the sampled corners' sharpened fits
+_SHARPEN_MIN_AMOUNT = 0.05  # a median amount at or below this is no sharpening
+# iteration cap of the sampled corners' sharpened fits: on unsharp-masked renders they
+# converge in 8 (median); on frames the PSF does not describe they would run to any cap
+_SHARPEN_ITER = 15
+_SHARPEN_GAIN = 0.85  # the sharpened PSF is used when its residual is at most this x Gaussian's
+# of the contrast: the Gaussian fits' misfit from which a sharpened PSF is tried (renders at
+# 2 DN noise: 0.010; unsharp-masked ones: 0.026; a real H.264 stream's frames: 0.06-0.08)
+_SHARPEN_MIN_MISFIT = 0.015
 _ANISO_SAMPLE = 48  # corners whose own anisotropic fits estimate the shared PSF covariance
 _ANISO_CHI2 = 13.8  # chi^2 (2 dof) at p = 0.001: the anisotropy is beyond its noise
 _ANISO_MIN_RATIO = 1.25  # major over minor PSF sd from which the anisotropy is used
@@ -1043,25 +1163,64 @@ def _cov_eig_sd(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.sqrt(np.maximum(half_tr - d, 0.0)), np.sqrt(np.maximum(half_tr + d, 0.0))
 
 
-def _minor_sd(blur: float | np.ndarray) -> float:
-    """Smallest PSF sd, px, of a fixed blur (sd or covariance entries)."""
+def _minor_sd(blur: Blur) -> float:
+    """Smallest PSF sd, px, of a fixed blur (sd, covariance entries or sharpened PSF)."""
+    if isinstance(blur, SharpenedPSF):
+        return blur.sigma
     return float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[0])
 
 
-def _blur_window(blur: float | np.ndarray, window: int, max_window: int) -> int:
-    """Half-size that holds ``3 sigma_major + 2`` px of the blurred edges, in
-    ``[window, max_window]``."""
-    major = float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[1])
+def _blur_window(blur: Blur, window: int, max_window: int) -> int:
+    """Half-size that holds ``3 sigma_major + 2`` px of the blurred edges (of the narrow
+    Gaussian of a sharpened PSF, which carries the position), in ``[window, max_window]``."""
+    if isinstance(blur, SharpenedPSF):
+        major = blur.wide
+    else:
+        major = float(blur) if np.ndim(blur) == 0 else float(_cov_eig_sd(blur)[1])
     return int(np.clip(np.ceil(3.0 * major) + 2, window, max_window))
 
 
+def _sharpened_psf(blurs: _CornerChunk, img: np.ndarray, window: int, max_iter: int,
+                   tol: float) -> tuple[SharpenedPSF | None, float]:
+    """The sharpened PSF shared by the sampled corners, when it fits them clearly better than
+    their own Gaussian blurs; and the ratio of the two fits' median residual RMS over the
+    sample (the sharpened fits where they stopped, converged or not).
+
+    Each sampled corner is refitted with its own ``(log sigma, amount, log radius)`` of a
+    :class:`SharpenedPSF` (Gaussian pixel model, from ``(0.7, 0.5, 1.0)``, at most
+    ``_SHARPEN_ITER`` iterations); the shared PSF is
+    the median of each over the converged fits. It is used when at least half the sample
+    converged, the median amount is above ``_SHARPEN_MIN_AMOUNT`` and the median residual RMS
+    is at most ``_SHARPEN_GAIN`` times the Gaussian fits'. On an unsharp-masked render the fits
+    find the mask (tests/test_refine.py); on frames whose residual is not the edge's profile
+    (a compressed stream's ragged edges) most do not converge and the Gaussian blur is kept.
+    """
+    sample = _CornerChunk.start(img, blurs.p[:, :2] + blurs.origin, window,
+                                slice(0, len(blurs.p)))
+    sample.fit(_SHARPEN_START, "gaussian", 1, min(max_iter, _SHARPEN_ITER), tol, free=True)
+    conv = sample.lm.converged
+    rms_gauss = np.sqrt(blurs.lm.cost / np.maximum(blurs.weights.sum(axis=1), 1.0))
+    rms = np.sqrt(sample.lm.cost / np.maximum(sample.weights.sum(axis=1), 1.0))
+    gain = float(np.median(rms) / max(np.median(rms_gauss), 1e-300))
+    if conv.mean() < 0.5:
+        return None, gain
+    psf = SharpenedPSF(float(np.exp(np.median(sample.p[conv, 6]))),
+                       float(np.median(sample.p[conv, 7])),
+                       float(np.exp(np.median(sample.p[conv, 8]))))
+    if psf.amount <= _SHARPEN_MIN_AMOUNT or gain > _SHARPEN_GAIN:
+        return None, gain
+    return psf, gain
+
+
 def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_window: int,
-                 max_iter: int, tol: float, anisotropic: bool
-                 ) -> tuple[float | np.ndarray, float]:
-    """The blur shared by the image's corners: an sd (px) or, when the data ask for it, the
-    entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF covariance; and the sampled
-    corners' misfit, the median residual RMS over the median ``|a|`` (contrast) of those whose
-    blur fit converged.
+                 max_iter: int, tol: float, anisotropic: bool, sharpened: bool
+                 ) -> tuple[Blur, float, float]:
+    """The blur shared by the image's corners: an sd (px), a :class:`SharpenedPSF` or, when
+    the data ask for it, the entries ``(S_xx, S_xy, S_yy)`` (px^2) of an anisotropic PSF
+    covariance; the sampled corners' misfit, the median residual RMS over the median ``|a|``
+    (contrast) of those whose blur fit converged; and, with ``sharpened``, the ratio of the
+    sharpened PSF's residual to the Gaussian one's on the sample (:func:`_sharpened_psf`; NaN
+    when not tried: the Gaussian fits' misfit at most ``_SHARPEN_MIN_MISFIT``).
 
     The blur of up to ``_BLUR_SAMPLE`` corners spread over the list is fitted (Gaussian pixel
     model); the median over converged ones is the isotropic estimate ``sigma`` (its standard
@@ -1075,7 +1234,7 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     physically large: major over minor sd at least ``_ANISO_MIN_RATIO``.
     """
     if not chunks:
-        return 1.0, 0.0
+        return 1.0, 0.0, float("nan")
     start = np.concatenate([c.p[:, :2] + c.origin for c in chunks])
     pick = np.unique(np.linspace(0, len(start) - 1, _BLUR_SAMPLE).round().astype(int))
     blurs = _CornerChunk.start(img, start[pick], window, slice(0, len(pick)))
@@ -1086,8 +1245,13 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     rms = np.sqrt(blurs.lm.cost / np.maximum(blurs.weights.sum(axis=1), 1.0))
     misfit = float(np.median(rms[good]) / max(np.median(np.abs(blurs.p[good, 4])), 1e-300)) \
         if np.any(good) else 0.0
+    gain = float("nan")
+    if sharpened and good.sum() >= 8 and misfit > _SHARPEN_MIN_MISFIT:
+        psf, gain = _sharpened_psf(blurs.subset(good), img, window, max_iter, tol)
+        if psf is not None:
+            return psf, misfit, gain
     if not anisotropic or good.sum() < 8:
-        return sigma, misfit
+        return sigma, misfit, gain
     points = (blurs.p[:, :2] + blurs.origin)[good]
     pick = np.unique(np.linspace(0, len(points) - 1, _ANISO_SAMPLE).round().astype(int))
     sample = _CornerChunk.start(img, points[pick], _blur_window(sigma, window, max_window),
@@ -1096,7 +1260,7 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     sample.fit(_cov_entries(sigma), "gaussian", 1, max_iter, tol, free=True)
     cov = sample.p[sample.lm.converged, 6:9]
     if len(cov) < 8:
-        return sigma, misfit
+        return sigma, misfit, gain
     d = np.column_stack([0.5 * (cov[:, 0] - cov[:, 2]), cov[:, 1]])
     d_med = np.median(d, axis=0)
     se = 1.2533 * 1.4826 * np.median(np.abs(d - d_med), axis=0) / np.sqrt(len(d))
@@ -1104,8 +1268,8 @@ def _shared_blur(img: np.ndarray, chunks: list[_CornerChunk], window: int, max_w
     minor, major = _cov_eig_sd(shared)
     significant = np.sum((d_med / np.maximum(se, 1e-12)) ** 2) > _ANISO_CHI2
     if significant and minor > 0 and major >= _ANISO_MIN_RATIO * minor:
-        return shared, misfit
-    return sigma, misfit
+        return shared, misfit, gain
+    return sigma, misfit, gain
 
 
 @dataclass
@@ -1140,39 +1304,55 @@ class _CornerChunk:
         p0[:, 4], p0[:, 5] = _linear_ab(pix, data, wts)
         return cls(data, wts, origin, window, where, p0, None, np.zeros(n, int))
 
-    def fit(self, blur: float | np.ndarray | None, model: PixelModel, n_sub: int,
+    def fit(self, blur: Blur | None, model: PixelModel, n_sub: int,
             max_iter: int | np.ndarray, tol: float, free: bool = False) -> None:
-        """One Levenberg-Marquardt stage. ``blur`` is a fixed sd (px) or covariance entries
-        ``(S_xx, S_xy, S_yy)`` (px^2); None fits ``log sigma`` per corner; ``free=True`` fits
-        the covariance per corner starting from ``blur``. ``max_iter`` is one cap or one per
+        """One Levenberg-Marquardt stage. ``blur`` is a fixed sd (px), covariance entries
+        ``(S_xx, S_xy, S_yy)`` (px^2) or a :class:`SharpenedPSF`; None fits ``log sigma`` per
+        corner; ``free=True`` fits the covariance, or the sharpened PSF's ``(log sigma, amount,
+        log radius)``, per corner starting from ``blur``. ``max_iter`` is one cap or one per
         corner."""
         xy = _window_grid(self.window)
         n = len(self.p)
+        sharpened = isinstance(blur, SharpenedPSF)
         if blur is None:
             n_par = 7
             p = self.p if self.p.shape[1] == 7 else np.column_stack([self.p[:, :6], np.zeros(n)])
+        elif free and sharpened:
+            n_par = 9
+            start = [np.log(blur.sigma), blur.amount, np.log(blur.radius)]
+            p = np.column_stack([self.p[:, :6], np.broadcast_to(start, (n, 3))])
         elif free:
             n_par = 9
             p = np.column_stack([self.p[:, :6], np.broadcast_to(blur, (n, 3))])
         else:
             n_par = 6
             p = self.p[:, :6]
-            fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
 
         def fun(q, idx):
+            if sharpened:
+                k = len(q)
+                shape = (q[:, 6:9].T if free else np.array(
+                    [[np.log(blur.sigma)], [blur.amount], [np.log(blur.radius)]]
+                ).repeat(k, axis=1))
+                f, jac = _xj_eval_sharpened(q[:, :6], np.exp(shape[0]), shape[1],
+                                            np.exp(shape[2]), xy, model, n_sub)
+                return f, jac[..., :n_par]
             if n_par == 7:
                 b_ = np.exp(q[:, 6])
             elif n_par == 9:
                 b_ = q[:, 6:9]
             else:
-                b_ = fixed[idx]
+                b_ = np.broadcast_to(np.asarray(blur, float), (len(q),) + np.shape(blur))
             f, jac = _xj_eval(q[:, :6], b_, xy, model, n_sub)
             return f, jac[..., :n_par]
 
         def valid(q):
             ok = np.all(np.abs(q[:, :2]) < self.window, axis=1)
-            if n_par == 7:
+            if n_par == 7 or (sharpened and free):
                 ok &= (q[:, 6] > np.log(0.05)) & (q[:, 6] < np.log(self.window))
+            if sharpened and free:
+                ok &= (q[:, 7] >= 0.0) & (q[:, 7] < _SHARPEN_MAX_AMOUNT)
+                ok &= (q[:, 8] > np.log(0.2)) & (q[:, 8] < np.log(self.window))
             elif n_par == 9:
                 minor, major = _cov_eig_sd(q[:, 6:9])
                 ok &= (minor > 0.05) & (major < self.window)
@@ -1184,7 +1364,7 @@ class _CornerChunk:
         self.p = self.lm.p
         self.n_iter = self.n_iter + self.lm.n_iter
 
-    def gaussian_is_final(self, blur: float | np.ndarray | None) -> np.ndarray:
+    def gaussian_is_final(self, blur: Blur | None) -> np.ndarray:
         """Corners whose Gaussian-pixel-model fit is final: converged, and both that model's
         position bias at their blur (:func:`gaussian_pixel_bias`) and the stage's stopping step
         (1e-3 px) are within ``_FINAL_FRACTION`` of their own position sd."""
@@ -1209,19 +1389,27 @@ class _CornerChunk:
         self.p[:, :2] = pts - origin
         self.origin, self.window = origin, window
 
-    def fix_blur(self, blur: float | np.ndarray) -> None:
-        """Fix the blur (sd or covariance entries) for the next stage (``a, b`` refitted)."""
+    def fix_blur(self, blur: Blur) -> None:
+        """Fix the blur (sd, covariance entries or sharpened PSF) for the next stage (``a, b``
+        refitted)."""
         self.p = self.p[:, :6].copy()
         n = len(self.p)
         self.p[:, 4], self.p[:, 5] = 1.0, 0.0  # so that the model below is the pattern P
-        fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
-        pix, _ = _xj_eval(self.p, fixed, _window_grid(self.window), "gaussian", 1,
-                          jacobian=False)
+        xy = _window_grid(self.window)
+        if isinstance(blur, SharpenedPSF):
+            pix, _ = _xj_eval_sharpened(self.p, np.full(n, blur.sigma), np.full(n, blur.amount),
+                                        np.full(n, blur.radius), xy, "gaussian", 1, False)
+        else:
+            fixed = np.broadcast_to(np.asarray(blur, float), (n,) + np.shape(blur))
+            pix, _ = _xj_eval(self.p, fixed, xy, "gaussian", 1, jacobian=False)
         self.p[:, 4], self.p[:, 5] = _linear_ab(pix, self.data, self.weights)
 
-    def edge_sd(self, blur: float | np.ndarray) -> np.ndarray:
+    def edge_sd(self, blur: Blur) -> np.ndarray:
         """Per corner, the smaller blur across its two edges, px: ``sqrt(n_i^T S n_i)`` for a
-        fixed covariance ``S``, ``sigma`` for a fixed sd."""
+        fixed covariance ``S``, ``sigma`` for a fixed sd or a sharpened PSF (its narrow
+        Gaussian)."""
+        if isinstance(blur, SharpenedPSF):
+            return np.full(len(self.p), blur.sigma)
         if np.ndim(blur) == 0:
             return np.full(len(self.p), float(blur))
         a = self.p[:, 2:4]
@@ -1230,7 +1418,7 @@ class _CornerChunk:
                                   normals, normals)
         return np.sqrt(v.reshape(-1, 2).min(axis=1))
 
-    def smallest_sigma(self, blur: float | np.ndarray | None) -> float:
+    def smallest_sigma(self, blur: Blur | None) -> float:
         """The smallest blur of the batch (across an edge, for a fixed covariance), px, for the
         pixel quadrature's order."""
         if blur is not None:
@@ -1248,7 +1436,7 @@ class _CornerChunk:
         return _CornerChunk(self.data[keep], self.weights[keep], self.origin[keep],
                             self.window, where[keep], self.p[keep], lm, self.n_iter[keep])
 
-    def store(self, out: RefineResult, blur: float | np.ndarray | None) -> None:
+    def store(self, out: RefineResult, blur: Blur | None) -> None:
         """Write the fit into ``out`` with the acceptance tests of :func:`refine_corners`."""
         n_par = self.p.shape[1]
         cov, rms = _covariance(self.lm, self.weights, n_par)
@@ -1256,6 +1444,8 @@ class _CornerChunk:
         n = len(p)
         if blur is None:
             entries = np.exp(2.0 * p[:, 6])[:, None] * np.array([1.0, 0.0, 1.0])
+        elif isinstance(blur, SharpenedPSF):
+            entries = np.tile(_cov_entries(blur.sigma), (n, 1))
         elif np.ndim(blur) == 0:
             entries = np.tile(_cov_entries(float(blur)), (n, 1))
         else:
