@@ -11,10 +11,12 @@ detector runs on every frame in this one process (CPU seconds on one core): ``mo
 default), ``sb`` (``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY``, the peer) and
 ``classic``. Per variant and detector: the RMS distance of the corners from the rendered truth
 (px, both axes), CPU s per frame, the default's fallbacks and its fit residual (grey levels,
-median over corners). The sharpened frames carry the plain frames' information (an unsharp
-mask is invertible but for clipping and rounding), so the default's error on them against its
-error on the plain ones (at the Cramer-Rao bound, ``docs/performance.md``) is how far the
-sharpening costs it.
+median over corners), split as ``bench_real_detect.py`` splits it (edge and flat pixels, the
+edge pixels' mean by side), and the sharpened PSF the default fitted (median amount and
+radius over the frames that chose it; ``sharp``: their share). The sharpened frames carry
+the plain frames' information (an unsharp mask is invertible but for clipping and
+rounding), so the default's error on them against its error on the plain ones (at the
+Cramer-Rao bound, ``docs/performance.md``) is how far the sharpening costs it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ from zoomcalib.detect.refine import refine_corners  # noqa: E402
 from zoomcalib.render.sweep import CaptureEffects, render_zoom_sweep  # noqa: E402
 from zoomcalib.targets import parse_pattern  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_real_detect import residual_split  # noqa: E402, I001
+
 PATTERN = "chessboard:22x15:25"
 METHODS = ("model", "sb", "classic")
 VARIANTS = {"plain": (None, None), "sharpened": ((0.8, 1.2), None),
@@ -49,7 +54,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-sharpened"))
     args = ap.parse_args()
     target = parse_pattern(PATTERN)
-    stats = {(v, m): {"err": [], "cpu": [], "fallback": 0, "corners": 0, "resid": []}
+    stats = {(v, m): {"err": [], "cpu": [], "fallback": 0, "corners": 0, "resid": [],
+                      "split": [], "psf": []}
              for v in VARIANTS for m in METHODS}
     for seed in range(args.seeds):
         for variant, (sharpen, quality) in VARIANTS.items():
@@ -75,12 +81,17 @@ def main() -> None:
                         fit = refine_corners(grey.astype(float), det.points, sigma="shared",
                                              window=5, max_window=12)
                         s["resid"].append(float(np.median(fit.rms[fit.converged])))
+                        s["split"].append(residual_split(grey, fit))
+                        psf = fit.sharpening
+                        s["psf"].append((np.nan, np.nan) if psf is None
+                                        else (psf.amount, psf.radius))
                     s["corners"] += len(det.points)
                     d = det.points[ok] - true[det.ids[ok]]
                     s["err"].append(d)
     print(f"{args.seeds} seeds x {args.views} views, fx 1500 px, 1280 x 720, {PATTERN}")
     print(f"{'variant':>10} {'detector':>8} {'RMS err px':>10} {'CPU s/frame':>11} "
-          f"{'fallback':>8} {'resid DN':>8}")
+          f"{'fallback':>8} {'resid DN':>8} {'edge':>5} {'flat':>5} {'edge mean':>9} "
+          f"{'sharp':>5} {'amount':>6} {'radius':>6}")
     summary = {}
     for (variant, m), s in stats.items():
         err = np.concatenate(s["err"]) if s["err"] else np.zeros((0, 2))
@@ -89,6 +100,13 @@ def main() -> None:
         fallback = (f"{100 * s['fallback'] / max(s['corners'], 1):7.2f}%" if m == "model"
                     else f"{'':>8}")
         resid = f"{np.median(s['resid']):8.1f}" if s["resid"] else f"{'':>8}"
+        if s["split"]:
+            split = np.median(s["split"], axis=0)
+            psf = np.array(s["psf"])
+            chose = np.isfinite(psf[:, 0])
+            fitted = np.median(psf[chose], axis=0) if chose.any() else (np.nan, np.nan)
+            resid += (f" {split[0]:5.1f} {split[1]:5.1f} {split[2]:9.1f} {chose.mean():5.2f} "
+                      f"{fitted[0]:6.2f} {fitted[1]:6.2f}")
         print(f"{variant:>10} {m:>8} {rms:10.4f} {np.mean(s['cpu']):11.3f} {fallback} {resid}")
     print("default's error, sharpened / plain: "
           f"{summary['sharpened/model'] / summary['plain/model']:.2f}; stream / plain: "
