@@ -10,6 +10,7 @@ corners come from the default detector, the calibration and the residual budget 
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -43,11 +44,12 @@ def _budget(doc: dict, step: str) -> dict:
 
 @pytest.fixture(scope="module")
 def one_step(tmp_path_factory):
-    """One wide step (fx 1500 px, tilts to 40 degrees, 16 views), with and without a zoom that
-    does not return between views."""
+    """One wide step (fx 1500 px, tilts to 40 degrees, 16 views): clean, with a zoom that does
+    not return between views, and with a rolling shutter read out while the camera turns."""
     root = tmp_path_factory.mktemp("one_step")
     out = {}
-    for name, extra in (("jitter", ["--zoom-jitter", "0.015"]), ("clean", [])):
+    for name, extra in (("jitter", ["--zoom-jitter", "0.015"]), ("clean", []),
+                        ("shutter", ["--rolling-shutter", "3e-4"])):
         truth = _render(root / name, "--fx", "1500,1500", "--steps", "1", "--views", "16",
                         "--seed", "3", *extra)
         doc, _ = _calibrate(root / name, root / f"{name}_out", "--backend", "opencv",
@@ -65,6 +67,31 @@ def test_sharpening_overshoots_both_sides_of_an_edge():
         sharpen_image(edge, -1.0, 1.2)
 
 
+def test_a_rolling_shutter_sees_each_point_from_its_rows_pose(rng):
+    # OpenCV's projection of each point turned by the part of the readout its row is read at
+    # (iterated to its fixed point) against the renderer's mapping, and the way back
+    from zoomcalib.camera import CameraModel
+    from zoomcalib.render.image import RollingShutterMapping, camera_mapping
+
+    dist = np.array([-0.2, 0.1, 0.001, -0.002, 0.0])
+    cam = CameraModel(1500.0, 1500.0, 640.0, 360.0, dist)
+    turn = np.append(rng.normal(0, 3e-3, 2), 0.0)
+    mapping = RollingShutterMapping(camera_mapping(cam), turn, 720)
+    xy = rng.uniform(-0.3, 0.3, (50, 2))
+    uv = mapping.project(xy)
+    K = np.array([[1500.0, 0, 640.0], [0, 1500.0, 360.0], [0, 0, 1]])
+    P = np.column_stack([xy, np.ones(len(xy))])
+    ref = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    for _ in range(10):
+        turned = [cv2.Rodrigues(turn * (v / 720 - 0.5))[0] @ p for v, p in zip(ref[:, 1], P,
+                                                                                  strict=True)]
+        ref = cv2.projectPoints(np.array(turned), np.zeros(3), np.zeros(3), K, dist)[0]
+        ref = ref.reshape(-1, 2)
+    assert np.abs(uv - ref).max() < 1e-9
+    assert np.abs(uv - camera_mapping(cam).project(xy)).max() > 0.5  # the effect is there
+    assert np.abs(mapping.unproject(uv) - xy).max() < 1e-12
+
+
 def test_a_zoom_that_does_not_return_is_found_with_its_size(one_step):
     truth, doc = one_step["jitter"]
     step = truth["steps"][0]["step"]
@@ -79,6 +106,25 @@ def test_a_zoom_that_does_not_return_is_found_with_its_size(one_step):
     for other in ("lens", "board", "points"):
         assert other not in budget["named"], budget["named"]
     assert abs(focal["size"] - scales.std()) < 3 * focal["size_sd"], (focal, scales.std())
+
+
+def test_a_rolling_shutter_with_a_turning_camera_is_found_with_its_size(one_step):
+    # each view's turn over the readout drawn (sd 3e-4 rad about x and y: about 0.2 px at the
+    # top and bottom rows at fx 1500), kept in truth.json; the budget fits a shift linear in
+    # the row per view and must name it with the turns' size
+    truth, doc = one_step["shutter"]
+    st = truth["steps"][0]
+    turns = np.array([v["readout_turn"] for v in st["views"]])
+    true_px = st["camera"]["fx"] * 0.5 * np.sqrt(np.mean(turns[:, :2] ** 2))
+    budget = _budget(doc, st["step"])
+    readout = {c["name"]: c for c in budget["causes"]}["readout"]
+    assert readout["pays"], readout
+    assert "readout" in budget["named"] or set(readout["ambiguous_with"]) & set(budget["named"])
+    for other in ("lens", "board", "points"):
+        assert other not in budget["named"], budget["named"]
+    print(f"\nreadout shift {readout['size']:.3f} +- {readout['size_sd']:.3f} px, true "
+          f"{true_px:.3f} px; named {budget['named']}")
+    assert abs(readout["size"] - true_px) < 3 * readout["size_sd"], (readout, true_px)
 
 
 def test_sharpened_compressed_frames_of_a_flat_board_name_nothing(one_step):

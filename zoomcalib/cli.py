@@ -472,11 +472,16 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
 @click.option("--retape-at", type=click.IntRange(min=1),
               help="Steps from this index (0-based) see the board re-taped: another waving "
                    "surface, a session column in steps.csv.")
+@click.option("--rolling-shutter", default=0.0, show_default=True, type=click.FloatRange(min=0),
+              help="A rolling shutter read out while the camera turns: each view's turn over "
+                   "the readout, about the x and y axes, of this sd in rad (3e-4: 0.2 px at "
+                   "fx 1500).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample, pp_path,
                  pp_span, pp_runout, lens, lensfun, dist_centre, wave, psf, airy_radius, halo,
-                 ellipse, jpeg_quality, sharpen, zoom_jitter, retape_at, seed, out):
+                 ellipse, jpeg_quality, sharpen, zoom_jitter, retape_at, rolling_shutter, seed,
+                 out):
     """Render a zoom sweep like a real session through pinhole + distortion cameras.
 
     fx log-spaced over --fx, a principal point drifting by tens of px (--pp-path), barrel
@@ -511,7 +516,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                                  param_hint="--retape-at")
     try:
         effects = CaptureEffects(None if sharpen is None else _two_numbers(sharpen, "--sharpen"),
-                                 zoom_jitter, retape_at)
+                                 zoom_jitter, retape_at, rolling_shutter)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--sharpen") from None
     _check_out_folder(out)

@@ -1334,8 +1334,10 @@ class _CornerChunk:
                 shape = (q[:, 6:9].T if free else np.array(
                     [[np.log(blur.sigma)], [blur.amount], [np.log(blur.radius)]]
                 ).repeat(k, axis=1))
-                f, jac = _xj_eval_sharpened(q[:, :6], np.exp(shape[0]), shape[1],
-                                            np.exp(shape[2]), xy, model, n_sub)
+                # a trial step far out of range (rejected by valid below) may overflow
+                with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                    f, jac = _xj_eval_sharpened(q[:, :6], np.exp(shape[0]), shape[1],
+                                                np.exp(shape[2]), xy, model, n_sub)
                 return f, jac[..., :n_par]
             if n_par == 7:
                 b_ = np.exp(q[:, 6])

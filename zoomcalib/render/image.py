@@ -62,7 +62,7 @@ from ..targets import Target
 __all__ = ["Radiometry", "Optics", "PSF_KINDS", "psf_sigma_px", "psf_kernel",
            "elliptical_psf_covariance", "BoardSurface",
            "board_coordinates", "render_coverage", "render_image", "apply_radiometry",
-           "project_points", "RenderedView", "camera_mapping"]
+           "project_points", "RenderedView", "camera_mapping", "RollingShutterMapping"]
 
 BACKGROUND = 0.5  # relative reflectance of what lies beyond the board
 
@@ -892,6 +892,52 @@ class camera_mapping:  # noqa: N801 (used like a function)
 
     def unproject(self, uv: np.ndarray) -> np.ndarray:
         return self.camera.unproject_normalized(uv)
+
+
+def _turn(vectors: np.ndarray, rotvecs: np.ndarray) -> np.ndarray:
+    """Rotate each of ``vectors`` (n, 3) by its rotation vector ``rotvecs`` (n, 3), rad
+    (Rodrigues: ``v cos a + (k x v) sin a + k (k . v)(1 - cos a)``, ``a = |w|, k = w / a``)."""
+    angle = np.linalg.norm(rotvecs, axis=1, keepdims=True)
+    k = np.divide(rotvecs, angle, out=np.zeros_like(rotvecs), where=angle > 0)
+    return (vectors * np.cos(angle) + np.cross(k, vectors) * np.sin(angle)
+            + k * np.sum(k * vectors, axis=1, keepdims=True) * (1.0 - np.cos(angle)))
+
+
+class RollingShutterMapping:
+    """A mapping whose rows are read out while the camera turns (a rolling shutter).
+
+    Row ``v`` of an image ``height`` px high is read at ``f = v / height - 1/2`` of the readout
+    from its middle, when the camera has turned by the rotation vector ``f w`` (``w``, rad, the
+    turn over the whole readout): a point ``P`` of the camera frame at mid-readout is at
+    ``R(f w) P`` then. ``project`` finds the row at which a point is seen (a fixed point: the
+    row moves by about ``fx |w| / height`` px per px, a small fraction); ``unproject``
+    turns a pixel's ray back to the mid-readout frame. Poses and truth refer to mid-readout.
+    """
+
+    def __init__(self, mapping, turn: np.ndarray, height: int):
+        self.mapping, self.height = mapping, int(height)
+        self.turn = np.asarray(turn, dtype=float).reshape(3)
+
+    def _rotvecs(self, uv: np.ndarray) -> np.ndarray:
+        return (uv[:, 1:2] / self.height - 0.5) * self.turn
+
+    def project(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        ray = np.column_stack([xy, np.ones(len(xy))])
+        uv = self.mapping.project(xy)
+        for _ in range(50):
+            seen = _turn(ray, self._rotvecs(uv))
+            moved, uv = uv, self.mapping.project(seen[:, :2] / seen[:, 2:3])
+            if np.all(np.abs(uv - moved) < 1e-9):
+                return uv
+        raise RuntimeError(f"rolling shutter: the turn {self.turn.tolist()} rad moves a point's "
+                           "row by more than a row per row: no frame is read out so")
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        xy = self.mapping.unproject(uv)
+        ray = _turn(np.column_stack([xy, np.ones(len(xy))]), -self._rotvecs(uv))
+        return ray[:, :2] / ray[:, 2:3]
 
 
 def optics_dict(optics: Optics) -> dict:

@@ -32,7 +32,8 @@ Layout written by :func:`render_zoom_sweep`::
                              zoom, K, dist, camera,
                              psf_sigma_px, board_session, per view: file, rvec, tvec (board ->
                              camera, mm), points_px (true, OpenCV convention), visible,
-                             focal_scale (e^{s_v}); effects; render_s
+                             focal_scale (e^{s_v}), readout_turn (w_v, rad);
+                             effects; render_s
                              (wall clock) and render_cpu_s (CPU time of the process)
     OUT/fx_NNNNN/view_YY.png (or .jpg)   NNNNN = fx rounded to px
 
@@ -41,9 +42,13 @@ Capture effects
 :class:`CaptureEffects` imitates what a real PTZ camera's set carries beside the lens: the
 camera's sharpening (an unsharp mask on the quantised frame, :func:`~zoomcalib.render.image.
 sharpen_image`), a zoom that does not return to the same focal length between views (each
-view's ``fx``, ``fy`` scaled by ``e^{s_v}``, ``s_v ~ N(0, zoom_jitter)``), and a paper board
+view's ``fx``, ``fy`` scaled by ``e^{s_v}``, ``s_v ~ N(0, zoom_jitter)``), a paper board
 re-taped between capture sessions (the steps from ``retape_at`` on see a second board surface,
-drawn like the first; ``steps.csv`` then has a ``session`` column). Their draws come from seeds
+drawn like the first; ``steps.csv`` then has a ``session`` column), and a rolling shutter read
+out while the camera turns (each view's turn over the readout ``w_v = (w_x, w_y, 0)``,
+``w ~ N(0, rolling_shutter)`` rad, row ``v`` seen from the pose turned by ``(v / height - 1/2)
+w_v``: :class:`~zoomcalib.render.image.RollingShutterMapping`; poses and true points are the
+mid-readout ones). Their draws come from seeds
 of their own, so a render without them is the same as before they existed.
 
 The folder names hold one number each (the rounded fx), so
@@ -70,6 +75,7 @@ from .image import (
     BoardSurface,
     Optics,
     Radiometry,
+    RollingShutterMapping,
     camera_mapping,
     project_points,
     render_image,
@@ -145,17 +151,22 @@ class CaptureEffects:
 
     ``sharpen``: ``(amount, sigma_px)`` of the camera's unsharp mask, or None; ``zoom_jitter``:
     sd of each view's log focal scale ``s_v`` (0: none); ``retape_at``: index of the first step
-    that sees the re-taped board (None: one board for the sweep)."""
+    that sees the re-taped board (None: one board for the sweep); ``rolling_shutter``: sd
+    (rad) of each view's turn about the camera's x and y axes over the frame's readout (0:
+    a global shutter or a camera at rest)."""
 
     sharpen: tuple[float, float] | None = None
     zoom_jitter: float = 0.0
     retape_at: int | None = None
+    rolling_shutter: float = 0.0
 
     def __post_init__(self):
         if self.sharpen is not None and not (self.sharpen[0] >= 0 and self.sharpen[1] > 0):
             raise ValueError(f"sharpen {self.sharpen}: give AMOUNT >= 0 and SIGMA_PX > 0")
         if not self.zoom_jitter >= 0:
             raise ValueError(f"zoom_jitter {self.zoom_jitter}: give an sd >= 0")
+        if not self.rolling_shutter >= 0:
+            raise ValueError(f"rolling_shutter {self.rolling_shutter}: give an sd >= 0 (rad)")
         if self.retape_at is not None and self.retape_at < 1:
             raise ValueError(f"retape_at {self.retape_at}: the first re-taped step's index, "
                              ">= 1")
@@ -263,13 +274,14 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
     check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
     target = parse_pattern(pattern)
     # the path's seed is one child more than the board's and the steps': earlier renders stay
-    children = np.random.SeedSequence(seed).spawn(steps + 4)
+    children = np.random.SeedSequence(seed).spawn(steps + 5)
     surface_seed, *step_seeds, path_seed = children[:steps + 2]
-    retape_seed, jitter_seed = children[steps + 2:]
+    retape_seed, jitter_seed, shutter_seed = children[steps + 2:]
     effects = effects or CaptureEffects()
     if effects.retape_at is not None and effects.retape_at >= steps:
         raise ValueError(f"retape_at {effects.retape_at}: the sweep has {steps} steps")
     jitter = np.random.default_rng(jitter_seed)
+    shutter = np.random.default_rng(shutter_seed)
     camera_options.setdefault("pp_seed", path_seed)
     cameras = sweep_cameras(fx_range, steps, sensor, **camera_options)
     path_options = {k[3:]: camera_options[k] for k in ("pp_drift_px", "pp_span_px", "pp_runout",
@@ -300,13 +312,17 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         for j, (R, t) in enumerate(sweep_poses(target, cam, views, max_tilt[i], rng, fill)):
             scale = float(np.exp(jitter.normal(0.0, effects.zoom_jitter)))
             seen = cam if scale == 1.0 else replace(cam, fx=cam.fx * scale, fy=cam.fy * scale)
-            view = render_image(target, camera_mapping(seen), R, t, sensor, optics, radiometry,
+            mapping, turn = camera_mapping(seen), np.zeros(3)
+            if effects.rolling_shutter:
+                turn[:2] = shutter.normal(0.0, effects.rolling_shutter, 2)
+                mapping = RollingShutterMapping(mapping, turn, sensor.height_px)
+            view = render_image(target, mapping, R, t, sensor, optics, radiometry,
                                 rng, supersample, surface=surfaces[session])
             image = view.image if effects.sharpen is None else sharpen_image(view.image,
                                                                              *effects.sharpen)
             file = write_image(out / name / f"view_{j:02d}", image, jpeg_quality)
             view_docs.append({"file": f"{name}/{file.name}", **view.truth_dict(),
-                              "focal_scale": scale})
+                              "focal_scale": scale, "readout_turn": turn.tolist()})
             if progress is not None:
                 progress(1)
         doc_steps.append({"step": name, "zoom": cam.fx, "K": cam.K.tolist(),
