@@ -40,6 +40,7 @@ short end to anchor it.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 import warnings
@@ -92,9 +93,21 @@ def _per_step_opencv(run) -> float:
     return time.perf_counter() - t
 
 
+def _half_row(r) -> dict:
+    """What a half's step row holds for a look afterwards (``--halves-json``)."""
+    info = r.info
+    return {"fx": r.fx, "cx": r.cx, "cy": r.cy, "sd": {q: r.sd[q] for q in COMPARED},
+            "dist": np.asarray(r.dist).tolist(), "rms_px": r.rms_px, "n_views": len(r.rvecs),
+            "view_scatter": (info.get("view_scatter") or {}).get("factor"),
+            "sd_noise_model": {q: (info.get("sd_noise_model") or {}).get(q) for q in COMPARED},
+            "terms": (info.get("distortion_choice") or {}).get("terms"),
+            "basin": info.get("basin"), "prior_share": info.get("prior_share")}
+
+
 def _halves(run, sessions, splits: int, seed: int, kwargs: dict,
-            only: list[str] | None = None) -> None:
+            only: list[str] | None = None, dump: Path | None = None) -> None:
     rng = np.random.default_rng(seed)
+    rows: list[dict] = []
     pairs = {s: random_halves(o, splits, rng) for s, o in run.observations.items()}
     pairs = {s: p for s, p in pairs.items() if not only or s in only}
     z = {s: [] for s in pairs}
@@ -112,6 +125,10 @@ def _halves(run, sessions, splits: int, seed: int, kwargs: dict,
                 print(f"  split {k} half {'ab'[side]}: " + ", ".join(
                     f"{s} cy {r.cy:.0f}±{r.sd['cy']:.0f}" for s, r in res.items()))
             halves.append(res)
+            rows += [{"split": k, "half": "ab"[side], "step": s, **_half_row(r)}
+                     for s, r in res.items()]
+            if dump is not None:
+                dump.write_text(json.dumps(rows, indent=1, default=str))
             print(f"  split {k} half {'ab'[side]}: {time.perf_counter() - t:.0f} s", flush=True)
         a, b = halves
         for s in pairs:
@@ -164,6 +181,9 @@ def main() -> None:
                     help="give these steps a board session of their own")
     ap.add_argument("--halves-steps", nargs="+", default=None,
                     help="calibrate the halves of these steps alone")
+    ap.add_argument("--halves-json", type=Path, default=None,
+                    help="write every half's step rows (estimates, sigmas, terms, view-scatter "
+                         "factors, basin) to this file")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     t = time.perf_counter()
@@ -209,7 +229,8 @@ def main() -> None:
             if st.advice:
                 print(f"advice {step}: {st.advice['text']}")
     if args.splits:
-        _halves(run, sessions, args.splits, args.seed, kwargs, args.halves_steps)
+        _halves(run, sessions, args.splits, args.seed, kwargs, args.halves_steps,
+                args.halves_json)
 
 
 if __name__ == "__main__":
