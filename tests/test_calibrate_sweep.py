@@ -58,6 +58,10 @@ def test_cross_validation_is_reported_everywhere(rendered):
     assert all(abs(v) < 4.0 for v in z), z
     assert np.sqrt(np.mean(np.square(z))) > 0.3, z  # both ways, as above
     assert "cross-validation (zoom-wide" in res.output
+    # the report's even/odd map carries a verdict for every step, that of the z above
+    html = (out / "report.html").read_text()
+    assert html.count("Verdict: the halves agree.") == len(truth["steps"]), html.count("Verdict")
+
     assert (out / "cross_validation.png").stat().st_size > 10_000
 
 
@@ -85,3 +89,11 @@ def test_the_zoom_model_is_the_adjustments_own_posterior(rendered):
     assert set(doc["holdout_rms"]) >= {"fx", "cx", "cy"}
     grid = (out / "zoom_model_grid.csv").read_text().splitlines()
     assert grid[0].startswith("zoom,fx,fy,cx,cy") and len(grid) == 51
+
+
+def test_the_halves_verdict_says_which_side_of_the_limit():
+    from zoomcalib.calibrate.report import halves_verdict
+
+    assert "agree" in halves_verdict(2.9, "10") and "disagree" in halves_verdict(3.1, "10")
+    assert "3.10 of their sigmas" in halves_verdict(3.1, "10")
+    assert halves_verdict(None, "10") == "" and halves_verdict(float("nan"), "10") == ""

@@ -263,7 +263,8 @@ def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Obse
                 f"with the odd half's: up to {_largest(diff, inside)} px where points were "
                 "detected"
                 + (f"; in the halves' own sigma, RMS z {proj['z_rms']:.2f} over the observed "
-                   f"region (flagged above {Z_LIMIT:g})." if "z_rms" in proj else "."))
+                   f"region (flagged above {Z_LIMIT:g})." if "z_rms" in proj else ".")
+                + halves_verdict(proj.get("z_rms"), _largest(diff, inside)))
     elif cv is not None and step in cv.failures:
         note = f" Cross-validation: halves not calibrated ({_e(cv.failures[step])})."
     centre = sigma[len(ys) // 2, len(xs) // 2]
@@ -300,6 +301,28 @@ def _worst_image(run: CalibrateRun, step: str, obs: Observations, resid: np.ndar
                    f"corners of {name}")
             + f"<p>{_e(name)}: {rms[worst]:.3g} px RMS; residuals drawn {scale:.0f} times "
               "their length, as above.</p>")
+
+
+def halves_verdict(z_rms: float | None, apart: str) -> str:
+    """One sentence on the even/odd map: whether the halves' projections are as far apart as
+    their own sigmas allow (RMS z over the observed region at most :data:`Z_LIMIT`), and what
+    that means for the step's sigmas; empty without a z.
+
+    Examples
+    --------
+    >>> halves_verdict(0.8, "12.4")[:46]
+    ' Verdict: the halves agree. Their projections,'
+    """
+    if z_rms is None or not np.isfinite(z_rms):
+        return ""
+    if z_rms <= Z_LIMIT:
+        return (" Verdict: the halves agree. Their projections, up to " + apart + " px apart, "
+                f"are within what their own sigmas allow (RMS z {z_rms:.2f}), so the step's "
+                "sigmas cover what its frames do.")
+    return (" Verdict: the halves disagree. Their projections, up to " + apart + " px apart, "
+            f"are {z_rms:.2f} of their sigmas apart (RMS z, more than {Z_LIMIT:g}): the step's "
+            "sigmas are too small for what its frames do (a board or a camera that changed "
+            "between the frames, or a model that misses); compare the halves' rows.")
 
 
 def _reading(res: CalibrationResult, sigma: np.ndarray, inside: np.ndarray,
