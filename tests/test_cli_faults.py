@@ -5,6 +5,7 @@ import csv
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -258,6 +259,32 @@ def test_calibrate_exit_codes_partial_and_nothing(tmp_path):
                                     "--out", str(tmp_path / "c2")])
     assert res.exit_code == 4, res.output
     assert "nothing usable: no step could be calibrated" in res.output
+
+
+def test_a_frame_whose_board_runs_off_the_image_is_left_aside_with_a_note(tmp_path):
+    """A frame with the board half out of view is normal in a real set: left aside with a
+    note, the run complete (exit 0); an unreadable image beside it still makes it partial."""
+    import cv2
+
+    folder = linked_folder(tmp_path, ["left01.jpg", "left02.jpg", "left03.jpg", "left04.jpg"])
+    grey = cv2.imread(str(SAMPLES / "left05.jpg"), cv2.IMREAD_GRAYSCALE)
+    shifted = np.full_like(grey, int(np.median(grey)))
+    shifted[:, 320:] = grey[:, :320]  # the same size, the board's left half out of the frame
+    cv2.imwrite(str(folder / "left05.jpg"), shifted)
+    args = ["calibrate", str(folder), "--pattern", CHESS, "--backend", "opencv", "--workers",
+            "1", "--no-report"]
+    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    assert "left aside left05.jpg: no chessboard 9x6 found (no whole target in view" \
+        in res.output
+    assert "partial result" not in res.output
+    (elsewhere := tmp_path / "elsewhere").mkdir(exist_ok=True)
+    (elsewhere / "bad.jpg").write_bytes(b"not an image")
+    (folder / "zz_bad.jpg").symlink_to(elsewhere / "bad.jpg")
+    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "c2")])
+    assert res.exit_code == 3, res.output
+    assert "not calibrated or skipped: image zz_bad.jpg" in res.output
+    assert "left05" not in res.output.split("partial result")[1]
 
 
 def test_an_image_of_another_size_is_named_in_the_partial_result(tmp_path):

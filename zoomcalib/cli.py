@@ -687,7 +687,8 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     figure in one page; --no-report skips it). Detections are cached in
     OUT/detections/, so a rerun (or an interrupted run) does not detect unchanged images
     again. Exit code 3: a partial result (a step dropped, a backend the zoom table needs failed
-    on a step, or an image skipped).
+    on a step, or an image that could not be read or searched; a frame without the whole
+    target in view is left aside with a note).
     """
     import os
 

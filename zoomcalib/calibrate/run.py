@@ -92,7 +92,8 @@ class CalibrateRun:
     (used once);
     ``ignored`` the images next to step subfolders; ``table_backend`` the backend of each
     step's row in ``zoom_calibration.csv`` and figures; ``stems`` the steps' file-name stems;
-    ``skipped_images`` the one-line errors of the images whose detection failed, per step;
+    ``skipped_images`` the one-line errors of the images whose detection failed or found no
+    whole target, per step (only the first make the run partial);
     ``zoom_source`` where each step's zoom came from (``zoom_steps``' ``zoom_source``);
     ``status`` each step's :class:`~zoomcalib.calibrate.status.StepStatus` (``ok``,
     ``imprecise``, ``unusable``, with reasons and remedies); ``budget`` and
@@ -416,7 +417,12 @@ def _step_observations(step: str, dets: list, target: Target, run: CalibrateRun,
     if dets is None:
         return None
     for d in dets:
-        if d.error:
+        if d.error and getattr(d, "no_target", False):
+            # a frame whose board runs off the image is normal: said, not a failure
+            log(f"step {step}: left aside {d.error} (no whole target in view: a frame whose "
+                "board runs off the image or is hidden)")
+            run.skipped_images.setdefault(step, []).append(d.error)
+        elif d.error:
             log(f"step {step}: skipped {d.error}")
             run.skipped_images.setdefault(step, []).append(d.error)
     good = [d for d in dets if d.error is None]

@@ -142,6 +142,10 @@ class Detection:
         The image's edges are steeper than any Gaussian blur makes (a camera that sharpens):
         the ``model`` refiner fitted its corners at a fixed 0.5 px blur
         (:attr:`~zoomcalib.detect.refine.RefineResult.steep_edges`).
+    no_target : bool
+        The image was read and searched, and no whole target was found in it: a frame whose
+        board runs off the image or is hidden, normal in a real set (an unreadable image, a
+        failed detector, are errors without it).
     sharpening : (float, float, float) or None
         The camera's sharpening the ``model`` refiner fitted its corners with: the PSF
         ``(sigma, amount, radius)`` (px, 1, px) of
@@ -158,6 +162,7 @@ class Detection:
     transient: bool = False
     steep_edges: bool = False
     sharpening: tuple[float, float, float] | None = None
+    no_target: bool = False
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
@@ -184,9 +189,9 @@ class Detection:
 
     def to_dict(self) -> dict:
         """The detections-file entry ``{"file", "points", "ids", "error"[, "fallback",
-        "steep_edges", "sharpening"]}``, plain Python types; ``fallback`` (one bool per point)
-        only when a point fell back, ``steep_edges`` only when true, ``sharpening`` (``[sigma,
-        amount, radius]``) only when fitted."""
+        "steep_edges", "sharpening", "no_target"]}``, plain Python types; ``fallback`` (one
+        bool per point) only when a point fell back, ``steep_edges`` and ``no_target`` only
+        when true, ``sharpening`` (``[sigma, amount, radius]``) only when fitted."""
         entry = {"file": self.file, "points": self.points.tolist(),
                  "ids": [int(i) for i in self.ids], "error": self.error}
         if self.n_fallback:
@@ -195,6 +200,8 @@ class Detection:
             entry["steep_edges"] = True
         if self.sharpening is not None:
             entry["sharpening"] = [float(v) for v in self.sharpening]
+        if self.no_target:
+            entry["no_target"] = True
         return entry
 
     @classmethod
@@ -206,7 +213,8 @@ class Detection:
                    np.asarray(entry.get("ids") or [], np.int64), entry.get("error"),
                    str(entry.get("method", method)), tuple(entry.get("image_size", image_size)),
                    entry.get("fallback"), steep_edges=bool(entry.get("steep_edges", False)),
-                   sharpening=tuple(entry["sharpening"]) if entry.get("sharpening") else None)
+                   sharpening=tuple(entry["sharpening"]) if entry.get("sharpening") else None,
+                   no_target=bool(entry.get("no_target", False)))
 
 
 def default_method(target: Target) -> str:
@@ -684,7 +692,8 @@ def detect_image(image_or_path: str | os.PathLike | np.ndarray, target: Target |
         return Detection(label, error=f"{label}: OpenCV failed in method {method}: {msg}",
                          method=method, image_size=size)
     if isinstance(found, str):
-        return Detection(label, error=f"{label}: {found}", method=method, image_size=size)
+        return Detection(label, error=f"{label}: {found}", method=method, image_size=size,
+                         no_target=True)
     points, ids, *extra = found
     return Detection(label, points, ids, None, method, size, extra[0] if extra else None,
                      steep_edges=len(extra) > 1 and bool(extra[1]),
