@@ -329,3 +329,22 @@ def test_the_fitted_sharpening_goes_through_the_detections_file():
     back = Detection.from_dict(json.loads(json.dumps(det.to_dict())))
     assert back.sharpening == (0.8, 0.9, 1.2)
     assert "sharpening" not in Detection("b.png", np.zeros((2, 2)), [0, 1]).to_dict()
+
+
+def test_a_damaged_png_is_named_without_libpng_printing(tmp_path, capfd):
+    # a frame cut short (a copy interrupted) and one with a flipped byte: each is an image
+    # error naming the file and the damage, and libpng prints nothing of its own
+    grey = cv2.imread(str(LEFT / "left01.jpg"), cv2.IMREAD_GRAYSCALE)
+    whole = cv2.imencode(".png", grey)[1].tobytes()
+    (tmp_path / "cut.png").write_bytes(whole[:len(whole) // 2])
+    flipped = bytearray(whole)
+    flipped[len(whole) // 2] ^= 0xFF
+    (tmp_path / "flipped.png").write_bytes(bytes(flipped))
+    cut = detect_image(tmp_path / "cut.png", "chessboard:9x6:25")
+    bad = detect_image(tmp_path / "flipped.png", "chessboard:9x6:25")
+    assert cut.error == "cut.png: cannot read image (truncated PNG: chunk IDAT runs past the " \
+                        "end of the file)"
+    assert bad.error == "flipped.png: cannot read image (corrupt PNG: CRC error in chunk IDAT)"
+    assert "libpng" not in capfd.readouterr().err
+    (tmp_path / "whole.png").write_bytes(whole)
+    assert detect_image(tmp_path / "whole.png", "chessboard:9x6:25").ok

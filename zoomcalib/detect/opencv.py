@@ -65,6 +65,7 @@ import inspect
 import json
 import multiprocessing
 import os
+import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -252,6 +253,38 @@ def _as_target(target: Target | str) -> Target:
 # images
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_problem(data: bytes) -> str | None:
+    """What is wrong with a PNG file's chunk structure (a chunk running past the end, a CRC
+    that does not match its chunk, no ``IEND``), or None when it is whole. Checked before
+    decoding, so that a damaged frame is named here instead of libpng printing its own error
+    line to the process's stderr.
+
+    Examples
+    --------
+    >>> import cv2, numpy as np
+    >>> whole = cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
+    >>> png_problem(whole) is None, png_problem(whole[:50])
+    (True, 'truncated PNG: chunk IDAT runs past the end of the file')
+    """
+    pos = len(_PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        name = kind.decode("latin-1")
+        end = pos + 12 + length
+        if end > len(data):
+            return f"truncated PNG: chunk {name} runs past the end of the file"
+        if zlib.crc32(data[pos + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"corrupt PNG: CRC error in chunk {name}"
+        if kind == b"IEND":
+            return None
+        pos = end
+    return "truncated PNG: no IEND chunk"
+
+
 def _read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
     """Decode an image file unchanged (depth, channels); (None, reason) when it cannot."""
     try:
@@ -260,6 +293,8 @@ def _read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
         return None, exc.strerror.lower() if exc.strerror else type(exc).__name__
     if not data:
         return None, "empty file"
+    if data.startswith(_PNG_SIGNATURE) and (problem := png_problem(data)):
+        return None, problem
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:
