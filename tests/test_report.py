@@ -296,6 +296,13 @@ def test_every_step_status_reaches_the_summary_the_files_and_the_report(rendered
     text = (out / "report.html").read_text(encoding="utf-8")
     assert "<th>status</th>" in text
     assert all(f"<b>{v}</b>" in text for v in status.values())
+    # the summary table's fx and fy with their sigmas, as calibration.json has them
+    assert "<th>fx [px]</th><th>fy [px]</th>" in text
+    for step, entry in json.loads((out / "calibration.json").read_text())["steps"].items():
+        best = entry[meta["table_backend"][step]]
+        K, sd = np.array(best["K"]), best["sd"]
+        assert f"<td>{K[0, 0]:.2f} &plusmn; {sd['fx']:.2f}</td>" in text, step
+        assert f"<td>{K[1, 1]:.2f} &plusmn; {sd['fy']:.2f}</td>" in text, step
 
 
 def test_flags_reach_the_summary_with_severity_and_action_and_the_report_with_details(
