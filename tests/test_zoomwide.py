@@ -760,6 +760,18 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     kept = np.arange(len(count)) != 2
     assert choice.mse_px2["k1k2"] == pytest.approx(squared[kept].sum() / count[kept].sum())
 
+    def only_none_fits(o, terms, *args):
+        if terms:  # every set with a term diverges on the halves (a narrow step's folds)
+            raise RuntimeError("held-out fit diverged: principal point outside the image")
+        return real(o, terms, *args)
+
+    monkeypatch.setattr(zoomwide, "held_out_errors", only_none_fits)
+    choice = select_distortion(step)
+    # no evidence for no distortion: all five terms, and why
+    assert choice.terms == DISTORTION_SETS["k1k2p1p2k3"], choice
+    assert "only the set without distortion" in choice.why
+    assert set(choice.failed) == set(DISTORTION_SETS) - {"none"}
+
 
 @pytest.mark.parametrize("limit", ["iteration cap", "damping limit"])
 def test_a_solve_that_stops_short_says_why_and_is_not_converged(rng, monkeypatch, limit):

@@ -318,8 +318,10 @@ class TermChoice:
     standard error of the per-view log ratio of the rational model's held-out mean squared
     error over that set's (:func:`_log_ratio`), None where not both could be fitted.
     ``failed``: per term set that could not be fitted on the held-out halves, why (such a set
-    is not a candidate); ``why``: why no choice was made (too few views, no set fitted), else
-    None, the terms then all five. ``unplaced``: per term set, the held-out views its
+    is not a candidate); ``why``: why no choice was made (too few views, no set fitted, or
+    only the set without distortion: half the views of a narrow step that cannot hold a
+    principal point with any term are no evidence that it has none), else None, the terms
+    then all five. ``unplaced``: per term set, the held-out views its
     intrinsics could not place (``cv2.solvePnP`` failed); every set is then judged on the
     views all of them placed.
     """
@@ -399,6 +401,12 @@ def select_distortion(obs: Observations, tolerance: float = 0.01,
         return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
                           why="no term set could be fitted on held-out views: all five terms",
                           unplaced=unplaced)
+    if set(per_view) == {"none"}:
+        # every set with a term diverged on half the views (a narrow step's principal point
+        # leaves the image): the folds cannot tell, which is no evidence for no distortion
+        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
+                          why="only the set without distortion could be fitted on held-out "
+                              "views: all five terms", unplaced=unplaced)
     per_view = {k: (sq[placed], c[placed]) for k, (sq, c) in per_view.items()}
     n_points = {k: c.sum() for k, (_, c) in per_view.items()}
     mse = {k: sq.sum() / n_points[k] if n_points[k] else np.inf
