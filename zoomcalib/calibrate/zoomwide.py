@@ -690,13 +690,15 @@ class _ZoomProblem:
             by_view = scipy.sparse.csr_matrix(
                 (np.ones(len(views)), (views, np.arange(len(views)))),
                 shape=(n_local, len(views)))
-            U[np.ix_(cols, cols)] += np.einsum("nik,nil->kl", G, G)
-            g_glob[cols] += np.einsum("nik,ni->k", G, r)
+            # the sums as matrix products (BLAS), the corners' two rows stacked
+            G2 = G.reshape(-1, G.shape[2])
+            U[np.ix_(cols, cols)] += G2.T @ G2
+            g_glob[cols] += G2.T @ r.ravel()
             v0, v1 = self.view_start[s], self.view_start[s + 1]
-            V[v0:v1] += (by_view @ np.einsum("nij,nik->njk", P, P).reshape(len(views), 36)
-                         ).reshape(n_local, 6, 6)
-            g_pose[v0:v1] += by_view @ np.einsum("nij,ni->nj", P, r)
-            GP = by_view @ np.einsum("nik,nij->nkj", G, P).reshape(len(views), -1)
+            Pt = P.transpose(0, 2, 1)
+            V[v0:v1] += (by_view @ (Pt @ P).reshape(len(views), 36)).reshape(n_local, 6, 6)
+            g_pose[v0:v1] += by_view @ (Pt @ r[:, :, None])[:, :, 0]
+            GP = by_view @ (G.transpose(0, 2, 1) @ P).reshape(len(views), -1)
             W[cols, v0:v1] += GP.reshape(n_local, len(cols), 6).transpose(1, 0, 2)
         r = np.concatenate(res)
         prior = self.prior_rows @ state.vector(self.free, self.aspect_col >= 0)
@@ -758,22 +760,27 @@ def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
 
 def _schur_step(U, W, V, g_glob, g_pose, lam: float):
     """Solve the damped normal equations ``(A + lam diag A) delta = -g`` by eliminating the
-    poses: ``S = U - W V^-1 W^T``. Returns ``delta`` or None when ``S`` is not positive
+    poses: ``S = U - W V^-1 W^T``. ``U`` (G, G) is the global block, ``W`` (G, 6 n_views)
+    the global-pose coupling, ``V`` (n_views, 6, 6) the pose blocks, ``g_glob`` and
+    ``g_pose`` the gradient's parts. Returns ``delta`` or None when ``S`` is not positive
     definite."""
-    n_views = len(V)
-    Ud = U + np.diag((lam + 1e-14) * np.diag(U))  # scale-free: each column its own
-    Vd = V + lam * np.einsum("vii->vi", V)[:, :, None] * np.eye(6)
-    Vinv = np.linalg.inv(Vd)
-    W3 = W.reshape(len(U), n_views, 6)
-    WV = np.einsum("gvi,vij->gvj", W3, Vinv)
-    S = Ud - np.einsum("gvj,hvj->gh", WV, W3)
-    rhs = g_glob - np.einsum("gvj,vj->g", WV, g_pose.reshape(n_views, 6))
+    n_views, n_glob = len(V), len(U)
+    global_damped = U + np.diag((lam + 1e-14) * np.diag(U))  # scale-free: each its own
+    pose_damped = V + lam * np.einsum("vii->vi", V)[:, :, None] * np.eye(6)
+    pose_inverse = np.linalg.inv(pose_damped)
+    coupling = W.reshape(n_glob, n_views, 6)
+    # W V^-1 view by view (batched 6 x 6 products), then the sums over views as one BLAS
+    # product of the (globals, views x 6) matrices
+    coupling_vinv = np.matmul(coupling.transpose(1, 0, 2), pose_inverse
+                              ).transpose(1, 0, 2).reshape(n_glob, -1)
+    schur = global_damped - coupling_vinv @ W.T
+    schur_rhs = g_glob - coupling_vinv @ g_pose
     try:
-        d_glob = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
+        d_glob = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur), schur_rhs)
     except np.linalg.LinAlgError:
         return None
-    back = g_pose.reshape(n_views, 6) + np.einsum("gvi,g->vi", W3, d_glob)
-    d_pose = -np.einsum("vij,vj->vi", Vinv, back)
+    pose_rhs = g_pose.reshape(n_views, 6) + (W.T @ d_glob).reshape(n_views, 6)
+    d_pose = -np.matmul(pose_inverse, pose_rhs[:, :, None])[:, :, 0]
     return np.concatenate([d_glob, d_pose.ravel()])
 
 
