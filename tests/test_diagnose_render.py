@@ -84,6 +84,19 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
     np.testing.assert_allclose(again.diagnosis.extended.fit.params, ext.fit.params,
                                rtol=1e-6, atol=1e-9)
 
+    # the default calibration (the zoom-wide adjustment): its table is diagnosed through the
+    # rows of its solve without the smoothness prior, written beside it, and names the same
+    from zoomcalib.calibrate.run import calibrate_folder
+
+    calibrate_folder(tmp_path / "set", "chessboard:9x6:25", tmp_path / "zw", ("opencv",),
+                     workers=1, log=lambda m: None, report=False)
+    messages = []
+    diagnose_input(tmp_path / "zw" / "zoom_calibration.csv", tmp_path / "diag3", lens,
+                   sensor.pixel_pitch_mm, tol, log=messages.append)
+    assert any("zoom_calibration_unsmoothed.csv" in m for m in messages), messages
+    zoom_wide = read_json(tmp_path / "diag3" / "diagnosis.json")
+    assert zoom_wide["cause"] == "backlash", zoom_wide["candidates"]
+
 
 def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     """A hidden axis tilt of 0.9-1.0 mrad in a random direction, rendered over the whole zoom

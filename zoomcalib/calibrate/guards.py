@@ -49,7 +49,8 @@ MANIFEST = "manifest.json"
 #: Files the calibrate job writes in ``OUT`` (glob patterns relative to it); a run removes the
 #: ones it does not write itself.
 _OWN_FILES: tuple[str, ...] = (
-    "calibration.json", "calibration.yml", "zoom_calibration.csv", "zoom_model.json",
+    "calibration.json", "calibration.yml", "zoom_calibration.csv",
+    "zoom_calibration_unsmoothed.csv", "zoom_model.json",
     "principal_point_path.png", "focal_length.png", "residuals_*.png", "cross_validation.png",
     "report.html",
     MANIFEST,

@@ -219,6 +219,30 @@ def _calibrate(backend: str, obs: Observations, model: str,
     return res
 
 
+#: Beside ``zoom_calibration.csv`` of a zoom-wide run: the rows of its solve without the
+#: smoothness prior (:func:`_unsmoothed_table`), which ``diagnose`` takes for that table.
+UNSMOOTHED_TABLE = "zoom_calibration_unsmoothed.csv"
+
+
+def _unsmoothed_table(run: CalibrateRun, rows: list[dict]) -> list[dict]:
+    """The zoom-wide rows of ``rows`` with fx, fy, cx, cy and their sigmas from the
+    adjustment's solve without the smoothness prior
+    (:attr:`~zoomcalib.calibrate.zoomwide.ZoomWideResult.unsmoothed`; mode ``zoom-wide, no
+    prior``): rows the prior does not tie together, for the diagnosis. The other columns
+    (distortion, status, flags) are the adjustment's. Empty without a zoom-wide adjustment
+    or when its solve without the prior had no covariance."""
+    free = getattr(run.zoom_wide, "unsmoothed", None) or {}
+    out = []
+    for row in rows:
+        own = free.get(row["step"])
+        if own is None or row.get("mode") != "zoom-wide":
+            continue
+        out.append(row | {k: own[k] for k in ("fx", "fy", "cx", "cy", "sd_fx", "sd_fy",
+                                              "sd_cx", "sd_cy")}
+                   | {"mode": "zoom-wide, no prior"})
+    return out
+
+
 def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResult) -> dict:
     """The ``zoom_calibration.csv`` row of one step: every distortion term the model has
     (k1..k3 always, k4..k6 for the rational model) with its 1-sigma, and the backend."""
@@ -391,6 +415,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
     if zoom_set and rows:
         run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
+        unsmoothed = _unsmoothed_table(run, rows)
+        if unsmoothed:
+            run.files.append(write_zoom_table(out / UNSMOOTHED_TABLE, unsmoothed))
         _zoom_model(run, [r for r in rows if r["status"] != "unusable"], out, log)
     if run.results:
         run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
@@ -499,6 +526,7 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
                              "aspect": zw.aspect, "aspect_sd": zw.aspect_sd,
                              "iterations": zw.iterations, "tau": zw.tau,
                              "tau_source": zw.tau_source, "zoom_model": zw.zoom_models,
+                             "unsmoothed": zw.unsmoothed,
                              "board_modes_mm": zw.board_modes.tolist(),
                              "board_sessions": zw.board_sessions,
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),

@@ -878,6 +878,10 @@ class ZoomWideResult:
         estimate.
     held_out : dict of str to TermChoice
         Per step: the held-out errors behind its distortion terms (:class:`TermChoice`).
+    unsmoothed : dict of str to dict
+        Per step, the solve without the smoothness prior (:func:`_unsmoothed_rows`): rows
+        that are not tied to each other by the prior, for the diagnosis; empty when that
+        solve had no covariance.
     converged : bool
     stop_reason : str
     iterations : int
@@ -907,6 +911,7 @@ class ZoomWideResult:
     board_sessions: list[str] = field(default_factory=lambda: [""])
     board_heights: np.ndarray | None = None
     u: dict[str, float] = field(default_factory=dict)
+    unsmoothed: dict[str, dict] = field(default_factory=dict)
 
 
 def _map_steps(function, items: list, workers: int) -> list:
@@ -1108,6 +1113,33 @@ def _with_scatter(result: ZoomWideResult, names: list[str], cams: np.ndarray, no
             return noise(steps, j) * np.outer(f, f)
         return cams, scaled, free
     return cams, np.asarray(noise, float) * factor, free
+
+
+def _unsmoothed_rows(cams: np.ndarray, cov, free: np.ndarray, names: list[str]
+                     ) -> dict[str, dict]:
+    """Per step, fx, fy, cx, cy of the solve without the smoothness prior and their 1-sigma
+    (its joint covariance ``cov``, scaled by the views' scatter as the table's sigmas are:
+    :func:`_with_scatter`), and ``step_correlation``: per parameter, the largest correlation
+    of the step's value with another step's (the solve's steps share the aspect ratio and,
+    per capture session, the board). Rows a diagnosis can take as measurements of each
+    step; ``fy`` is ``fx`` times the step's aspect."""
+    steps = np.arange(len(names))
+    out = {n: {"fx": float(cams[s, 0]), "fy": float(cams[s, 1]), "cx": float(cams[s, 2]),
+               "cy": float(cams[s, 3]), "step_correlation": {}} for s, n in enumerate(names)}
+    for q in ("fx", "cx", "cy"):
+        j = PARAMS.index(q)
+        C = np.asarray(cov(steps, j), float)
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = np.abs(C / np.outer(sd, sd))
+        np.fill_diagonal(corr, 0.0)
+        for s, n in enumerate(names):
+            out[n][f"sd_{q}"] = float(sd[s])
+            out[n]["step_correlation"][q] = float(np.nan_to_num(corr[s]).max(initial=0.0))
+        if q == "fx":
+            for s, n in enumerate(names):
+                out[n]["sd_fy"] = float(sd[s] * cams[s, 1] / cams[s, 0])
+    return out
 
 
 def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
@@ -1332,8 +1364,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     result.board_sessions = session_names
     result.board_heights = None if solve.state.heights is None else solve.state.heights.copy()
     result.u = {n: float(v) for n, v in zip(names, u, strict=True)}
-    held_paths = _held_out_paths(*_with_scatter(result, names, *unsmoothed), chain_idx, u,
-                                 forms, models, names)
+    scaled = _with_scatter(result, names, *unsmoothed)
+    held_paths = _held_out_paths(*scaled, chain_idx, u, forms, models, names)
+    if joint_cov is not None:
+        result.unsmoothed = _unsmoothed_rows(*scaled, names)
     for name, doc in result.zoom_models.items():
         doc.update(form=forms.get(name, _Form()).to_dict(), held_out=held_paths.get(name))
     for s, r in enumerate(result.results.values()):

@@ -168,6 +168,30 @@ def _calibrations_beside(table: ZoomTable, table_path: Path
     return rows, ""
 
 
+#: Beside a zoom-wide ``zoom_calibration.csv``: its solve without the smoothness prior
+#: (``zoomcalib.calibrate.run.UNSMOOTHED_TABLE``).
+UNSMOOTHED_TABLE = "zoom_calibration_unsmoothed.csv"
+
+
+def _independent_rows(table_path: Path, log: Callable[[str], None]) -> Path:
+    """The table to diagnose for ``table_path``: itself, or for the rows of a zoom-wide
+    adjustment (tied by its smoothness prior) the rows of its solve without the prior
+    written beside it (:data:`UNSMOOTHED_TABLE`), which the prior does not tie; without that
+    file the zoom-wide table itself, which :meth:`ZoomTable.from_rows` refuses."""
+    try:
+        rows = read_zoom_table(table_path)
+    except (OSError, ValueError):
+        return table_path  # load_zoom_table says what is wrong with it
+    if not any(str(r.get("mode") or "").strip() == "zoom-wide" for r in rows):
+        return table_path
+    beside = table_path.with_name(UNSMOOTHED_TABLE)
+    if beside.exists():
+        log(f"{table_path}: rows of the zoom-wide adjustment, tied by its smoothness prior; "
+            f"diagnosing those of its solve without the prior ({beside.name})")
+        return beside
+    return table_path
+
+
 def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | None,
                    pixel_pitch: float | str = 0.00645, tolerances: Tolerances | None = None,
                    pattern: str | None = None, backends: tuple[str, ...] = ("opencv",),
@@ -223,7 +247,7 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
             raise ValueError(f"{source}: no zoom table could be made "
                              f"({'; '.join(cal.failures) or 'not a folder of zoom steps'})")
     elif source.exists():
-        table_path = source
+        table_path = _independent_rows(source, log)
     else:
         raise FileNotFoundError(f"{source}: no such file or folder")
     table = load_zoom_table(table_path)

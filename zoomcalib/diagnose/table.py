@@ -155,7 +155,9 @@ class ZoomTable:
         if any(str(r.get("mode") or "").strip() == "zoom-wide" for r in rows):
             raise ValueError(f"{source}: rows of the zoom-wide adjustment are tied by its "
                              "smoothness prior, and the diagnosis needs independent rows: "
-                             "calibrate with --per-step (or diagnose the image folder)")
+                             "diagnose the table with zoom_calibration_unsmoothed.csv beside "
+                             "it (calibrate writes it), calibrate with --per-step, or diagnose "
+                             "the image folder")
         req = {}
         for key in ("zoom", "fx", "fy", "cx", "cy"):
             col = _column(rows, key)
