@@ -21,7 +21,10 @@ fits beside the principal points when the two are not told apart, or when the ta
 calibrations' keystone response and the tilt was not selected (printed as ``distortion
 evidence``, and the tilt fitted on both as ``axis_tilt on p1, p2 too``).
 ``--static-decenter X,Y`` (um, variator) renders the converse: the same set with no tilt and a
-static decentre.
+static decentre. ``--zoom-wide`` calibrates the set as ``calibrate`` does by default (the
+zoom-wide adjustment) and diagnoses its table, through the rows of its solve without the
+smoothness prior written beside it (``zoom_calibration_unsmoothed.csv``), and prints the
+largest correlation between two steps' values of that solve.
 
 Usage::
 
@@ -29,7 +32,7 @@ Usage::
                                            [--axis-tilt TX,TY] [--psf elliptical]
                                            [--settings 8] [--sensor 640x480@0.0129]
                                            [--board chessboard:9x6:25] [--seed 3]
-                                           [--static-decenter X,Y] [--reuse]
+                                           [--static-decenter X,Y] [--reuse] [--zoom-wide]
 """
 
 from __future__ import annotations
@@ -68,6 +71,8 @@ def main() -> None:
     ap.add_argument("--settings", type=int, default=8, help="axis-tilt set: zoom settings")
     ap.add_argument("--sensor", default="640x480@0.0129", help="WxH@PITCH_MM")
     ap.add_argument("--board", default="chessboard:9x6:25")
+    ap.add_argument("--zoom-wide", action="store_true",
+                    help="diagnose the default (zoom-wide) calibration's table")
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT/set when it was rendered with the same options (calibrate "
                          "and diagnose again only)")
@@ -91,7 +96,7 @@ def main() -> None:
     size, pitch = a.sensor.split("@")
     sensor = Sensor(*(int(v) for v in size.split("x")), float(pitch))
     t0 = time.perf_counter()
-    options = {k: v for k, v in vars(a).items() if k not in ("out", "reuse")}
+    options = {k: v for k, v in vars(a).items() if k not in ("out", "reuse", "zoom_wide")}
     stamp = out / "set" / "benchmark_options.json"
     if a.reuse and stamp.exists() and json.loads(stamp.read_text()) == options:
         print(f"reusing the rendered set in {out / 'set'}")
@@ -109,8 +114,21 @@ def main() -> None:
                        optics=optics)
     stamp.write_text(json.dumps(options))
     t1 = time.perf_counter()
-    run = diagnose_input(out / "set", out / "diag", lens, sensor.pixel_pitch_mm, tol,
-                         a.board, ("opencv",), workers=1, log=lambda m: None)
+    if a.zoom_wide:
+        from zoomcalib.calibrate.run import calibrate_folder
+
+        calibrate_folder(out / "set", a.board, out / "zw", ("opencv",), workers=1,
+                         log=lambda m: None, report=False)
+        free = json.loads((out / "zw" / "calibration.json").read_text()
+                          )["meta"]["zoom_wide"]["unsmoothed"]
+        print("zoom-wide, the solve without the prior: largest correlation of two steps' " +
+              ", ".join(f"{q} {max(v['step_correlation'][q] for v in free.values()):.3f}"
+                        for q in ("fx", "cx", "cy")))
+        run = diagnose_input(out / "zw" / "zoom_calibration.csv", out / "diag", lens,
+                             sensor.pixel_pitch_mm, tol, log=print)
+    else:
+        run = diagnose_input(out / "set", out / "diag", lens, sensor.pixel_pitch_mm, tol,
+                             a.board, ("opencv",), workers=1, log=lambda m: None)
     t2 = time.perf_counter()
     d = run.diagnosis
     doc = d.to_dict()
