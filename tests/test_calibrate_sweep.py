@@ -97,3 +97,23 @@ def test_the_halves_verdict_says_which_side_of_the_limit():
     assert "agree" in halves_verdict(2.9, "10") and "disagree" in halves_verdict(3.1, "10")
     assert "3.10 of their sigmas" in halves_verdict(3.1, "10")
     assert halves_verdict(None, "10") == "" and halves_verdict(float("nan"), "10") == ""
+
+
+def test_the_solve_without_the_prior_is_written_beside_the_table(rendered):
+    # its rows are the steps' own (no prior): within 4 of their sigmas of the rendered truth,
+    # their sigmas no smaller than the adjustment's (the prior only adds information), and
+    # their correlation with other steps reported
+    import json
+
+    res, out, truth = rendered
+    rows = {r["step"]: r for r in read_zoom_table(out / "zoom_calibration_unsmoothed.csv")}
+    smoothed = {r["step"]: r for r in read_zoom_table(out / "zoom_calibration.csv")}
+    free = json.loads((out / "calibration.json").read_text())["meta"]["zoom_wide"]["unsmoothed"]
+    assert set(rows) == {s["step"] for s in truth["steps"]} == set(free)
+    for step in truth["steps"]:
+        K, row = np.asarray(step["K"]), rows[step["step"]]
+        assert row["mode"] == "zoom-wide, no prior"
+        for q, true in (("cx", K[0, 2]), ("cy", K[1, 2])):
+            assert abs(row[q] - true) < 4 * row[f"sd_{q}"], (step["step"], q, row[q], true)
+            assert row[f"sd_{q}"] >= 0.99 * smoothed[step["step"]][f"sd_{q}"]
+        assert 0.0 <= free[step["step"]]["step_correlation"]["cy"] < 1.0
