@@ -1047,54 +1047,73 @@ def refine_corners(
     )
     chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
               for s in range(0, K, chunk)]
-    gaussian_only = pixel_model == "gaussian"
     blur: Blur | None = sigma
     if sigma == "shared":
-        blur, misfit, out.sharpening_gain = _shared_blur(
-            img, chunks, window, max_window, max_iter, tol if gaussian_only else 1e-3,
-            anisotropic, sharpened)
-        if isinstance(blur, SharpenedPSF):
-            out.sharpening = blur
-        elif np.ndim(blur) == 0 and blur < _STEEP_EDGE_BLUR and misfit > _STEEP_EDGE_MISFIT:
-            blur, out.steep_edges = _STEEP_EDGE_BLUR, True
+        blur = _choose_shared_blur(img, chunks, out, window, max_window, max_iter,
+                                   tol if pixel_model == "gaussian" else 1e-3, anisotropic,
+                                   sharpened)
     if blur is not None:
         grown = _blur_window(blur, window, max_window)
         for c in chunks:
             c.regrow(img, grown)
             c.fix_blur(blur)
-    # From a blur of _GAUSSIAN_PIXEL_SIGMA across both edges on, the variance-matched Gaussian
-    # pixel model is as good as the quadrature on noise-free corners (module docstring): such
-    # corners are fitted on it alone.
     for whole in chunks:
-        cheap = np.full(len(whole.p), gaussian_only)
-        if blur is not None and not gaussian_only:
-            cheap = whole.edge_sd(blur) >= _GAUSSIAN_PIXEL_SIGMA
-        fine = whole.subset(~cheap)
-        if len(fine.p):
-            # The cheap model brings every corner close (its iterations cost a fraction of a
-            # quadrature one), so the quadrature stage only polishes (docs/performance.md). A
-            # corner it brought close converges in a few of these iterations; one it did not
-            # rarely does at all, and must not cost max_iter quadrature ones.
-            fine.fit(blur, "gaussian", 1, max_iter, 1e-3)
-            # A corner whose position sd dwarfs the Gaussian pixel model's bias (a poor fit on
-            # a real, sharpened frame; a dim corner) ends here: polishing cannot move it by
-            # anything that matters against its own sd.
-            done = fine.gaussian_is_final(blur) if pixel_model == "quadrature" else \
-                np.zeros(len(fine.p), bool)
-            final = fine.subset(done)
-            if len(final.p):
-                final.store(out, blur)
-            fine = fine.subset(~done)
-        if len(fine.p):
-            budget = np.where(fine.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
-            fine.fit(blur, "quadrature", n_sub or auto_n_sub(fine.smallest_sigma(blur)),
-                     budget, tol)
-            fine.store(out, blur)
-        coarse = whole.subset(cheap)
-        if len(coarse.p):
-            coarse.fit(blur, "gaussian", 1, max_iter, tol)
-            coarse.store(out, blur)
+        _fit_chunk(whole, blur, out, pixel_model, n_sub, max_iter, tol)
     return out
+
+
+def _choose_shared_blur(img: np.ndarray, chunks: list[_CornerChunk], out: RefineResult,
+                        window: int, max_window: int, max_iter: int, tol: float,
+                        anisotropic: bool, sharpened: bool) -> Blur:
+    """The blur every corner is fitted with under ``sigma='shared'`` (:func:`_shared_blur`),
+    or the steep-edge blur where the sampled corners' Gaussian blur collapses while missing
+    the image (:func:`refine_corners`); records ``sharpening``, ``sharpening_gain`` and
+    ``steep_edges`` in ``out``."""
+    blur, misfit, out.sharpening_gain = _shared_blur(img, chunks, window, max_window,
+                                                     max_iter, tol, anisotropic, sharpened)
+    if isinstance(blur, SharpenedPSF):
+        out.sharpening = blur
+    elif np.ndim(blur) == 0 and blur < _STEEP_EDGE_BLUR and misfit > _STEEP_EDGE_MISFIT:
+        blur, out.steep_edges = _STEEP_EDGE_BLUR, True
+    return blur
+
+
+def _fit_chunk(whole: _CornerChunk, blur: Blur | None, out: RefineResult,
+               pixel_model: PixelModel, n_sub: int | None, max_iter: int, tol: float) -> None:
+    """Fit one batch of corners at ``blur`` and store them in ``out`` (the stages of
+    :func:`refine_corners`): from a blur of ``_GAUSSIAN_PIXEL_SIGMA`` across both edges on,
+    the variance-matched Gaussian pixel model is as good as the quadrature on noise-free
+    corners (module docstring) and such corners are fitted on it alone; the others on it,
+    then polished with the quadrature unless their own sd dwarfs its bias."""
+    gaussian_only = pixel_model == "gaussian"
+    cheap = np.full(len(whole.p), gaussian_only)
+    if blur is not None and not gaussian_only:
+        cheap = whole.edge_sd(blur) >= _GAUSSIAN_PIXEL_SIGMA
+    fine = whole.subset(~cheap)
+    if len(fine.p):
+        # The cheap model brings every corner close (its iterations cost a fraction of a
+        # quadrature one), so the quadrature stage only polishes (docs/performance.md). A
+        # corner it brought close converges in a few of these iterations; one it did not
+        # rarely does at all, and must not cost max_iter quadrature ones.
+        fine.fit(blur, "gaussian", 1, max_iter, 1e-3)
+        # A corner whose position sd dwarfs the Gaussian pixel model's bias (a poor fit on
+        # a real, sharpened frame; a dim corner) ends here: polishing cannot move it by
+        # anything that matters against its own sd.
+        done = fine.gaussian_is_final(blur) if pixel_model == "quadrature" else \
+            np.zeros(len(fine.p), bool)
+        final = fine.subset(done)
+        if len(final.p):
+            final.store(out, blur)
+        fine = fine.subset(~done)
+    if len(fine.p):
+        budget = np.where(fine.lm.converged, max_iter, min(max_iter, _POLISH_ITER))
+        fine.fit(blur, "quadrature", n_sub or auto_n_sub(fine.smallest_sigma(blur)),
+                 budget, tol)
+        fine.store(out, blur)
+    coarse = whole.subset(cheap)
+    if len(coarse.p):
+        coarse.fit(blur, "gaussian", 1, max_iter, tol)
+        coarse.store(out, blur)
 
 
 _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corners
