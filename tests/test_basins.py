@@ -51,6 +51,8 @@ def test_a_start_in_the_other_basin_is_moved_to_the_right_one(seed):
     assert abs(wrong.cy - truth["cy"]) > 30 * wrong.sd["cy"], (wrong.cy, wrong.sd["cy"])
     check = best_basin(obs, wrong.K, wrong.dist, FLAGS, NOISE_PX)
     assert check.moved and check.other_cost_px2 < check.cost_px2
+    # white noise: the views prefer the right basin together (t 7.5-8.1 here, 3.4 needed)
+    assert check.view_t > check.view_t_needed, (check.view_t, check.view_t_needed)
     for q in ("cx", "cy"):  # 4 sigmas: the fit's own, at 0.3 px of noise about 1.3 px
         assert abs(getattr(check.fit, q) - truth[q]) < 4 * check.fit.sd[q], (q, check.fit)
     assert np.sign(check.fit.dist[2]) == np.sign(truth["p1"])
@@ -85,3 +87,28 @@ def test_the_other_basin_is_found_from_either_side(seed):
         assert check.to_dict()["second"]["cy"] == pytest.approx(check.second.cy)
     # both sides end at the same camera
     assert from_right.fit.cy == pytest.approx(from_wrong.fit.cy, abs=0.1 * right.sd["cy"])
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_basin_that_two_views_alone_prefer_is_not_taken(seed):
+    # Views 0 and 1 get ten times the difference between the two basins' projections of
+    # them added: the other basin's total cost is then lower by over 100 noise variances,
+    # all of it from those two views, as a real step's views with errors of their own make.
+    obs, truth = _narrow_step(np.random.default_rng(seed))
+    wrong = _fit_from(obs, 620.0, 500.0, 0.1)
+    right = _fit_from(obs, truth["cx"] + 20, truth["cy"] - 20, 0.0)
+    views = list(obs.views)
+    for v in (0, 1):
+        ids, uv = views[v]
+        moved_by = [cv2.projectPoints(obs.object_points[ids], fit.rvecs[v], fit.tvecs[v], fit.K,
+                                      fit.dist)[0].reshape(-1, 2) for fit in (wrong, right)]
+        views[v] = (ids, uv + 10.0 * (moved_by[0] - moved_by[1]))
+    bent = Observations(obs.object_points, views, obs.image_size)
+    start = _fit_from(bent, truth["cx"] + 20, truth["cy"] - 20, 0.0)
+    check = best_basin(bent, start.K, start.dist, FLAGS, NOISE_PX)
+    # the total cost alone would move it ...
+    assert check.cost_px2 - check.other_cost_px2 > 100 * NOISE_PX**2
+    # ... the views do not agree, and it stays in the right basin
+    assert not check.moved and check.view_t < check.view_t_needed
+    assert abs(check.fit.cy - truth["cy"]) < 4 * check.fit.sd["cy"] + 5.0, check.fit.cy
+    assert check.to_dict()["view_t"] == pytest.approx(check.view_t)

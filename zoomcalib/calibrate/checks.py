@@ -215,14 +215,7 @@ def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag
                           f"corner noise: sd {name} x{grown:.1f} from them (used; a "
                           "misprinted or bent board)"))
     flags += _model_choice_flags(res.info.get("model_choice"), res.sd)
-    second = (res.info.get("basin") or {}).get("second")
-    if second and second.get("excess_noise_variances") is not None \
-            and second["excess_noise_variances"] < MIN_GAIN:
-        flags.append(Flag("basin", "warning", "a second basin for the principal point",
-                          f"a second basin puts the principal point at ({second['cx']:.0f}, "
-                          f"{second['cy']:.0f}) px for {second['excess_noise_variances']:.1f} "
-                          f"noise variances more cost (fewer than {MIN_GAIN:g}): the views "
-                          "barely tell the two apart"))
+    flags += _basin_flags(res.info.get("basin") or {})
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
     if few:
@@ -245,6 +238,27 @@ def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag
         flags.append(Flag("not_converged", "error", "did not converge",
                           f"did not converge ({why})"))
     return flags
+
+
+def _basin_flags(basin: dict) -> list[Flag]:
+    """A warning where a second basin of the principal point is about as good as the chosen
+    one (:func:`~zoomcalib.calibrate.basins.best_basin`): fewer than ``MIN_GAIN`` noise
+    variances costlier, or cheaper in all but the views' paired test."""
+    second = basin.get("second")
+    excess = (second or {}).get("excess_noise_variances")
+    if excess is None or excess >= MIN_GAIN:
+        return []
+    where = (f"a second basin puts the principal point at ({second['cx']:.0f}, "
+             f"{second['cy']:.0f}) px")
+    if excess < 0:
+        why = (f"{-excess:.1f} noise variances less cost, not taken: the views do not agree on "
+               f"it (paired t {basin.get('view_t') or float('nan'):.1f}, "
+               f"{basin.get('view_t_needed') or float('nan'):.1f} needed)")
+    else:
+        why = (f"{excess:.1f} noise variances more cost (fewer than {MIN_GAIN:g}): the views "
+               "barely tell the two apart")
+    return [Flag("basin", "warning", "a second basin for the principal point",
+                 f"{where} for {why}")]
 
 
 def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[Flag]:
