@@ -36,3 +36,24 @@ def test_compensator_in_focus_and_on_design_branch(name, request, rng):
 def test_zoom_out_of_range(laikin):
     with pytest.raises(ValueError, match="zoom must lie in"):
         solve_gaps(laikin, [1.2])
+
+
+@pytest.mark.parametrize("name", ["laikin", "nikon"])
+def test_closed_form_compensator_equals_a_root_bracketed_by_brent(name, request, rng):
+    # The closed form (the focus error is a quadratic in g3) against scipy's Brent method on
+    # the traced error, bracketed 0.5 mm either side of the design cam's guess.
+    from scipy.optimize import brentq
+
+    from zoomcalib.optics.cam import _gaps, variator_gap
+
+    lens = request.getfixturevalue(name)
+    zoom = rng.uniform(0, 1, 12)
+    gaps = solve_gaps(lens, zoom)
+    g1 = variator_gap(lens, zoom)
+    for z, g, g1_z in zip(zoom, gaps, g1, strict=True):
+        def error(g3, g1_z=g1_z):
+            return float(focus_error(lens, _gaps(lens, np.array([g1_z]), np.array([g3])))[0])
+
+        lo, hi = max(g[2] - 0.5, 0.0), min(g[2] + 0.5, lens.gap_total - g1_z)
+        root = brentq(error, lo, hi, xtol=1e-12, rtol=1e-14)
+        assert abs(root - g[2]) < 1e-9, (z, root, g[2])

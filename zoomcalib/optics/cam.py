@@ -61,16 +61,21 @@ def _gaps(lens: Prescription, g1: np.ndarray, g3: np.ndarray) -> np.ndarray:
     return np.stack([g1, lens.gap_total - g1 - g3, g3], axis=-1)
 
 
-def solve_gaps(lens: Prescription, zoom: np.ndarray, *, grid: int = 4001,
-               tol_mm: float = 1e-10) -> np.ndarray:
+def solve_gaps(lens: Prescription, zoom: np.ndarray) -> np.ndarray:
     """The three variable gaps at each zoom state, with the compensator solved for focus.
+
+    A paraxial ray's height on the image plane is linear in each gap on its own (a transfer
+    ``y' = y + t u`` per gap), and with ``g1`` held both ``g3`` and ``g2 = total - g1 - g3``
+    are linear in ``g3``: the focus error is a quadratic in ``g3``, exactly. Its three
+    coefficients come from three traces (``g3`` at 0, half and all of ``total - g1``), its
+    roots in closed form (the cancellation-free form of the quadratic formula), and the root in
+    ``[0, total - g1]`` nearest the design cam is polished by one Newton step on the traced
+    error.
 
     Parameters
     ----------
     zoom : (Z,) array_like
         Zoom states in [0, 1].
-    grid : int
-        Number of trial compensator gaps used to bracket every focus solution.
 
     Returns
     -------
@@ -89,30 +94,43 @@ def solve_gaps(lens: Prescription, zoom: np.ndarray, *, grid: int = 4001,
     order = np.argsort(lens.design_gaps[:, 0])
     guess = np.interp(g1, lens.design_gaps[order, 0], lens.design_gaps[order, 2])
     g3_max = lens.gap_total - g1  # g2 >= 0
-    # Bracket every root on a fine grid of g3, vectorised over zoom x trial.
-    frac = np.linspace(0.0, 1.0, grid)
-    trial = frac[None, :] * g3_max[:, None]  # shape (Z, grid)
-    err = focus_error(lens, _gaps(lens, np.broadcast_to(g1[:, None], trial.shape), trial))
-    change = np.sign(err[:, :-1]) * np.sign(err[:, 1:]) <= 0
-    mid = 0.5 * (trial[:, :-1] + trial[:, 1:])
-    dist = np.where(change, np.abs(mid - guess[:, None]), np.inf)
-    cell = np.argmin(dist, axis=1)
-    if np.any(~np.isfinite(dist[np.arange(len(zoom)), cell])):
-        bad = zoom[~np.isfinite(dist[np.arange(len(zoom)), cell])]
+    # the focus error at x = g3 / g3_max = 0, 1/2, 1: e(x) = a x^2 + b x + c
+    trial = np.array([0.0, 0.5, 1.0])[None, :] * g3_max[:, None]
+    e0, e_half, e1 = focus_error(
+        lens, _gaps(lens, np.broadcast_to(g1[:, None], trial.shape), trial)).T
+    a = 2.0 * e1 - 4.0 * e_half + 2.0 * e0
+    b = 4.0 * e_half - 3.0 * e0 - e1
+    c = e0
+    roots = _quadratic_roots(a, b, c)                                   # (Z, 2), in x
+    inside = (roots >= -1e-12) & (roots <= 1.0 + 1e-12)
+    dist = np.where(inside, np.abs(roots - (guess / g3_max)[:, None]), np.inf)
+    pick = np.argmin(dist, axis=1)
+    found = np.isfinite(dist[np.arange(len(zoom)), pick])
+    if not np.all(found):
         raise ValueError(f"lens {lens.name!r}: no compensator position focuses infinity at "
-                         f"zoom {bad}")
-    lo = trial[np.arange(len(zoom)), cell]
-    hi = trial[np.arange(len(zoom)), cell + 1]
-    f_lo = err[np.arange(len(zoom)), cell]
-    # Bisection inside the bracketing cell (vectorised, robust, ~45 halvings to 1e-10 mm).
-    while np.max(hi - lo) > tol_mm:
-        m = 0.5 * (lo + hi)
-        f_m = focus_error(lens, _gaps(lens, g1, m))
-        left = np.sign(f_m) * np.sign(f_lo) <= 0
-        hi = np.where(left, m, hi)
-        lo = np.where(left, lo, m)
-        f_lo = np.where(left, f_lo, f_m)
-    return _gaps(lens, g1, 0.5 * (lo + hi))
+                         f"zoom {zoom[~found]}")
+    x = np.clip(roots[np.arange(len(zoom)), pick], 0.0, 1.0)
+    # one Newton step on the traced error: the coefficients' rounding, not the model, is left
+    slope = 2.0 * a * x + b
+    e_x = focus_error(lens, _gaps(lens, g1, x * g3_max))
+    step = np.where(slope != 0.0, e_x / np.where(slope != 0.0, slope, 1.0), 0.0)
+    x = np.clip(x - step, 0.0, 1.0)
+    return _gaps(lens, g1, x * g3_max)
+
+
+def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Both real roots of ``a x^2 + b x + c`` per row, (Z, 2); NaN where there are none (a
+    linear row, ``a`` negligible, has its one root twice). ``q = -(b + sign(b) sqrt(b^2 -
+    4ac)) / 2`` gives ``q / a`` and ``c / q`` without cancellation."""
+    scale = np.maximum(np.abs(b), np.abs(c)) + 1e-300
+    linear = np.abs(a) <= 1e-12 * scale
+    disc = b * b - 4.0 * a * c
+    sqrt_disc = np.sqrt(np.where(disc >= 0.0, disc, np.nan))
+    q = -0.5 * (b + np.where(b >= 0.0, 1.0, -1.0) * sqrt_disc)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where(linear, -c / b, q / a)
+        r2 = np.where(linear, -c / b, c / q)
+    return np.stack([r1, r2], axis=1)
 
 
 def efl_at_zoom(lens: Prescription, zoom: np.ndarray) -> np.ndarray:
