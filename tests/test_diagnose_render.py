@@ -86,10 +86,16 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
 
     # the default calibration (the zoom-wide adjustment): its table is diagnosed through the
     # rows of its solve without the smoothness prior, written beside it, and names the same
+    import shutil
+
     from zoomcalib.calibrate.run import calibrate_folder
 
-    calibrate_folder(tmp_path / "set", "chessboard:9x6:25", tmp_path / "zw", ("opencv",),
-                     workers=1, log=lambda m: None, report=False)
+    # the first run's detections are reused (the cache checks the images and the detector)
+    shutil.copytree(tmp_path / "diag" / "calibration" / "detections",
+                    tmp_path / "zw" / "detections")
+    zw = calibrate_folder(tmp_path / "set", "chessboard:9x6:25", tmp_path / "zw", ("opencv",),
+                          workers=1, log=lambda m: None, report=False)
+    assert sum(zw.reused.values()) == 100
     messages = []
     diagnose_input(tmp_path / "zw" / "zoom_calibration.csv", tmp_path / "diag3", lens,
                    sensor.pixel_pitch_mm, tol, log=messages.append)
