@@ -51,7 +51,7 @@ def test_a_start_in_the_other_basin_is_moved_to_the_right_one(seed):
     assert abs(wrong.cy - truth["cy"]) > 30 * wrong.sd["cy"], (wrong.cy, wrong.sd["cy"])
     check = best_basin(obs, wrong.K, wrong.dist, FLAGS, NOISE_PX)
     assert check.moved and check.other_cost_px2 < check.cost_px2
-    # white noise: the views prefer the right basin together (t 7.5-8.1 here, 3.4 needed)
+    # white noise: the views prefer the right basin together
     assert check.view_t > check.view_t_needed, (check.view_t, check.view_t_needed)
     for q in ("cx", "cy"):  # 4 sigmas: the fit's own, at 0.3 px of noise about 1.3 px
         assert abs(getattr(check.fit, q) - truth[q]) < 4 * check.fit.sd[q], (q, check.fit)
