@@ -175,7 +175,16 @@ def test_without_a_lens_a_path_that_does_not_predict_is_unexplained(tmp_path):
     assert null.explained["noise_scale"] < 2 and null.explained["cv_norm_rms"] < 3
     from zoomcalib.diagnose.report import report_markdown
 
-    assert "no lens model, nothing simulated" in report_markdown(diag, diag.to_dict())
+    report = report_markdown(diag, diag.to_dict())
+    assert "no lens model, nothing simulated" in report
+    # what more data would tell: the columns the untested causes need, repeated settings (each
+    # step was visited once), and captures across sessions for what is left unexplained
+    advice = diag.to_dict()["data_advice"]
+    assert any(a.startswith("to test backlash, the table needs a direction column")
+               for a in advice), advice
+    assert any(a.startswith("repeated settings") for a in advice)
+    assert any("on another day" in a for a in advice) and "## What more data would tell" in report
+    assert not any("on another day" in a for a in null.data_advice)
 
 
 def test_table_errors_name_file_and_row():
@@ -211,6 +220,9 @@ def test_cli_writes_the_contract(tmp_path):
     assert {c["cause"] for c in doc["candidates"]} == set(HIDDEN_CAUSES) - {"focus_shift"}
     assert all({"cause", "cv_rms_px", "delta_bic", "params"} <= set(c) for c in doc["candidates"])
     assert set(doc["extended"]["params"]) == set(truth["params"])
+    # swept in and out, every setting visited more than once: only the focus column is asked for
+    assert doc["data_advice"] == ["to test focus_shift, the table needs a focus column that "
+                                  "varies"], doc["data_advice"]
     for name in ("report.md", "path.png", "residuals.png"):
         assert (out / name).stat().st_size > 0
     # bad input: one line naming the problem, no traceback

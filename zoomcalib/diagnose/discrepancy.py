@@ -658,6 +658,28 @@ class Diagnosis:
         return [c.cause for c in self.candidates if c.cause not in named
                 and c.delta_bic - top < AMBIGUITY_BIC and c.delta_bic < -BIC_MARGIN]
 
+    @property
+    def data_advice(self) -> list[str]:
+        """What more data would tell, in words: the columns the skipped causes need, repeated
+        settings when no setting was visited twice, the tangential distortion where axis tilt
+        and static decentre are not told apart, and repeated captures across sessions where
+        the table is not explained."""
+        advice = [f"to test {cause}, the table {why}" for cause, why in self.skipped.items()
+                  if why.startswith("needs")]
+        if self.table.n == len(np.unique(self.table.zoom_groups())):
+            advice.append("repeated settings (each zoom step visited more than once, from both "
+                          "sides) measure the play itself and let the fit be checked")
+        named = {s.cause for s in self.causes} | set(self.ambiguous_with)
+        if {"axis_tilt", "static_decenter"} <= named and not self.distortion:
+            advice.append("p1, p2 and their sigmas per row (a per-step calibration table) tell "
+                          "axis_tilt from static_decenter (docs/diagnose.md)")
+        if self.cause == "unexplained":
+            advice.append("the same steps captured again, in the same session and on another "
+                          "day, would show whether what is left moves between sessions (a "
+                          "camera re-mounted, a zoom that does not return) or is noise the "
+                          "table's sigmas understate")
+        return advice
+
     def _extended_dict(self) -> dict:
         if self.extended is None:
             return {"cause": "none", "variant": "", **self.baseline.summary(), "params": {},
@@ -699,6 +721,7 @@ class Diagnosis:
                      "cv_norm_ratio": cv_norm_ratio(self.baseline, final)},
             "candidates": [c.to_dict() for c in self.candidates],
             "skipped": [{"cause": k, "reason": v} for k, v in self.skipped.items()],
+            "data_advice": self.data_advice,
             "distortion_evidence": self.distortion,
             "selection": {"bic_margin": BIC_MARGIN, "ambiguity_bic": AMBIGUITY_BIC,
                           "max_causes": MAX_CAUSES,

@@ -209,6 +209,8 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
     if doc["skipped"]:
         lines += ["", "Not testable with this table: " + "; ".join(
             f"{s['cause']} ({s['reason']})" for s in doc["skipped"])]
+    if doc.get("data_advice"):
+        lines += ["", "## What more data would tell", ""] + [f"- {a}" for a in doc["data_advice"]]
     lines += ["", f"Rule: {doc['selection']['rule']} (bic_margin "
               f"{doc['selection']['bic_margin']:g}).", "",
               "Figures: `path.png` (the measured principal point against "
