@@ -664,8 +664,10 @@ class Diagnosis:
         settings when no setting was visited twice, the tangential distortion where axis tilt
         and static decentre are not told apart, and repeated captures across sessions where
         the table is not explained."""
-        advice = [f"to test {cause}, the table {why}" for cause, why in self.skipped.items()
-                  if why.startswith("needs")]
+        advice = [f"to test {cause}, give the camera's lens prescription (--lens): without "
+                  "one there is no barrel angle or group sensitivities" if why == NEEDS_OPTICS
+                  else f"to test {cause}, the table {why}"
+                  for cause, why in self.skipped.items() if why.startswith("needs")]
         if self.table.n == len(np.unique(self.table.zoom_groups())):
             advice.append("repeated settings (each zoom step visited more than once, from both "
                           "sides) measure the play itself and let the fit be checked")
