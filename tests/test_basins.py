@@ -51,8 +51,8 @@ def test_a_start_in_the_other_basin_is_moved_to_the_right_one(seed):
     assert abs(wrong.cy - truth["cy"]) > 30 * wrong.sd["cy"], (wrong.cy, wrong.sd["cy"])
     check = best_basin(obs, wrong.K, wrong.dist, FLAGS, NOISE_PX)
     assert check.moved and check.other_cost_px2 < check.cost_px2
-    # white noise: the views prefer the right basin together
-    assert check.view_t > check.view_t_needed, (check.view_t, check.view_t_needed)
+    # white noise: the views prefer the right basin together; no flag
+    assert check.view_t > check.view_t_needed and not check.views_disagree
     for q in ("cx", "cy"):  # 4 sigmas: the fit's own, at 0.3 px of noise about 1.3 px
         assert abs(getattr(check.fit, q) - truth[q]) < 4 * check.fit.sd[q], (q, check.fit)
     assert np.sign(check.fit.dist[2]) == np.sign(truth["p1"])
@@ -90,7 +90,7 @@ def test_the_other_basin_is_found_from_either_side(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 2])
-def test_a_basin_that_two_views_alone_prefer_is_not_taken(seed):
+def test_a_move_that_two_views_alone_make_is_flagged(seed):
     # Views 0 and 1 get ten times the difference between the two basins' projections of
     # them added: the other basin's total cost is then lower by over 100 noise variances,
     # all of it from those two views, as a real step's views with errors of their own make.
@@ -106,9 +106,9 @@ def test_a_basin_that_two_views_alone_prefer_is_not_taken(seed):
     bent = Observations(obs.object_points, views, obs.image_size)
     start = _fit_from(bent, truth["cx"] + 20, truth["cy"] - 20, 0.0)
     check = best_basin(bent, start.K, start.dist, FLAGS, NOISE_PX)
-    # the total cost alone would move it ...
-    assert check.cost_px2 - check.other_cost_px2 > 100 * NOISE_PX**2
-    # ... the views do not agree, and it stays in the right basin
-    assert not check.moved and check.view_t < check.view_t_needed
-    assert abs(check.fit.cy - truth["cy"]) < 4 * check.fit.sd["cy"] + 5.0, check.fit.cy
+    # the total cost moves it (the views' paired test is reported, not required) ...
+    assert check.cost_px2 - check.other_cost_px2 > 100 * NOISE_PX**2 and check.moved
+    # ... and the record says that the views do not agree on the move
+    assert check.view_t < check.view_t_needed and check.views_disagree
+    assert check.to_dict()["views_disagree"] is True
     assert check.to_dict()["view_t"] == pytest.approx(check.view_t)

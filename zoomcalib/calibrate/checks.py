@@ -241,24 +241,28 @@ def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag
 
 
 def _basin_flags(basin: dict) -> list[Flag]:
-    """A warning where a second basin of the principal point is about as good as the chosen
-    one (:func:`~zoomcalib.calibrate.basins.best_basin`): fewer than ``MIN_GAIN`` noise
-    variances costlier, or cheaper in all but the views' paired test."""
+    """Warnings about the principal point's basin
+    (:func:`~zoomcalib.calibrate.basins.best_basin`): a second basin about as good as the
+    chosen one (fewer than ``MIN_GAIN`` noise variances apart), and a move to a basin that the
+    views' paired test does not support."""
+    flags = []
+    if basin.get("views_disagree"):
+        flags.append(Flag("basin", "warning", "moved to a basin few views prefer",
+                          f"the principal point was moved to the basin of lower total cost, "
+                          f"but the views do not agree on it (paired t "
+                          f"{basin.get('view_t') or float('nan'):.1f}, "
+                          f"{basin.get('view_t_needed') or float('nan'):.1f} for 3 sigma): a "
+                          "few views' errors may have chosen it"))
     second = basin.get("second")
     excess = (second or {}).get("excess_noise_variances")
-    if excess is None or excess >= MIN_GAIN:
-        return []
-    where = (f"a second basin puts the principal point at ({second['cx']:.0f}, "
-             f"{second['cy']:.0f}) px")
-    if excess < 0:
-        why = (f"{-excess:.1f} noise variances less cost, not taken: the views do not agree on "
-               f"it (paired t {basin.get('view_t') or float('nan'):.1f}, "
-               f"{basin.get('view_t_needed') or float('nan'):.1f} needed)")
-    else:
-        why = (f"{excess:.1f} noise variances more cost (fewer than {MIN_GAIN:g}): the views "
-               "barely tell the two apart")
-    return [Flag("basin", "warning", "a second basin for the principal point",
-                 f"{where} for {why}")]
+    if excess is not None and excess < MIN_GAIN:
+        cost = (f"{excess:.1f} noise variances more cost" if excess >= 0 else
+                f"{-excess:.1f} noise variances less cost")
+        flags.append(Flag("basin", "warning", "a second basin for the principal point",
+                          f"a second basin puts the principal point at ({second['cx']:.0f}, "
+                          f"{second['cy']:.0f}) px for {cost} (within {MIN_GAIN:g}): the "
+                          "views barely tell the two apart"))
+    return flags
 
 
 def _model_choice_flags(choice: dict | None, sd: Mapping[str, float]) -> list[Flag]:
