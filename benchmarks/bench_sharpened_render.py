@@ -1,9 +1,11 @@
 """The corner detectors on rendered frames sharpened and compressed as a PTZ camera's are.
 
-``python benchmarks/bench_sharpened_render.py [--views 16] [--seeds 2] [--out DIR]``
+``python benchmarks/bench_sharpened_render.py [--views 16] [--seeds 2] [--out DIR]
+[--noise-dn 2]``
 
 Each seed renders (:func:`zoomcalib.render.sweep.render_zoom_sweep`) one step of a 22 x 15-corner
-chessboard (25 mm squares, fx 1500 px, 1280 x 720, tilts up to 40 degrees, 2 DN read noise,
+chessboard (25 mm squares, fx 1500 px, 1280 x 720, tilts up to 40 degrees, ``--noise-dn``
+of read noise (2 DN; the real PTZ frames' flat squares carry 6-10, ``docs/performance.md``),
 0.8 px Gaussian blur) three times from the same seed, so the poses and the noise are the same:
 ``plain`` (PNG), ``sharpened`` (the camera's unsharp mask, 0.8 at 1.2 px, as
 ``render-sweep --sharpen 0.8,1.2``) and ``stream`` (sharpened, then JPEG at quality 85). Every
@@ -35,6 +37,7 @@ sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from zoomcalib.detect import detect_image  # noqa: E402
 from zoomcalib.detect.refine import refine_corners  # noqa: E402
+from zoomcalib.render.image import Radiometry  # noqa: E402
 from zoomcalib.render.sweep import CaptureEffects, render_zoom_sweep  # noqa: E402
 from zoomcalib.targets import parse_pattern  # noqa: E402
 
@@ -52,6 +55,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=16)
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("bench-sharpened"))
+    ap.add_argument("--noise-dn", type=float, default=2.0)
     args = ap.parse_args()
     target = parse_pattern(PATTERN)
     stats = {(v, m): {"err": [], "cpu": [], "fallback": 0, "corners": 0, "resid": [],
@@ -62,7 +66,8 @@ def main() -> None:
             folder = args.out / f"seed{seed}_{variant}"
             truth = render_zoom_sweep(folder, (1500.0, 1500.0), 1, args.views, (1280, 720),
                                       PATTERN, jpeg_quality=quality, seed=seed,
-                                      effects=CaptureEffects(sharpen))
+                                      effects=CaptureEffects(sharpen),
+                                      radiometry=Radiometry(noise_sd=args.noise_dn / 255.0))
             for view in truth["steps"][0]["views"]:
                 grey = cv2.imread(str(folder / view["file"]), cv2.IMREAD_GRAYSCALE)
                 true = np.array(view["points_px"])
@@ -88,7 +93,8 @@ def main() -> None:
                     s["corners"] += len(det.points)
                     d = det.points[ok] - true[det.ids[ok]]
                     s["err"].append(d)
-    print(f"{args.seeds} seeds x {args.views} views, fx 1500 px, 1280 x 720, {PATTERN}")
+    print(f"{args.seeds} seeds x {args.views} views, fx 1500 px, 1280 x 720, {PATTERN}, "
+          f"{args.noise_dn:g} DN read noise")
     print(f"{'variant':>10} {'detector':>8} {'RMS err px':>10} {'CPU s/frame':>11} "
           f"{'fallback':>8} {'resid DN':>8} {'edge':>5} {'flat':>5} {'edge mean':>9} "
           f"{'sharp':>5} {'amount':>6} {'radius':>6}")
