@@ -383,28 +383,17 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
                                              extras_of.items()}, pp_model, sessions, workers,
                    board_shape == "points")
-    for step in [s for s, r in run.results.items() if not r]:
-        del run.results[step]
-        run.backend_failures.pop(step, None)
-        run.dropped.append(step)
+    _drop_uncalibrated(run)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
                                                workers, board_shape == "points")
     set_step_flags(run)
     run.status = _step_statuses(run)
-    for step, st in run.status.items():
-        if not st.usable:
-            log(f"step {step}: unusable ({'; '.join(st.reasons)}): kept in the table and "
-                "calibration.json with its status, not exported and not in the zoom model")
+    _log_unusable(run, log)
     if residual_budget and run.results:
         _residual_budget(run, sessions, workers, log)
-    rows = [_table_row(step, run.zoom[step], extras_of[step],
-                       run.results[step][run.table_backend[step]]) | {
-                           "flags": "; ".join(run.flags.get(step, [])),
-                           "status": run.status[step].status,
-                           "status_reasons": "; ".join(run.status[step].reasons)}
-            for step in run.results]
+    rows = _table_rows(run, extras_of)
 
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "fixed": list(fixed),
@@ -912,6 +901,32 @@ def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance:
                         for step, step_dir, zoom, _ in steps}}
     return write_manifest(out, [*run.files, *caches], inputs, call)
 
+
+
+def _drop_uncalibrated(run: CalibrateRun) -> None:
+    """Steps that neither a backend nor the zoom-wide adjustment calibrated leave the results
+    and are listed as dropped."""
+    for step in [s for s, r in run.results.items() if not r]:
+        del run.results[step]
+        run.backend_failures.pop(step, None)
+        run.dropped.append(step)
+
+
+def _log_unusable(run: CalibrateRun, log: Callable[[str], None]) -> None:
+    for step, st in run.status.items():
+        if not st.usable:
+            log(f"step {step}: unusable ({'; '.join(st.reasons)}): kept in the table and "
+                "calibration.json with its status, not exported and not in the zoom model")
+
+
+def _table_rows(run: CalibrateRun, extras_of: dict[str, dict]) -> list[dict]:
+    """The zoom table's rows: each step's table backend's result, its flags and status."""
+    return [_table_row(step, run.zoom[step], extras_of[step],
+                       run.results[step][run.table_backend[step]]) | {
+                           "flags": "; ".join(run.flags.get(step, [])),
+                           "status": run.status[step].status,
+                           "status_reasons": "; ".join(run.status[step].reasons)}
+            for step in run.results]
 
 def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
     from ..plots import (

@@ -218,6 +218,22 @@ def sweep_poses(target: Target, camera: CameraModel, n_views: int, max_tilt_deg:
     return poses
 
 
+def _board_surfaces(board_surface: BoardSurface | float | None, extent_mm,
+                    retaped: bool, surface_seed, retape_seed) -> list[BoardSurface | None]:
+    """The board's surface of each session: the one given (or drawn at the given amplitude,
+    mm) and, when the board is re-taped, a second of the same kind, waving otherwise."""
+    surface = board_surface
+    if isinstance(board_surface, int | float):
+        surface = BoardSurface.random(extent_mm, float(board_surface),
+                                      np.random.default_rng(surface_seed))
+    if not retaped:
+        return [surface]
+    amplitude = (float(board_surface) if isinstance(board_surface, int | float)
+                 else max((abs(m[0]) for m in getattr(surface, "modes", ())), default=0.5))
+    return [surface, BoardSurface.random(extent_mm, amplitude or 0.5,
+                                         np.random.default_rng(retape_seed))]
+
+
 def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 23000.0),
                       steps: int = 7, views: int = 10, size: tuple[int, int] = (1280, 720),
                       pattern: str = "chessboard:22x15:20",
@@ -288,16 +304,9 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
                                                        "pp_seed") if k in camera_options}
     *_, path_record = principal_point_path(fx_range, steps, camera_options.get("pp_path", "bow"),
                                            **path_options)
-    surface = board_surface
-    if isinstance(board_surface, int | float):
-        surface = BoardSurface.random(target.extent_mm, float(board_surface),
-                                      np.random.default_rng(surface_seed))
-    surfaces = [surface]
-    if effects.retape_at is not None:  # the same kind of board, waving otherwise
-        amplitude = (float(board_surface) if isinstance(board_surface, int | float)
-                     else max((abs(m[0]) for m in getattr(surface, "modes", ())), default=0.5))
-        surfaces.append(BoardSurface.random(target.extent_mm, amplitude or 0.5,
-                                            np.random.default_rng(retape_seed)))
+    surfaces = _board_surfaces(board_surface, target.extent_mm, effects.retape_at is not None,
+                               surface_seed, retape_seed)
+    surface = surfaces[0]
     out = Path(out)
     clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
