@@ -38,7 +38,7 @@ from .quality import (
     residual_pattern,
     view_geometry,
 )
-from .result import CalibrationResult, Observations
+from .result import CalibrationResult, Observations, residual_vectors
 
 if TYPE_CHECKING:
     from .run import CalibrateRun
@@ -186,7 +186,6 @@ def _absent_images(run: CalibrateRun, step: str) -> list[tuple[str, str]]:
 
 
 def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> str:
-    from .run import residual_vectors
 
     res = run.results[step][run.table_backend[step]]
     obs = run.observations[step]

@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["Observations", "CalibrationResult", "DIST_NAMES", "one_opencv_thread"]
+__all__ = ["Observations", "CalibrationResult", "DIST_NAMES", "one_opencv_thread",
+           "residual_vectors"]
 
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
@@ -152,3 +153,14 @@ def one_opencv_thread():
         yield
     finally:
         cv2.setNumThreads(threads)
+
+
+def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.ndarray]:
+    """Per view, ``(k, 2)`` reprojection residuals (projected minus observed), px."""
+    obj = obs.object_points if result.object_points is None else result.object_points
+    out = []
+    for (ids, pts), r, t in zip(obs.views, result.rvecs, result.tvecs, strict=True):
+        proj, _ = cv2.projectPoints(obj[ids].astype(np.float64), np.asarray(r, float),
+                                    np.asarray(t, float), result.K, result.dist)
+        out.append(proj.reshape(-1, 2) - pts)
+    return out

@@ -67,7 +67,7 @@ from .opencv_backend import (
     fix_flags,
     observations_from_detections,
 )
-from .result import DIST_NAMES, CalibrationResult, Observations
+from .result import DIST_NAMES, CalibrationResult, Observations, residual_vectors
 from .scatter import pooled_over_steps
 from .status import StepStatus, sensor_aspect, step_status
 
@@ -147,17 +147,6 @@ class CalibrateRun:
             parts.append("backends failed: " + "; ".join(
                 f"{', '.join(b)} on {s}" for s, b in self.backend_failures.items()))
         return "partial result (" + "; ".join(parts) + ")" if parts else ""
-
-
-def residual_vectors(result: CalibrationResult, obs: Observations) -> list[np.ndarray]:
-    """Per view, ``(k, 2)`` reprojection residuals (projected minus observed), px."""
-    obj = obs.object_points if result.object_points is None else result.object_points
-    out = []
-    for (ids, pts), r, t in zip(obs.views, result.rvecs, result.tvecs, strict=True):
-        proj, _ = cv2.projectPoints(obj[ids].astype(np.float64), np.asarray(r, float),
-                                    np.asarray(t, float), result.K, result.dist)
-        out.append(proj.reshape(-1, 2) - pts)
-    return out
 
 
 def _calibrate_once(backend: str, obs: Observations, model: str, flags: int = 0

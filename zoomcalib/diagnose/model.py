@@ -44,10 +44,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.cam import barrel_angle, solve_gaps
+from ..optics.cam import barrel_angle, moving_groups, solve_gaps
 from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM, Tolerances
-from ..optics.misalignment import Misalignment, vertex_z
+from ..optics.misalignment import Misalignment
 from ..optics.paraxial import effective_focal_length, exit_pupil_distance, image_shift_sensitivity
 from ..optics.prescription import Prescription
 from .response import calibration_response
@@ -64,15 +64,6 @@ DEFAULT_PITCH_MM = 0.00645
 
 class FocalRangeError(ValueError):
     """The measured focal lengths do not fit the lens's EFL range at the given pixel pitch."""
-
-
-def moving_groups(lens: Prescription) -> tuple[str, ...]:
-    """Names of the groups whose axial position changes with zoom (the barrel moves them)."""
-    thickness = lens.thickness_at(solve_gaps(lens, np.array([0.0, 0.5, 1.0])))
-    z = vertex_z(thickness)  # shape (3, N)
-    firsts = [first for first, _ in lens.groups.values()]
-    return tuple(name for name, s in zip(lens.group_names, firsts, strict=True)
-                 if np.ptp(z[:, s]) > 1e-6)
 
 
 @dataclass

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from .misalignment import vertex_z
 from .paraxial import effective_focal_length, trace_paraxial
 from .prescription import Prescription
 
 __all__ = ["variator_gap", "zoom_of_variator_gap", "solve_gaps", "focus_error",
-           "design_zooms", "barrel_angle", "efl_at_zoom"]
+           "design_zooms", "barrel_angle", "efl_at_zoom", "moving_groups"]
 
 BARREL_TURNS = 2.0
 
@@ -136,3 +137,12 @@ def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
 def efl_at_zoom(lens: Prescription, zoom: np.ndarray) -> np.ndarray:
     """(Z,) effective focal length (mm) of the focused lens at each zoom state."""
     return effective_focal_length(lens, lens.thickness_at(solve_gaps(lens, zoom)))
+
+
+def moving_groups(lens: Prescription) -> tuple[str, ...]:
+    """Names of the groups whose axial position changes with zoom (the barrel moves them)."""
+    thickness = lens.thickness_at(solve_gaps(lens, np.array([0.0, 0.5, 1.0])))
+    z = vertex_z(thickness)  # shape (3, N)
+    firsts = [first for first, _ in lens.groups.values()]
+    return tuple(name for name, s in zip(lens.group_names, firsts, strict=True)
+                 if np.ptp(z[:, s]) > 1e-6)

@@ -32,8 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..diagnose.model import moving_groups
-from ..optics.cam import barrel_angle, solve_gaps
+from ..optics.cam import barrel_angle, moving_groups, solve_gaps
 from ..optics.mechanics import ARCMIN, UM, load_tolerances
 from ..optics.misalignment import Misalignment
 from ..optics.paraxial import effective_focal_length
