@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from zoomcalib.calibrate.zoommodel import (
-    ZoomModel,
+    PathPrior,
     divided_difference,
     marginal_tau,
     path_posterior,
@@ -126,7 +126,7 @@ def test_marginalised_tau_covers_paths_that_reml_calls_straight(rng):
         tau, bound = pooled_prior_strength([chain], 2)
         m, P = path_posterior(chain, 2, tau)
         z_plugin.append((m - w * path) / np.sqrt(np.diag(P)))
-        model = ZoomModel("angle2", 2, tau, bound)
+        model = PathPrior("angle2", 2, tau, bound)
         extra = marginal_tau(model, [chain])[0]
         assert model.tau_reml == tau
         assert model.tau_interval[0] <= model.tau <= model.tau_interval[1]
@@ -150,7 +150,7 @@ def test_marginalised_tau_adds_little_where_the_data_pin_tau_down(rng):
     angle = np.cumsum(np.cumsum(rng.normal(0, 0.02, n))) * (u[1] - u[0]) ** 2
     q = 25.0 + fx * angle + rng.normal(0, 0.05, n)
     chain = (q / fx, 0.05 / fx, u, 1.0 / fx)
-    model = ZoomModel("angle2", 2, *pooled_prior_strength([chain], 2))
+    model = PathPrior("angle2", 2, *pooled_prior_strength([chain], 2))
     extra = marginal_tau(model, [chain])[0]
     assert model.tau_interval[1] / model.tau_interval[0] < 2.5
     _, P = path_posterior(chain, 2, model.tau)

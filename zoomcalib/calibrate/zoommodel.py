@@ -55,7 +55,7 @@ from math import factorial
 import numpy as np
 import scipy.linalg
 
-__all__ = ["CANDIDATES", "ZoomModel", "divided_difference", "second_difference", "prior_operator",
+__all__ = ["CANDIDATES", "PathPrior", "divided_difference", "second_difference", "prior_operator",
            "prior_strength", "pooled_prior_strength", "tau_posterior", "path_posterior",
            "marginal_tau", "held_out_densities", "held_out_score", "held_out_residuals",
            "path_between", "kernel_energy", "select_zoom_model"]
@@ -73,9 +73,9 @@ MARGIN = 2.0
 
 
 @dataclass
-class ZoomModel:
-    """The model chosen for one parameter: ``name`` (a key of :data:`CANDIDATES`), difference
-    ``order``, ``tau`` (units of the parameter per ``u^order``; ``inf``: no prior),
+class PathPrior:
+    """The smoothness prior chosen for one parameter's path: ``name`` (a key of
+    :data:`CANDIDATES`), difference ``order``, ``tau`` (units of the parameter per ``u^order``; ``inf``: no prior),
     ``tau_at_bound`` (REML's maximum at the grid's lower end) and the held-out ``scores`` (log
     predictive density) of every candidate; ``tau_kind`` says where ``tau`` came from. With
     ``tau`` marginalised (:func:`marginal_tau`): ``tau`` is its posterior median, ``tau_reml``
@@ -255,7 +255,7 @@ def path_posterior(chain: tuple, order: int, tau: float) -> tuple[np.ndarray, np
     return values - SQ @ values, S - SQ @ S
 
 
-def marginal_tau(model: ZoomModel, chains: list[tuple]) -> list[np.ndarray]:
+def marginal_tau(model: PathPrior, chains: list[tuple]) -> list[np.ndarray]:
     r"""Marginalise the ``tau`` of a REML prior ``model`` (in place) over :func:`tau_posterior`
     and return, per chain, the covariance (n, n) to add to the path's covariance at the new
     plug-in ``tau`` so that it covers the uncertainty of ``tau`` itself.
@@ -483,7 +483,7 @@ def held_out_score(chains: list[tuple], order: int, reml: bool) -> float:
 
 
 def select_zoom_model(chains: list[tuple], candidates: tuple[str, ...] = tuple(CANDIDATES)
-                      ) -> ZoomModel:
+                      ) -> PathPrior:
     """The zoom model of one parameter from its chains ``(values, sd, u[, offset])`` (module
     docstring).
 
@@ -508,7 +508,7 @@ def select_zoom_model(chains: list[tuple], candidates: tuple[str, ...] = tuple(C
         usable = [noise_roughness(c[1], c[2], order) for c in chains if len(c[2]) > order]
         tau, at_bound = POLY_TAU_FRACTION * min(usable), False
     kind = "restricted maximum likelihood" if reml else "polynomial (1e-2 of the noise)"
-    return ZoomModel(best, order, tau, at_bound, scores, tau_kind=kind)
+    return PathPrior(best, order, tau, at_bound, scores, tau_kind=kind)
 
 
 def _clearly_better(dens: np.ndarray | None, than: np.ndarray) -> bool:

@@ -144,7 +144,7 @@ from .result import CalibrationResult, Observations
 from .scatter import ViewScatter, deletion_steps, noise_share, view_groups, view_scatter
 from .zoommodel import (
     CANDIDATES,
-    ZoomModel,
+    PathPrior,
     held_out_residuals,
     marginal_tau,
     pooled_prior_strength,
@@ -1062,7 +1062,7 @@ def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u
 
 def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
                  u: np.ndarray, selected: tuple[str, ...], forms: Mapping[str, _Form],
-                 given: Mapping[str, float]) -> tuple[dict[str, ZoomModel], list[tuple]]:
+                 given: Mapping[str, float]) -> tuple[dict[str, PathPrior], list[tuple]]:
     """Per smoothed parameter with 3 or more free steps in a chain: the zoom model chosen by
     held-out steps (:func:`~zoomcalib.calibrate.zoommodel.select_zoom_model`) for the
     ``selected`` ones, else the second-difference prior of its form (``forms``, default
@@ -1080,12 +1080,12 @@ def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarra
             continue
         tuples = [c for _, c in series]
         if name in given:
-            models[name] = ZoomModel(form.name, 2, float(given[name]), tau_kind="given")
+            models[name] = PathPrior(form.name, 2, float(given[name]), tau_kind="given")
             continue
         if name in selected:
             models[name] = select_zoom_model(tuples)
         else:
-            models[name] = ZoomModel(form.name, 2, *pooled_prior_strength(tuples, 2))
+            models[name] = PathPrior(form.name, 2, *pooled_prior_strength(tuples, 2))
         model = models[name]
         if name not in SELECTED or not CANDIDATES.get(model.name, (2, True))[1]:
             continue
@@ -1143,7 +1143,7 @@ def _unsmoothed_rows(cams: np.ndarray, cov, free: np.ndarray, names: list[str]
 
 
 def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
-                    u: np.ndarray, forms: Mapping[str, _Form], models: Mapping[str, ZoomModel],
+                    u: np.ndarray, forms: Mapping[str, _Form], models: Mapping[str, PathPrior],
                     names: list[str]) -> dict[str, dict]:
     """Per modelled parameter: each step of its chains predicted from the other steps' values
     (``cams``, sigmas or joint covariance ``cov`` as :func:`_series` reads them) under its zoom
@@ -1560,7 +1560,7 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
 
 
 def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
-               models: Mapping[str, ZoomModel]) -> np.ndarray:
+               models: Mapping[str, PathPrior]) -> np.ndarray:
     """``free`` (S, 12) with every distortion term that has a zoom model freed at every step of
     each chain where one of its steps estimates it; a newly freed value starts from the
     chain's estimates, interpolated in ``u`` (held at the ends). ``state.cams`` is updated.
@@ -1783,7 +1783,7 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
                         tuple(names), model_sd, deletions, null_share, points)
 
 
-def _finish(prob, solve, state, init, terms, held, models: dict[str, ZoomModel], iterations,
+def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior], iterations,
             inflation: list[tuple] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
     cov, scatter = _posterior_covariance(prob, state)
