@@ -75,7 +75,8 @@ MARGIN = 2.0
 @dataclass
 class PathPrior:
     """The smoothness prior chosen for one parameter's path: ``name`` (a key of
-    :data:`CANDIDATES`), difference ``order``, ``tau`` (units of the parameter per ``u^order``; ``inf``: no prior),
+    :data:`CANDIDATES`), difference ``order``, ``tau`` (units of the parameter per
+    ``u^order``; ``inf``: no prior),
     ``tau_at_bound`` (REML's maximum at the grid's lower end) and the held-out ``scores`` (log
     predictive density) of every candidate; ``tau_kind`` says where ``tau`` came from. With
     ``tau`` marginalised (:func:`marginal_tau`): ``tau`` is its posterior median, ``tau_reml``
