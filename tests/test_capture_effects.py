@@ -157,6 +157,12 @@ def test_a_board_retaped_between_sessions_gets_each_shape(tmp_path):
     # and the sessions' boards are two: they differ by about the waves' own size
     assert np.sqrt(np.mean((boards[0] - boards[1]) ** 2)) > 0.5 * min(wave)
     assert np.sqrt(np.mean((boards[1] - boards[2]) ** 2)) < 0.2 * min(wave)
+    # the zoom table carries each step's session, as steps.csv gave it
+    from zoomcalib.calibrate.io import read_zoom_table
+
+    rows = read_zoom_table(tmp_path / "out" / "zoom_calibration.csv")
+    assert [r["session"] for r in rows] == [f"board{st['board_session'] + 1}"
+                                            for st in truth["steps"]]
 
 
 def _off_plane(z: np.ndarray, X: np.ndarray) -> np.ndarray:

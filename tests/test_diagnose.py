@@ -185,6 +185,18 @@ def test_without_a_lens_a_path_that_does_not_predict_is_unexplained(tmp_path):
     assert any(a.startswith("repeated settings") for a in advice)
     assert any("on another day" in a for a in advice) and "## What more data would tell" in report
     assert not any("on another day" in a for a in null.data_advice)
+    # capture sessions that each hold their own zoom range: a jump between them is not told
+    # from the path, and the advice names them; sessions that share zoom settings: no advice
+    rows = _lens_free_rows(np.random.default_rng(4), 0.0)
+    for k, row in enumerate(rows):
+        row["session"] = "day1" if k < 4 else "day2"
+    apart = diagnose_table(ZoomTable.from_rows(rows, "t.csv"), None).data_advice
+    assert any("each capture session holds its own zoom range (day1: zoom 1-4; day2: zoom 5-10)"
+               in a for a in apart), apart
+    for k, row in enumerate(rows):
+        row["session"] = f"day{k % 2 + 1}"
+    shared = diagnose_table(ZoomTable.from_rows(rows, "t.csv"), None).data_advice
+    assert not any("capture session" in a for a in shared), shared
 
 
 def test_table_errors_name_file_and_row():

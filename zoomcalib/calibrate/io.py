@@ -105,16 +105,16 @@ ZOOM_TABLE_COLUMNS: tuple[str, ...] = (
     "k1", "k2", "p1", "p2", "k3", "rms_px", "n_views")
 #: Columns written after those when any row knows them.
 ZOOM_TABLE_OPTIONAL: tuple[str, ...] = (
-    "direction", "sequence", "focus", "temperature", "backend", "mode", "converged", "flags",
-    "status", "status_reasons",
+    "direction", "sequence", "focus", "temperature", "session", "backend", "mode", "converged",
+    "flags", "status", "status_reasons",
     "k4", "k5", "k6",
     "sd_k1", "sd_k2", "sd_p1", "sd_p2", "sd_k3", "sd_k4", "sd_k5", "sd_k6",
     *KEYSTONE_COLUMNS)
 #: Columns :func:`read_zoom_table` cannot do without.
 ZOOM_TABLE_REQUIRED: tuple[str, ...] = ("zoom", "fx", "fy", "cx", "cy")
 
-_TEXT_COLUMNS = ("step", "direction", "backend", "mode", "converged", "flags", "status",
-                 "status_reasons")
+_TEXT_COLUMNS = ("step", "direction", "session", "backend", "mode", "converged", "flags",
+                 "status", "status_reasons")
 _INT_COLUMNS = ("n_views", "sequence")
 
 
@@ -431,8 +431,9 @@ def read_zoom_table(path: str | os.PathLike) -> list[dict]:
     -------
     list of dict
         One dict per row, in file order, with every column of the file: ``step``,
-        ``direction`` and ``backend`` as str, ``n_views`` and ``sequence`` as int, other
-        known columns as float (None when empty), unknown columns as float when numeric, else str.
+        ``direction``, ``session`` and ``backend`` as str, ``n_views`` and ``sequence`` as
+        int, other known columns as float (None when empty), unknown columns as float when
+        numeric, else str.
 
     Raises
     ------

@@ -367,7 +367,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         run.results[step] = step_results  # empty: left to the zoom-wide adjustment
         extras_of[step] = extras
     _pool_view_scatter(run, backends)
-    sessions = _board_sessions(run, extras_of, log) if zoom_wide else {}
+    # the capture sessions go to the table's session column either way; the zoom-wide
+    # adjustment also gives each its own board shape
+    capture = _board_sessions(run, extras_of, log if zoom_wide else (lambda message: None))
+    sessions = capture if zoom_wide else {}
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
                                              extras_of.items()}, pp_model, sessions, workers,
@@ -382,7 +385,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     _log_unusable(run, log)
     if residual_budget and run.results:
         _residual_budget(run, sessions, workers, log)
-    rows = _table_rows(run, extras_of)
+    rows = _table_rows(run, extras_of, capture)
 
     call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
             "fixed": list(fixed),
@@ -908,13 +911,17 @@ def _log_unusable(run: CalibrateRun, log: Callable[[str], None]) -> None:
                 "calibration.json with its status, not exported and not in the zoom model")
 
 
-def _table_rows(run: CalibrateRun, extras_of: dict[str, dict]) -> list[dict]:
-    """The zoom table's rows: each step's table backend's result, its flags and status."""
+def _table_rows(run: CalibrateRun, extras_of: dict[str, dict],
+                sessions: dict[str, str]) -> list[dict]:
+    """The zoom table's rows: each step's table backend's result, its flags and status, and
+    its capture session where the steps were captured in more than one."""
+    several = len(set(sessions.values())) > 1
     return [_table_row(step, run.zoom[step], extras_of[step],
                        run.results[step][run.table_backend[step]]) | {
                            "flags": "; ".join(run.flags.get(step, [])),
                            "status": run.status[step].status,
                            "status_reasons": "; ".join(run.status[step].reasons)}
+            | ({"session": sessions.get(step)} if several else {})
             for step in run.results]
 
 def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:

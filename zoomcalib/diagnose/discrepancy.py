@@ -675,6 +675,7 @@ class Diagnosis:
         if {"axis_tilt", "static_decenter"} <= named and not self.distortion:
             advice.append("p1, p2 and their sigmas per row (a per-step calibration table) tell "
                           "axis_tilt from static_decenter (docs/diagnose.md)")
+        advice += _session_advice(self.table)
         if self.cause == "unexplained":
             advice.append("the same steps captured again, in the same session and on another "
                           "day, would show whether what is left moves between sessions (a "
@@ -843,6 +844,26 @@ def _single_causes(fitter: Fitter, base, variants) -> list[Candidate]:
         f, sel = best
         out.append(Candidate(cause, f, len(base_fit.params), f.bic - base_fit.bic, sel.variant))
     return sorted(out, key=lambda c: c.delta_bic)
+
+
+def _session_advice(table: ZoomTable) -> list[str]:
+    """Where the table's capture sessions each hold their own range of zoom, a jump of the
+    principal point between sessions is not told from its path over zoom: say which."""
+    if table.session is None or len(set(table.session)) < 2:
+        return []
+    labels = list(dict.fromkeys(table.session))
+    spans = {lab: (min(z for z, s in zip(table.zoom, table.session, strict=True) if s == lab),
+                   max(z for z, s in zip(table.zoom, table.session, strict=True) if s == lab))
+             for lab in labels}
+    apart = all(spans[a][1] < spans[b][0] or spans[b][1] < spans[a][0]
+                for i, a in enumerate(labels) for b in labels[i + 1:])
+    if not apart:
+        return []
+    listed = "; ".join(f"{lab}: zoom {lo:g}-{hi:g}" if lo != hi else f"{lab}: zoom {lo:g}"
+                       for lab, (lo, hi) in spans.items())
+    return [f"each capture session holds its own zoom range ({listed}): a principal point "
+            "that moves between sessions (a camera re-mounted, a zoom re-initialised) is not "
+            "told from its path over zoom; steps captured in more than one session would tell"]
 
 
 def diagnose_table(table: ZoomTable, response: LensResponse | None,

@@ -91,6 +91,9 @@ class ZoomTable:
         +1 after a move in, -1 after a move out, 0 unknown.
     sequence, focus, temperature : (N,) ndarray or None
         Capture order, focus setting, temperature, when the table has them.
+    session : list of str or None
+        Each row's capture session (``calibrate`` writes it where the steps were captured in
+        more than one), when every row has one.
     step : list of str
     source : str
         Where the table came from (named in error messages).
@@ -121,6 +124,7 @@ class ZoomTable:
     sequence: np.ndarray | None = None
     focus: np.ndarray | None = None
     temperature: np.ndarray | None = None
+    session: list[str] | None = None
     step: list[str] = field(default_factory=list)
     source: str = "table"
     backend: str | None = None
@@ -192,8 +196,10 @@ class ZoomTable:
             extras[key] = col
         steps = [str(r.get("step", k)) for k, r in enumerate(rows)]
         backend = _single_backend(rows, steps, source)
+        session = [str(r.get("session") or "") for r in rows]
         return cls(**req, **sds, direction=direction, step=steps, source=source,
-                   backend=backend, keystone=_keystone(rows), **extras)
+                   backend=backend, keystone=_keystone(rows), **extras,
+                   session=session if all(session) else None)
 
     def zoom_groups(self) -> np.ndarray:
         """(N,) int label of the distinct zoom setting of each row (for held-out-step CV)."""
