@@ -112,3 +112,12 @@ def test_a_move_that_two_views_alone_make_is_flagged(seed):
     assert check.view_t < check.view_t_needed and check.views_disagree
     assert check.to_dict()["views_disagree"] is True
     assert check.to_dict()["view_t"] == pytest.approx(check.view_t)
+
+
+def test_a_move_without_a_paired_test_is_not_called_disagreed():
+    from zoomcalib.calibrate.basins import BasinCheck
+
+    assert BasinCheck(None, True, view_t=0.5, view_t_needed=3.4).views_disagree
+    assert not BasinCheck(None, True, view_t=5.0, view_t_needed=3.4).views_disagree
+    assert not BasinCheck(None, True).views_disagree  # one view: no test, nothing said
+    assert not BasinCheck(None, False, view_t=0.5, view_t_needed=3.4).views_disagree

@@ -98,8 +98,10 @@ class BasinCheck:
 
     @property
     def views_disagree(self) -> bool:
-        """It moved, and the views' paired test does not support the move."""
-        return bool(self.moved and not self.view_t > self.view_t_needed)
+        """It moved, and the views' paired test does not support the move (False where there
+        was no test: fewer than 2 views)."""
+        return bool(self.moved and np.isfinite(self.view_t)
+                    and self.view_t <= self.view_t_needed)
 
     @property
     def second_excess(self) -> float:
