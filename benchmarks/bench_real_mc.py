@@ -2,35 +2,38 @@
 
 ``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
 [--draws 10] [--seed 0] [--errors resampled|imitated] [--in-plane-mm 0.3]
-[--board-shape points] [--verbose]``
+[--board-shape print] [--draws-board-shape points] [--verbose]``
 
 ``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
 ``e-cagan/camera-calibration``, read where it lies; detections cached in ``DIR/detections``).
 
 1. The default ``calibrate`` run on the real set gives, per step, the zoom-wide intrinsics,
-   their sigmas, every view's pose, each capture session's board (modes and point heights) and
-   each step's residual sd per coordinate.
+   their sigmas, every view's pose, each capture session's board (modes, point heights and,
+   where kept, the print's in-plane shape) and each step's residual sd per coordinate.
 2. Each draw builds a sweep with the same steps, views and visible corners, projected by
    ``cv2.projectPoints`` with the step's measured camera and poses, and errors from one of two
    generators:
 
    - ``resampled`` (default): the real run's own residuals, view by view, each view's whole
      residual field multiplied by a random sign (a wild bootstrap clustered by view, Cameron,
-     Gelbach & Miller 2008). The projection is of the run's estimated board (modes and point
-     heights). Whatever the real views carry (a camera that moved, a board that flexed
-     between frames, the compression, a rolling shutter) is in the draws with its structure
-     within each view, without a model of it; an error the real board shares across views
+     Gelbach & Miller 2008). The projection is of the run's estimated board (modes, point
+     heights, the print's shape). Whatever the real views carry (a camera that moved, a board
+     that flexed between frames, the compression, a rolling shutter) is in the draws with its
+     structure within each view, without a model of it; an error the real board shares across views
      is made a per-view one by the signs. The residuals are those of a fit, a little smaller
      than the errors (by the parameters each view's corners determine: 6 pose and a share
      of the intrinsics and heights, of about 600 coordinates).
    - ``imitated``: a model of the causes. Every session's board is the nominal board plus
      the measured smooth shape, fresh ripples (three plane waves of 3-6 cycles across the
      board, random direction and phase, of the measured point heights' RMS) and in-plane
-     errors of ``--in-plane-mm`` RMS per point (a printed board's; the adjustment has no such
-     term); white corner noise brings each step's residual to its measured sd (the in-plane
-     errors' share taken out in quadrature). It has no error that differs between views
-     beyond the noise: the real views' scatter is not in it.
-3. Each draw is calibrated zoom-wide as the default does (the same sessions and settings).
+     errors of ``--in-plane-mm`` RMS per point (a printed board's; the adjustment's print
+     shape is smooth, so it has no such term); white corner noise brings each step's
+     residual to its measured sd (the in-plane errors' share taken out in quadrature). It has
+     no error that differs between views beyond the noise: the real views' scatter is not in
+     it.
+3. Each draw is calibrated zoom-wide as the default does (the same sessions and settings), or
+   with the board model ``--draws-board-shape``: what that model makes of a board like the
+   real run's.
 
 Per step it prints the real run's sigma of fx, cx, cy, the spread (sd) of the draws'
 estimates, their ratio (issue goal: at most 1.5), and the draws' RMS z against their truth
@@ -57,7 +60,11 @@ from bench_real_ptz import real_set_parser  # noqa: E402
 
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
-from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+from zoomcalib.calibrate.zoomwide import (  # noqa: E402
+    BOARD_SHAPES,
+    board_options,
+    calibrate_zoom_wide,
+)
 
 COMPARED = ("fx", "cx", "cy")
 
@@ -132,7 +139,12 @@ def main() -> None:
     ap.add_argument("--errors", default="resampled", choices=("resampled", "imitated"))
     ap.add_argument("--in-plane-mm", type=float, default=0.3,
                     help="in-plane board errors of the imitated errors, mm RMS")
-    ap.add_argument("--board-shape", default="points", choices=("points", "modes"))
+    ap.add_argument("--board-shape", default="print", choices=BOARD_SHAPES,
+                    help="the real run's board model, whose board the draws carry")
+    ap.add_argument("--draws-board-shape", default=None, choices=BOARD_SHAPES,
+                    help="the board model that calibrates the draws (default: --board-shape); "
+                         "another one measures what that model does to a board like the real "
+                         "run's")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
@@ -143,6 +155,7 @@ def main() -> None:
     print(f"real run: {time.perf_counter() - t:.0f} s; sessions {zw.board_sessions}")
     sessions = {s: r.info["board_session"] for s, r in zw.results.items()}
     rng = np.random.default_rng(args.seed)
+    draws_shape = args.draws_board_shape or args.board_shape
     estimates = {s: [] for s in zw.results}
     z = {s: [] for s in zw.results}
     for d in range(args.draws):
@@ -156,7 +169,7 @@ def main() -> None:
                 f"{s} {tr['white_px']:.2f} (in-plane {tr['in_plane_px']:.2f})"
                 for s, tr in truth.items()))
         adjusted = calibrate_zoom_wide(sweep, sessions=sessions, workers=2,
-                                       board_points=args.board_shape == "points")
+                                       **board_options(draws_shape))
         got = adjusted.results
         if args.verbose:
             for s, r in got.items():
@@ -168,7 +181,8 @@ def main() -> None:
             estimates[s].append([getattr(r, q) for q in COMPARED])
             z[s].append([(getattr(r, q) - truth[s][q]) / r.sd[q] for q in COMPARED])
         print(f"  draw {d}: {time.perf_counter() - t:.0f} s", flush=True)
-    print(f"{args.draws} draws, errors {args.errors}, board shape {args.board_shape}"
+    print(f"{args.draws} draws, errors {args.errors}, board shape {args.board_shape}, the "
+          f"draws calibrated with {draws_shape}"
           + (f", in-plane {args.in_plane_mm} mm" if args.errors == "imitated" else ""))
     print(f"{'step':>9} " + " ".join(f"{'sd_' + q:>8} {'mc':>7} {'ratio':>5} {'rms z':>5}"
                                      for q in COMPARED))

@@ -2,7 +2,7 @@
 
 ``python benchmarks/bench_real_ptz.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
 [--splits 5] [--seed 0] [--one-session] [--free-aspect] [--board-degree 4]
-[--board-shape points] [--own-session STEP ...]``
+[--board-shape print] [--own-session STEP ...]``
 
 ``FOLDER`` is an image folder of zoom-step subfolders, e.g. the ``calibration_images`` folder
 of the public set ``e-cagan/camera-calibration`` (10 steps ``zoom_1x`` .. ``zoom_10x`` of a
@@ -28,8 +28,9 @@ repository; this script reads it where it lies and writes to ``--out`` (default
 ``fy`` per step: the settings before they became the default. ``--board-degree N`` gives the
 zoom-wide board modes up to degree ``N`` (the default run's 4; a paper board taped to a wall
 ripples beyond it, ``bench_real_board.py``), for the table and the halves; ``--board-shape
-modes`` leaves out the height of every board point and session that the default fits
-(``calibrate_zoom_wide(board_points=False)``, the earlier default). ``--own-session STEP ...``
+points`` leaves out the print's in-plane shape (``calibrate_zoom_wide(print_shape=False)``,
+the default before it), ``modes`` also the height of every board point and session
+(``board_points=False``, the default before that). ``--own-session STEP ...``
 gives those steps a board of their own (as a ``session`` column of ``steps.csv`` would).
 ``--halves-steps S ...``
 calibrates the halves of those steps alone (the splits drawn as for all steps, so split ``k``
@@ -55,7 +56,11 @@ from zoomcalib.calibrate.checks import random_halves  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
 from zoomcalib.calibrate.status import sensor_aspect, step_status  # noqa: E402
-from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
+from zoomcalib.calibrate.zoomwide import (  # noqa: E402
+    BOARD_SHAPES,
+    board_options,
+    calibrate_zoom_wide,
+)
 from zoomcalib.detect import detect_folder  # noqa: E402
 
 COMPARED = ("fx", "cx", "cy")
@@ -174,9 +179,9 @@ def main() -> None:
     ap.add_argument("--free-aspect", action="store_true")
     ap.add_argument("--board-degree", type=int, default=4,
                     help="highest degree of the zoom-wide board modes (default 4, as calibrate)")
-    ap.add_argument("--board-shape", default="points", choices=("points", "modes"),
-                    help="the zoom-wide board: modes and point heights (default, as calibrate) "
-                         "or the modes alone")
+    ap.add_argument("--board-shape", default="print", choices=BOARD_SHAPES,
+                    help="the zoom-wide board (calibrate's --board-shape; default print, as "
+                         "calibrate)")
     ap.add_argument("--own-session", nargs="+", default=(),
                     help="give these steps a board session of their own")
     ap.add_argument("--halves-steps", nargs="+", default=None,
@@ -205,24 +210,33 @@ def main() -> None:
     sessions = {s: r["zoom-wide"].info.get("board_session", "")
                 for s, r in run.results.items() if "zoom-wide" in r}
     kwargs = {"shared_aspect": not args.free_aspect, "workers": 2,
-              "board_degree": args.board_degree, "board_points": args.board_shape == "points"}
+              "board_degree": args.board_degree, **board_options(args.board_shape)}
     zw = run.zoom_wide
     for step in args.own_session:
         sessions[step] = f"{sessions.get(step, '')} {step}"
     if (args.one_session or args.free_aspect or args.board_degree != 4
-            or args.board_shape != "points" or args.own_session):
+            or args.board_shape != "print" or args.own_session):
         sessions = None if args.one_session else sessions
         t = time.perf_counter()
         zw = calibrate_zoom_wide(run.observations, sessions=sessions, **kwargs)
         print(f"zoom-wide with {'one board shape' if args.one_session else 'sessions'}, "
               f"{'fy per step' if args.free_aspect else 'one aspect ratio'}, board modes to "
-              f"degree {args.board_degree}{' and point heights' * (args.board_shape == 'points')}: "
+              f"degree {args.board_degree}, board {args.board_shape}: "
               f"{time.perf_counter() - t:.0f} s")
     if zw is None:
         print("no zoom-wide adjustment")
         return
     print(f"aspect fy/fx {zw.aspect:.5f} ± {zw.aspect_sd:.5f}; board sessions "
           f"{zw.board_sessions}")
+    if zw.print_test is not None:
+        pt = zw.print_test
+        print(f"print shape: Wald {pt.wald:.0f} on {pt.dof} (threshold {pt.threshold:.1f}): "
+              f"{'kept' if pt.kept else 'exact'}; largest mode {pt.largest_mm:+.3f} ± "
+              f"{pt.largest_sd_mm:.3f} mm")
+    if zw.print_modes is not None:
+        print("print modes mm (x, then y; degree 2: y^2, xy, x^2, ...): "
+              + "; ".join(" ".join(f"{v:+.2f}±{e:.2f}" for v, e in zip(m, sd, strict=True))
+                          for m, sd in zip(zw.print_modes, zw.print_modes_sd, strict=True)))
     _table(zw.results, run)
     if zw is run.zoom_wide:
         for step, st in run.status.items():

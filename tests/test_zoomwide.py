@@ -37,7 +37,7 @@ SIZE = (1280, 720)
 def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
                        pattern="chessboard:22x15:20", fx_range=(2300.0, 23000.0),
                        shift_odd_cx=0.0, pp=None, dist=None, dist_centre=(0.0, 0.0),
-                       aspect=1.0, retaped_at=None, ripple_mm=0.0):
+                       aspect=1.0, retaped_at=None, ripple_mm=0.0, print_mm=(0.0, 0.0)):
     """A zoom sweep's detections and its truth (see the module docstring); ``pp(u)`` (steps, 2)
     px replaces the principal-point path, ``u = log(fx / fx_0)``, and ``dist(u)`` (5,) the
     distortion, centred ``dist_centre`` px from the principal point (OpenCV's model about a
@@ -47,7 +47,9 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
     that index on see a board of another wave (re-taped between two capture sessions); the
     returned wave is then the pair. ``ripple_mm`` adds, on every session's board, ripples of
     3-6 cycles across it (three plane waves of random direction and phase, together of that
-    RMS): a shape no low-degree surface follows."""
+    RMS): a shape no low-degree surface follows. ``print_mm`` (a, b) moves every board's points
+    in its plane as an inexact print does: x by ``a x y`` (a trapezoid) and y by ``b x^2`` (a
+    bow), ``x, y`` normalised to [-1, 1] over the board."""
     target = parse_pattern(pattern)
     X0 = target.object_points.astype(float)
     centre = X0.mean(axis=0)
@@ -67,11 +69,14 @@ def sweep_observations(rng, steps=7, views=10, noise=0.02, wave_mm=0.3,
         ripple = sum(np.sin(np.pi * c * (np.cos(a) * xn + np.sin(a) * yn) + p)
                      for a, c, p in zip(angle, cycles, shift, strict=True))
         wave = wave + ripple_mm * ripple / np.sqrt(np.mean(ripple**2))
-    X = X0.copy()
+    X0_print = X0.copy()
+    X0_print[:, 0] += print_mm[0] * xn * yn
+    X0_print[:, 1] += print_mm[1] * xn**2
+    X = X0_print.copy()
     X[:, 2] += wave
     if retaped_at is not None:
         wave = (wave, draw_wave())
-        X_after = X0.copy()
+        X_after = X0_print.copy()
         X_after[:, 2] += wave[1]
     fx = np.geomspace(*fx_range, steps)
     u = np.log(fx / fx[0])
@@ -795,3 +800,41 @@ def test_a_solve_that_stops_short_says_why_and_is_not_converged(rng, monkeypatch
     assert not zw.converged and zw.stop_reason == limit
     assert all(not r.info["converged"] and r.info["stop_reason"] == limit
                for r in zw.results.values())
+
+
+def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
+    # a print that is a trapezoid and a bow of a few tenths of a mm (drawn, kept from the
+    # fit): the print's in-plane modes find it, and the principal point stays within its
+    # sigmas; taking the print to be exact moves the narrow steps' principal point by many
+    # of theirs (on a real PTZ sweep by 130-190 px, docs/real-camera.md)
+    rng = np.random.default_rng(71)
+    trapezoid = rng.uniform(0.3, 0.6) * rng.choice([-1.0, 1.0])
+    bow = rng.uniform(-0.3, 0.3)
+    obs, truth, _ = sweep_observations(rng, steps=5, views=10, fx_range=(2300.0, 6000.0),
+                                       print_mm=(trapezoid, bow))
+    found = calibrate_zoom_wide(obs)
+    exact = calibrate_zoom_wide(obs, print_shape=False)
+    assert found.print_test.kept and exact.print_test is None
+    # the xy mode of x is the trapezoid itself (P1(x) P1(y)); x^2 = (2 P2(x) + 1) / 3, its
+    # constant a shift (a pose)
+    assert found.print_modes.shape == (2, found.board_modes.size)
+    got = found.print_modes[:, [1, 2]]
+    sd = found.print_modes_sd[:, [1, 2]]
+    assert abs(got[0, 0] - trapezoid) < 4 * sd[0, 0], (got, sd, trapezoid)
+    assert abs(got[1, 1] - 2 * bow / 3) < 4 * sd[1, 1], (got, sd, bow)
+    z = {label: [(getattr(zw.results[n], q) - t[q]) / zw.results[n].sd[q]
+                 for n, t in truth.items() for q in ("fx", "cx", "cy")]
+         for label, zw in (("found", found), ("exact", exact))}
+    rms = np.sqrt(np.mean(np.square(z["found"])))
+    assert max(np.abs(z["found"])) < 4 and 0.4 < rms < 1.6, z["found"]
+    assert max(np.abs(z["exact"])) > 6, z["exact"]
+
+
+def test_an_exact_print_is_found_exact(sweep):
+    # the shared sweep's board is printed exactly: the print's modes do not pass their test
+    # (chi-square of 24 at p = 0.001: 51.2) and are left out, so the narrow steps keep the
+    # sigmas of an exact print (the bounds of test_zoom_wide_recovers_every_step)
+    zw = sweep[3]
+    test = zw.print_test
+    assert test is not None and not test.kept and test.wald < test.threshold, test
+    assert test.dof == 2 * zw.board_modes.size and zw.print_modes is None

@@ -265,7 +265,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
                      report_distance: float | None = None, pp_model: str = "angle2",
-                     residual_budget: bool = False, board_shape: str = "points",
+                     residual_budget: bool = False, board_shape: str = "print",
                      fixed: tuple[str, ...] = ()) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
@@ -312,10 +312,11 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         Also the residual budget of every usable step and capture session
         (:mod:`zoomcalib.calibrate.budget`; ``run.budget``, ``run.budget_sessions`` and
         ``calibration.json``'s ``meta.residual_budget``).
-    board_shape : {'points', 'modes'}
-        The zoom-wide adjustment's board: height modes to degree 4 per capture session and a
-        height for every point (``points``), or the modes alone (``modes``;
-        ``board_points`` of :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
+    board_shape : {'print', 'points', 'modes'}
+        The zoom-wide adjustment's board: height modes to degree 4 per capture session, a
+        height for every point and the print's in-plane modes (``print``); without the
+        print's (``points``); or the height modes alone (``modes``; ``board_points`` and
+        ``print_shape`` of :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
     fixed : tuple of str
         Intrinsics the per-step OpenCV fits and the zoom-wide adjustment hold (keys of
         :data:`~zoomcalib.calibrate.opencv_backend.FIXABLE`: the principal point at the image
@@ -327,6 +328,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     CalibrateRun
     """
     target: Target = parse_pattern(pattern)
+    from .zoomwide import board_options
+
+    board_options(board_shape)  # an unknown board model is refused before any detection
     out = Path(out)
     steps = zoom_steps(folder)
     run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fixed=tuple(fixed),
@@ -374,12 +378,12 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if zoom_wide and len(run.observations) >= 2:
         _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
                                              extras_of.items()}, pp_model, sessions, workers,
-                   board_shape == "points")
+                   board_shape)
     _drop_uncalibrated(run)
     run.table_backend = _table_backends(run, log)
     if cross_validate and run.results:
         run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
-                                               workers, board_shape == "points")
+                                               workers, board_shape)
     set_step_flags(run)
     run.status = _step_statuses(run)
     _log_unusable(run, log)
@@ -513,6 +517,12 @@ def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dic
                              "board_modes_sd_mm": zw.board_modes_sd.tolist(),
                              "board_point_heights_mm": (None if zw.board_heights is None
                                                         else zw.board_heights.tolist()),
+                             "print_modes_mm": (None if zw.print_modes is None
+                                                else zw.print_modes.tolist()),
+                             "print_modes_sd_mm": (None if zw.print_modes_sd is None
+                                                   else zw.print_modes_sd.tolist()),
+                             "print_test": (None if zw.print_test is None
+                                            else zw.print_test.to_dict()),
                              "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
                              "skipped": zw.skipped,
                              "distortion_choice": {k: v.to_dict()
@@ -725,11 +735,11 @@ def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2",
                sessions: dict[str, str] | None = None, workers: int = 1,
-               board_points: bool = True) -> None:
+               board_shape: str = "print") -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
-    from .zoomwide import calibrate_zoom_wide
+    from .zoomwide import board_options, calibrate_zoom_wide
 
     obs = dict(run.observations)
     if len(target.discs):  # dot centres: corrected with each step's own calibration first
@@ -738,8 +748,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
                if run.results.get(s) else o for s, o in obs.items()}
     try:
         zw = calibrate_zoom_wide(obs, chains=directions, pp_model=pp_model, sessions=sessions,
-                                 workers=workers, board_points=board_points, fixed=run.fixed,
-                                 model=model)
+                                 workers=workers, fixed=run.fixed, model=model,
+                                 **board_options(board_shape))
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error) as exc:
         msg = " ".join(str(exc).split())
         run.failures.append(f"zoom-wide adjustment failed: {msg}")
@@ -768,21 +778,22 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
 
 def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2",
                     sessions: dict[str, str] | None = None, workers: int = 1,
-                    board_points: bool = True):
+                    board_shape: str = "print"):
     """Two-halves check with the backend (and mode) of the zoom table (zoom-wide: with the
     board sessions of the full set)."""
     from .checks import cross_validate
 
     backend = next(iter(run.table_backend.values()))
     if backend == "zoom-wide":
-        from .zoomwide import calibrate_zoom_wide
+        from .zoomwide import board_options, calibrate_zoom_wide
 
         return cross_validate(run.observations,
                               lambda o: calibrate_zoom_wide(o, pp_model=pp_model,
                                                             sessions=sessions,
                                                             fixed=run.fixed, model=model,
                                                             workers=workers,
-                                                            board_points=board_points).results,
+                                                            **board_options(board_shape)
+                                                            ).results,
                               backend)
 
     def per_step(obs: dict[str, Observations]) -> dict[str, CalibrationResult]:

@@ -39,6 +39,22 @@ not enter the intrinsics' covariance (a point's height is fitted from dozens of 
 low-degree shape that trades with the focal length and the distortion is in the modes, which
 do). On the real sweep they bring the residual from 0.8-1.1 px to 0.27-0.39 px at 2x-8x.
 
+A printed pattern is not exact in its plane either: a printer's feed makes a trapezoid or a
+bow of a few tenths of a millimetre across a large sheet. With ``print_shape`` (the default)
+the board's points also move in its plane by the same modes,
+
+.. math:: (X_j, Y_j) \mathrel{+}= \sum_m (b^x_m, b^y_m)\, \phi_m(x_j, y_j),
+
+with one set of amplitudes ``b`` for every session (the print does not change when it is
+re-taped) and the modes' prior. Degree 0 and 1 are left out: a shift and a rotation are a
+pose, a scale is the board's size, and a shear or a stretch would trade with the aspect ratio.
+The modes' amplitudes are in the global block, so what they trade with the principal point
+enters its covariance. That costs the narrow steps' principal point a factor of 2-4 in sigma
+where the print is exact, so they are kept only where a solve without the smoothness prior
+finds them beyond their noise (:class:`PrintTest`: a Wald test at p = 0.001). Where a print
+is not exact, leaving its shape out moves the narrow steps' principal point by many of its
+sigmas (``tests/test_zoomwide.py``; on a real PTZ sweep, docs/real-camera.md).
+
 The smoothness prior ties each parameter ``q`` of ``cx, cy, k1, k2, p1, p2, k3`` across zoom:
 with ``u_s = log fx_s`` (from the per-step start) and the steps sorted by ``u``, the second
 divided differences
@@ -120,6 +136,7 @@ in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -546,7 +563,8 @@ class _ZoomProblem:
                  tau: dict[str, float],
                  board_prior_mm: float, order: dict[str, int] | None = None,
                  forms: dict[str, _Form] | None = None, shared_aspect: bool = False,
-                 session: np.ndarray | None = None, aspect_held: bool = False):
+                 session: np.ndarray | None = None, aspect_held: bool = False,
+                 print_shape: bool = False):
         self.steps, self.board, self.phi = steps, board, modes_basis
         # each step's board session: its own height amplitudes (``n_basis`` per session)
         self.session = (np.zeros(len(steps), int) if session is None
@@ -558,7 +576,9 @@ class _ZoomProblem:
         self.cam_col[free] = np.arange(int(free.sum()))
         self.n_cam = int(free.sum())
         self.n_basis = modes_basis.shape[1]
-        self.n_modes = self.n_basis * (int(self.session.max()) + 1)
+        # the print's in-plane modes (x, then y; shared by every session) follow the heights'
+        self.n_print = 2 * self.n_basis if print_shape else 0
+        self.n_modes = self.n_basis * (int(self.session.max()) + 1) + self.n_print
         self.shared_aspect = shared_aspect
         aspect_free = shared_aspect and not aspect_held
         self.aspect_col = self.n_cam + self.n_modes if aspect_free else -1
@@ -593,13 +613,19 @@ class _ZoomProblem:
 
     def points(self, state: _State, s: int = 0) -> np.ndarray:
         """The board's 3-D points (n, 3) seen by step ``s`` in ``state``: the height modes of
-        the step's session and, if any, its point heights."""
+        the step's session and, if any, its point heights; the print's in-plane modes."""
         first = self.n_basis * int(self.session[s])
         X = self.board.copy()
         X[:, 2] += self.phi @ state.modes[first:first + self.n_basis]
+        if self.n_print:
+            X[:, :2] += self.phi @ self.print_modes(state.modes).T
         if state.heights is not None:
             X[:, 2] += state.heights[self.session[s]]
         return X
+
+    def print_modes(self, modes: np.ndarray) -> np.ndarray:
+        """(2, n_basis) the in-plane amplitudes of the print, mm, in ``modes`` (x, then y)."""
+        return modes[len(modes) - self.n_print:].reshape(2, self.n_basis)
 
     def evaluate(self, state: _State, jacobian: bool = True):
         """Weighted residuals (model minus observed, over sigma) and, optionally, the Jacobian."""
@@ -631,7 +657,7 @@ class _ZoomProblem:
                       state: _State) -> tuple[np.ndarray, np.ndarray]:
         """Step ``s``'s unweighted derivatives by the global unknowns it touches, (n, 2, k),
         and their columns (k,): its free intrinsics, the shared aspect ratio, its session's
-        board modes."""
+        board modes and the print's in-plane modes."""
         sel = step.inlier
         free = np.flatnonzero(self.free[s])
         if self.shared_aspect:  # fy = aspect fx: fx moves fy too; the aspect column
@@ -643,8 +669,12 @@ class _ZoomProblem:
             cols.append(np.array([self.aspect_col]))
         if self.n_basis:
             first = self.n_cam + self.n_basis * int(self.session[s])
-            blocks.append(Jx[:, :, 2:3] * self.phi[step.point[sel]][:, None, :])
+            phi = self.phi[step.point[sel]][:, None, :]
+            blocks.append(Jx[:, :, 2:3] * phi)
             cols.append(first + np.arange(self.n_basis))
+            if self.n_print:
+                blocks += [Jx[:, :, 0:1] * phi, Jx[:, :, 1:2] * phi]
+                cols.append(self.n_cam + self.n_modes - self.n_print + np.arange(self.n_print))
         return np.concatenate(blocks, axis=2), np.concatenate(cols)
 
     def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals, state: _State):
@@ -839,6 +869,50 @@ def _predicted_decrease(blocks: _NormalBlocks, delta: np.ndarray | None) -> floa
 # the adjustment
 
 
+@dataclass(frozen=True)
+class PrintTest:
+    """Whether the print's in-plane modes pay: the Wald statistic ``b^T C_b^-1 b`` of their
+    amplitudes ``b`` in the solve without the smoothness prior (``C_b`` their posterior
+    covariance), against the chi-square quantile of ``dof`` at :data:`PRINT_TEST_P`. Kept
+    when it exceeds it; otherwise the print is taken to be exact (a free print costs the narrow
+    steps' principal point a factor of 2-4 in sigma where there is nothing to find)."""
+
+    wald: float
+    dof: int
+    threshold: float
+    kept: bool
+    #: largest amplitude, mm, and its sigma
+    largest_mm: float
+    largest_sd_mm: float
+
+    def to_dict(self) -> dict:
+        return {"wald": self.wald, "dof": self.dof, "threshold": self.threshold,
+                "kept": self.kept, "largest_mm": self.largest_mm,
+                "largest_sd_mm": self.largest_sd_mm}
+
+
+#: Level of the test that keeps the print's in-plane modes (:class:`PrintTest`).
+PRINT_TEST_P = 1e-3
+
+
+def _print_test(prob: _ZoomProblem, state: _State, converged: bool = True) -> PrintTest:
+    """:class:`PrintTest` of the print's modes of a solved ``prob`` (not kept, and NaN, when
+    the solve did not converge or has no covariance: the print cannot be judged)."""
+    cols = np.arange(prob.n_cam + prob.n_modes - prob.n_print, prob.n_cam + prob.n_modes)
+    b = state.modes[len(state.modes) - prob.n_print:]
+    try:
+        if not converged:
+            raise ValueError("the solve did not converge")
+        cov = _posterior_covariance(prob, state, check=False)[0][np.ix_(cols, cols)]
+        wald = float(b @ np.linalg.solve(cov, b))
+        sd = np.sqrt(np.diag(cov))
+    except (np.linalg.LinAlgError, ValueError):  # no covariance: the print cannot be judged
+        wald, sd = float("nan"), np.full(len(b), np.nan)
+    threshold = float(scipy.stats.chi2.isf(PRINT_TEST_P, len(b)))
+    i = int(np.argmax(np.abs(b)))
+    return PrintTest(wald, len(b), threshold, bool(wald > threshold), float(b[i]), float(sd[i]))
+
+
 @dataclass
 class ZoomWideResult:
     """What :func:`calibrate_zoom_wide` found.
@@ -859,6 +933,11 @@ class ZoomWideResult:
         The capture sessions, in the order of their amplitudes (``[""]``: one session).
     board_heights : (sessions, N) ndarray or None
         With ``board_points``: each session's point heights beyond the modes, mm.
+    print_modes, print_modes_sd : (2, M) ndarray or None
+        Where the print's shape was kept (:class:`PrintTest`): its in-plane amplitudes (x,
+        then y, each in the order of :func:`board_height_modes`), mm, and their sigmas.
+    print_test : PrintTest or None
+        With ``print_shape``: whether the print's modes were kept.
     u : dict of str to float
         Per step, the abscissa of the smoothness prior, ``log fx`` of the step's start.
     tau : dict of str to float
@@ -910,6 +989,9 @@ class ZoomWideResult:
     aspect_sd: float = float("nan")
     board_sessions: list[str] = field(default_factory=lambda: [""])
     board_heights: np.ndarray | None = None
+    print_modes: np.ndarray | None = None
+    print_modes_sd: np.ndarray | None = None
+    print_test: PrintTest | None = None
     u: dict[str, float] = field(default_factory=dict)
     unsmoothed: dict[str, dict] = field(default_factory=dict)
 
@@ -1221,7 +1303,8 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
-                        board_points: bool = True, max_rounds: int = 4,
+                        board_points: bool = True, print_shape: bool = True,
+                        max_rounds: int = 4,
                         chains: Mapping[str, str] | None = None, pp_model: str = "angle2",
                         prior_strength: Mapping[str, float] | None = None,
                         decentring: bool = True, shared_aspect: bool = True,
@@ -1249,6 +1332,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     board_points : bool
         Fit, besides the modes, a height for every board point and session (the ripples of a
         paper board that no low-degree surface follows; :func:`_update_heights`).
+    print_shape : bool
+        Fit the printed pattern's in-plane shape: the modes' low-degree displacement in the
+        board's plane, one for every session (a print does not change when re-taped; module
+        docstring). False: the pattern is taken to be printed exactly.
     max_rounds : int
         Rounds of noise re-estimation and outlier rejection.
     chains : mapping of step name to str, optional
@@ -1327,7 +1414,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     labels = [str((sessions or {}).get(n, "")) for n in names]
     session_names = list(dict.fromkeys(labels))
     session = np.array([session_names.index(lab) for lab in labels])
-    state.modes = np.zeros(phi.shape[1] * len(session_names))
+    state.modes = np.zeros(phi.shape[1] * (len(session_names) + 2 * print_shape))
     if board_points:
         state.heights = np.zeros((len(session_names), len(board)))
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
@@ -1336,8 +1423,20 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
         return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
-                            order, forms, shared_aspect, session, aspect_held)
+                            order, forms, shared_aspect, session, aspect_held,
+                            keep_print)
 
+    keep_print = bool(print_shape and phi.shape[1])
+
+    print_test = None
+    if keep_print:  # does the print's shape pay? (PrintTest; a solve of its own, on copies)
+        kept_steps = steps
+        steps = copy.deepcopy(steps)
+        first = _solve_with_noise(problem(free), copy.deepcopy(state), free, 1)[0]
+        print_test = _print_test(problem(free), first.state, first.converged)
+        keep_print, steps = print_test.kept, kept_steps
+        if not keep_print:
+            state.modes = state.modes[:phi.shape[1] * len(session_names)]
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
         problem, state, free, max_rounds, observations, bool(select and phi.shape[1]), init,
@@ -1362,6 +1461,12 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
                      inflation)
     result.skipped, result.tau_source = skipped, tau_source
     result.board_sessions = session_names
+    result.print_test = print_test
+    if prob.n_print:
+        result.print_modes = prob.print_modes(result.board_modes)
+        result.print_modes_sd = prob.print_modes(result.board_modes_sd)
+        result.board_modes = result.board_modes[:-prob.n_print]
+        result.board_modes_sd = result.board_modes_sd[:-prob.n_print]
     result.board_heights = None if solve.state.heights is None else solve.state.heights.copy()
     result.u = {n: float(v) for n, v in zip(names, u, strict=True)}
     scaled = _with_scatter(result, names, *unsmoothed)
@@ -1871,3 +1976,16 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
                              float(np.sqrt(e2[step.inlier].mean())), per_view,
                              state.rvecs[v0:v1].copy(), state.tvecs[v0:v1].copy(), rejected,
                              X.copy(), None, info)
+
+
+#: The zoom-wide adjustment's board models, richest first (``board_shape`` of the calibrate job).
+BOARD_SHAPES = ("print", "points", "modes")
+
+
+def board_options(board_shape: str) -> dict[str, bool]:
+    """The :func:`calibrate_zoom_wide` options of a board model named in :data:`BOARD_SHAPES`:
+    ``print`` the height modes, a height for every point and the print's in-plane modes;
+    ``points`` without the print's; ``modes`` the height modes alone."""
+    if board_shape not in BOARD_SHAPES:
+        raise ValueError(f"board shape {board_shape!r}: expected one of {', '.join(BOARD_SHAPES)}")
+    return {"board_points": board_shape != "modes", "print_shape": board_shape == "print"}
