@@ -59,3 +59,19 @@ def test_interrupted_and_rerun_equals_one_run(tmp_path):
     assert sorted(once) == sorted(twice)
     for name in once:
         assert once[name] == twice[name], name
+
+
+def test_detections_linked_from_another_run_are_reused(tmp_path):
+    # a user links the detections folder of an earlier run into a new output folder: the
+    # run reuses them and lists them in the manifest where they are used
+    images = _zoom_set(tmp_path / "set")
+    calibrate_folder(images, SPEC, tmp_path / "first", ("opencv",), log=lambda m: None,
+                     zoom_wide=False, report=False)
+    (tmp_path / "second").mkdir()
+    (tmp_path / "second" / "detections").symlink_to(tmp_path / "first" / "detections")
+    log: list[str] = []
+    calibrate_folder(images, SPEC, tmp_path / "second", ("opencv",), log=log.append,
+                     zoom_wide=False, report=False)
+    assert any("reused the cached detections" in m for m in log)
+    listed = json.loads((tmp_path / "second" / "manifest.json").read_text())["files"]
+    assert any(f.startswith("detections/") for f in listed), listed

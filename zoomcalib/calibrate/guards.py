@@ -321,7 +321,10 @@ def write_manifest(out: Path, files: Iterable[Path], inputs: Mapping, call: Mapp
     """Write ``OUT/manifest.json``: ``{"format": "zoomcalib-calibrate-manifest", "version": 1,
     "command": sys.argv, "call": call, "zoomcalib": version, "inputs": inputs, "files": [...]}``
     with ``files`` relative to ``out`` (POSIX separators), sorted; the manifest is not in it."""
-    rel = sorted({Path(f).resolve().relative_to(out.resolve()).as_posix() for f in files}
+    # absolute, symbolic links kept: a detections folder linked from another run is listed
+    # where it is used
+    root = Path(os.path.abspath(out))
+    rel = sorted({Path(os.path.abspath(f)).relative_to(root).as_posix() for f in files}
                  - {MANIFEST})
     doc = {"format": "zoomcalib-calibrate-manifest", "version": 1, "command": list(sys.argv),
            "call": dict(call), "zoomcalib": __version__, "inputs": dict(inputs), "files": rel}
