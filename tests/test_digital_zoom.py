@@ -211,10 +211,11 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     dropped = first | {"z1.50": Observations(widest.object_points, [(ids[1:], uv[1:]), *rest],
                                              widest.image_size)}
     # the deletion problem as it was met, with a fy per step and the board of smooth modes
-    # alone (the point heights, fitted between the solves, change the solution's rounding);
-    # the default's shared aspect ratio on the same halves is checked at the end
-    a, a_dropped, b = (calibrate_zoom_wide(h, shared_aspect=False,
-                                           board_points=False).results["z1.77"]
+    # alone (no print shape; the point heights, fitted between the solves, change the
+    # solution's rounding); the default's shared aspect ratio on the same halves is checked
+    # at the end
+    a, a_dropped, b = (calibrate_zoom_wide(h, shared_aspect=False, board_points=False,
+                                           print_shape=False).results["z1.77"]
                        for h in (first, dropped, {s: h[1] for s, h in halves.items()}))
     factor, factor_dropped = (r.info["view_scatter"]["factor"] for r in (a, a_dropped))
     test, test_dropped = (r.info["view_scatter"]["test_factor"] for r in (a, a_dropped))
@@ -238,7 +239,8 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     # leaves z1.77's rational k1..k6 ridge indefinite (smallest scaled eigenvalue -4e-7): the
     # covariance takes its ridge, says so, and the camera's sigmas stay put with or without
     # the corner
-    shared, shared_dropped = (calibrate_zoom_wide(h, board_points=False).results["z1.77"]
+    shared, shared_dropped = (calibrate_zoom_wide(h, board_points=False, print_shape=False
+                                                  ).results["z1.77"]
                               for h in (first, dropped))
     assert shared.info["covariance_ridge"] > 0
     for q in ("fx", "fy", "cx", "cy"):
