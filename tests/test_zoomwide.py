@@ -812,8 +812,8 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
     bow = rng.uniform(-0.3, 0.3)
     obs, truth, _ = sweep_observations(rng, steps=5, views=10, fx_range=(2300.0, 6000.0),
                                        print_mm=(trapezoid, bow))
-    found = calibrate_zoom_wide(obs)
-    exact = calibrate_zoom_wide(obs, print_shape=False)
+    found = calibrate_zoom_wide(obs, print_shape=True)
+    exact = calibrate_zoom_wide(obs)
     assert found.print_test.kept and exact.print_test is None
     # the xy mode of x is the trapezoid itself (P1(x) P1(y)); x^2 = (2 P2(x) + 1) / 3, its
     # constant a shift (a pose)
@@ -832,9 +832,13 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
 
 def test_an_exact_print_is_found_exact(sweep):
     # the shared sweep's board is printed exactly: the print's modes do not pass their test
-    # (chi-square of 24 at p = 0.001: 51.2) and are left out, so the narrow steps keep the
-    # sigmas of an exact print (the bounds of test_zoom_wide_recovers_every_step)
-    zw = sweep[3]
+    # (chi-square of 24 at p = 0.001: 51.2) and are left out: the adjustment is then the one
+    # without them, the same to the last digit
+    obs, _, _, points = sweep
+    zw = calibrate_zoom_wide(obs, print_shape=True)
     test = zw.print_test
     assert test is not None and not test.kept and test.wald < test.threshold, test
     assert test.dof == 2 * zw.board_modes.size and zw.print_modes is None
+    assert points.print_test is None
+    for name, r in points.results.items():
+        assert zw.results[name].cx == r.cx and zw.results[name].sd == r.sd, name

@@ -40,8 +40,8 @@ low-degree shape that trades with the focal length and the distortion is in the 
 do). On the real sweep they bring the residual from 0.8-1.1 px to 0.27-0.39 px at 2x-8x.
 
 A printed pattern is not exact in its plane either: a printer's feed makes a trapezoid or a
-bow of a few tenths of a millimetre across a large sheet. With ``print_shape`` (the default)
-the board's points also move in its plane by the same modes,
+bow of a few tenths of a millimetre across a large sheet. With ``print_shape`` the board's
+points also move in its plane by the same modes,
 
 .. math:: (X_j, Y_j) \mathrel{+}= \sum_m (b^x_m, b^y_m)\, \phi_m(x_j, y_j),
 
@@ -1303,7 +1303,7 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
 
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
-                        board_points: bool = True, print_shape: bool = True,
+                        board_points: bool = True, print_shape: bool = False,
                         max_rounds: int = 4,
                         chains: Mapping[str, str] | None = None, pp_model: str = "angle2",
                         prior_strength: Mapping[str, float] | None = None,
@@ -1978,7 +1978,8 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
                              X.copy(), None, info)
 
 
-#: The zoom-wide adjustment's board models, richest first (``board_shape`` of the calibrate job).
+#: The zoom-wide adjustment's board models, richest first (``board_shape`` of the calibrate
+#: job; ``points`` is its default, docs/calibration.md says why ``print`` is not).
 BOARD_SHAPES = ("print", "points", "modes")
 
 
