@@ -796,10 +796,15 @@ def test_a_solve_that_stops_short_says_why_and_is_not_converged(rng, monkeypatch
             return out if jacobian else np.full_like(out, np.inf)
 
         monkeypatch.setattr(zoomwide._ZoomProblem, "evaluate", no_trial_is_better)
-    zw = calibrate_zoom_wide(obs, select=False)
+    zw = calibrate_zoom_wide(obs, select=False, print_shape=True)
     assert not zw.converged and zw.stop_reason == limit
     assert all(not r.info["converged"] and r.info["stop_reason"] == limit
                for r in zw.results.values())
+    # the print's test cannot judge a solve that stopped short: it says so, and the print is
+    # taken to be exact
+    test = zw.print_test
+    assert not test.kept and np.isnan(test.wald) and limit in test.why, test
+    assert "could not be judged" in test.summary() and zw.print_modes is None
 
 
 def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():

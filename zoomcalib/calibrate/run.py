@@ -759,6 +759,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         return
     if not zw.converged:
         log(f"zoom-wide adjustment did not converge ({zw.stop_reason}); its rows are marked")
+    if zw.print_test is not None:
+        log(f"zoom-wide: {zw.print_test.summary()}")
     for step, why in zw.skipped.items():
         run.failures.append(f"step {step}: left out of the zoom-wide adjustment: {why}")
         log(run.failures[-1])

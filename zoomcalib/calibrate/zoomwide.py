@@ -884,33 +884,49 @@ class PrintTest:
     #: largest amplitude, mm, and its sigma
     largest_mm: float
     largest_sd_mm: float
+    #: why the print could not be judged (its solve did not converge, or has no covariance);
+    #: None when it was
+    why: str | None = None
 
     def to_dict(self) -> dict:
         return {"wald": self.wald, "dof": self.dof, "threshold": self.threshold,
                 "kept": self.kept, "largest_mm": self.largest_mm,
-                "largest_sd_mm": self.largest_sd_mm}
+                "largest_sd_mm": self.largest_sd_mm, "why": self.why}
+
+    def summary(self) -> str:
+        """One line for a run's log."""
+        if self.why is not None:
+            return (f"the print's shape could not be judged ({self.why}): the print is taken "
+                    "to be exact")
+        return (f"the print's shape: Wald {self.wald:.0f} on {self.dof} (threshold "
+                f"{self.threshold:.1f}): {'kept' if self.kept else 'exact'}; largest mode "
+                f"{self.largest_mm:+.3f} +- {self.largest_sd_mm:.3f} mm")
 
 
 #: Level of the test that keeps the print's in-plane modes (:class:`PrintTest`).
 PRINT_TEST_P = 1e-3
 
 
-def _print_test(prob: _ZoomProblem, state: _State, converged: bool = True) -> PrintTest:
-    """:class:`PrintTest` of the print's modes of a solved ``prob`` (not kept, and NaN, when
-    the solve did not converge or has no covariance: the print cannot be judged)."""
+def _print_test(prob: _ZoomProblem, solve: _Solve) -> PrintTest:
+    """:class:`PrintTest` of the print's modes of ``prob`` solved by ``solve`` (not kept, NaN
+    and ``why`` said, when the solve did not converge or has no covariance: the print cannot
+    be judged)."""
     cols = np.arange(prob.n_cam + prob.n_modes - prob.n_print, prob.n_cam + prob.n_modes)
-    b = state.modes[len(state.modes) - prob.n_print:]
-    try:
-        if not converged:
-            raise ValueError("the solve did not converge")
-        cov = _posterior_covariance(prob, state, check=False)[0][np.ix_(cols, cols)]
-        wald = float(b @ np.linalg.solve(cov, b))
-        sd = np.sqrt(np.diag(cov))
-    except (np.linalg.LinAlgError, ValueError):  # no covariance: the print cannot be judged
-        wald, sd = float("nan"), np.full(len(b), np.nan)
+    b = solve.state.modes[len(solve.state.modes) - prob.n_print:]
+    wald, sd, why = float("nan"), np.full(len(b), np.nan), None
+    if not solve.converged:
+        why = f"its solve without the smoothness prior stopped at the {solve.stop_reason}"
+    else:
+        try:
+            cov = _posterior_covariance(prob, solve.state, check=False)[0][np.ix_(cols, cols)]
+            wald = float(b @ np.linalg.solve(cov, b))
+            sd = np.sqrt(np.diag(cov))
+        except np.linalg.LinAlgError:
+            why = "its solve without the smoothness prior has no covariance"
     threshold = float(scipy.stats.chi2.isf(PRINT_TEST_P, len(b)))
     i = int(np.argmax(np.abs(b)))
-    return PrintTest(wald, len(b), threshold, bool(wald > threshold), float(b[i]), float(sd[i]))
+    return PrintTest(wald, len(b), threshold, bool(wald > threshold), float(b[i]), float(sd[i]),
+                     why)
 
 
 @dataclass
@@ -1432,8 +1448,10 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     if keep_print:  # does the print's shape pay? (PrintTest; a solve of its own, on copies)
         kept_steps = steps
         steps = copy.deepcopy(steps)
-        first = _solve_with_noise(problem(free), copy.deepcopy(state), free, 1)[0]
-        print_test = _print_test(problem(free), first.state, first.converged)
+        # as the solve below: rounds of noise re-estimation (a first round at the steps' own
+        # noise can stop at the iteration cap where the next converges in a few iterations)
+        first = _solve_with_noise(problem(free), copy.deepcopy(state), free, max_rounds)[0]
+        print_test = _print_test(problem(free), first)
         keep_print, steps = print_test.kept, kept_steps
         if not keep_print:
             state.modes = state.modes[:phi.shape[1] * len(session_names)]
