@@ -1446,14 +1446,17 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
 
     print_test = None
     if keep_print:  # does the print's shape pay? (PrintTest; a solve of its own, on copies)
-        kept_steps = steps
+        given_steps = steps
         steps = copy.deepcopy(steps)
         # as the solve below: rounds of noise re-estimation (a first round at the steps' own
         # noise can stop at the iteration cap where the next converges in a few iterations)
         first = _solve_with_noise(problem(free), copy.deepcopy(state), free, max_rounds)[0]
         print_test = _print_test(problem(free), first)
-        keep_print, steps = print_test.kept, kept_steps
-        if not keep_print:
+        keep_print = print_test.kept
+        if keep_print:  # the solve below goes on from this one (its noise and inliers)
+            state = first.state
+        else:  # as if the print had not been asked for
+            steps = given_steps
             state.modes = state.modes[:phi.shape[1] * len(session_names)]
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
