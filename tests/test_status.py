@@ -107,6 +107,32 @@ def test_a_step_moved_by_the_joint_adjustment_beyond_its_own_sigmas_is_flagged()
     assert not any("moved" in r for r in step_status(joint, SIZE, None, own).reasons)
 
 
+def test_a_move_says_whether_the_board_or_the_other_steps_made_it():
+    # the step alone on the adjustment's board (the basin check's fit) lands either near the
+    # adjustment (the board's shape moved the step) or near the per-step fit (the other steps
+    # did); which one is drawn and kept here
+    rng = np.random.default_rng(11)
+    board_cases = 0
+    for _ in range(30):
+        own = _camera(rng, "none")
+        shift = rng.uniform(1.5, 3) * MOVE_LIMIT * own.sd["cy"]
+        by_board = bool(rng.random() < 0.5)
+        board_cases += by_board
+        alone_cy = own.cy + shift + (rng.uniform(-2, 2) * own.sd["cy"] if by_board
+                                     else rng.uniform(-0.5, 0.5) * own.sd["cy"] - shift)
+        joint = CalibrationResult("zoom-wide", own.K.copy(), own.dist.copy(), dict(own.sd),
+                                  0.3, own.per_view_rms_px, own.rvecs, own.tvecs,
+                                  info={"converged": True, "basin": {"alone": {
+                                      "fx": own.fx, "cx": own.cx, "cy": alone_cy}}})
+        joint.K[1, 2] += shift
+        st = step_status(joint, SIZE, None, own)
+        reason = next(r for r in st.reasons if "moved cy" in r)
+        assert ("board's estimated shape moved it" in reason) == by_board, reason
+        assert ("the other steps moved it" in reason) == (not by_board), reason
+        assert any(("session of its own" in r) == by_board for r in st.remedies)
+    assert 5 < board_cases < 25
+
+
 @pytest.mark.parametrize("k1", [-0.5, -2.0, -8.0])
 def test_the_fold_radius_is_where_the_radial_map_turns(k1):
     # r_d = r + k1 r^3 has d r_d / d r = 0 at r = 1 / sqrt(-3 k1), r_d = 2 r / 3 there

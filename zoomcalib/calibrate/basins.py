@@ -128,6 +128,8 @@ class BasinCheck:
                "other_cost_px2": number(self.other_cost_px2), "why": self.why,
                "view_t": number(self.view_t), "view_t_needed": number(self.view_t_needed),
                "views_disagree": self.views_disagree}
+        if self.fit is not None:  # the step alone on the adjustment's board
+            out["alone"] = {"fx": self.fit.fx, "cx": self.fit.cx, "cy": self.fit.cy}
         if self.moved and self.fit is not None:
             out |= {"cx": self.fit.cx, "cy": self.fit.cy, "summary": self.summary()}
         if self.second is not None:

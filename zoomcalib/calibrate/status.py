@@ -30,7 +30,10 @@ for the zoom-wide adjustment, the step's own per-step calibration):
     - the zoom-wide adjustment moved ``fx``, ``cx`` or ``cy`` by more than :data:`MOVE_LIMIT`
       of the step's own per-step sigmas where that per-step result is itself well determined:
       the step's views and the rest of the zoom range (one board, the smoothness prior)
-      disagree, so one of them is wrong for this step.
+      disagree, so one of them is wrong for this step. The reason says which: where the step
+      alone, fitted on the adjustment's estimated board (the basin check's fit), lands within
+      :data:`MOVE_LIMIT` of those sigmas of the adjustment, the board's shape moved it (the
+      per-step fit takes the board printed exactly and flat), else the other steps did.
 
 ``ok``
     None of the above. The step's other flags
@@ -78,6 +81,9 @@ _REMEDY = {
     "halves": "add views; keep the board rigid and the zoom fixed while capturing the step",
     "moved": "compare with the step's per-step result in calibration.json; a board re-taped "
              "or a zoom changed between this step and the others is the usual cause",
+    "moved_board": "if the board was re-taped or bent between this step's frames and those of "
+                   "the other steps of its session, give the step a session of its own (the "
+                   "session column of steps.csv)",
 }
 
 
@@ -297,6 +303,27 @@ def _moved(status: StepStatus, res: CalibrationResult, own: CalibrationResult,
         z = (getattr(res, q) - getattr(own, q)) / sd if sd > 0 else np.nan
         if abs(z) > MOVE_LIMIT:
             shifts.append(f"{q} {getattr(res, q) - getattr(own, q):+.1f} px ({z:+.1f} sd)")
-    if shifts:
-        status.add("imprecise", "the zoom-wide adjustment moved " + ", ".join(shifts)
-                   + " from the step alone", "moved")
+    if not shifts:
+        return
+    why, key = _why_moved(res, own, [s.split()[0] for s in shifts])
+    status.add("imprecise", "the zoom-wide adjustment moved " + ", ".join(shifts)
+               + " from the step alone" + why, key)
+
+
+def _why_moved(res: CalibrationResult, own: CalibrationResult, moved: list[str]
+               ) -> tuple[str, str]:
+    """What moved a step (:func:`_moved`): where the zoom-wide basin check fitted the step alone
+    on the adjustment's board (``info["basin"]["alone"]``), the board's estimated shape when
+    that fit lies within :data:`MOVE_LIMIT` of the step's own sigmas of the adjustment for
+    every moved parameter, else the other steps (the shared aspect ratio, the smoothness
+    prior). Returns the words to add to the reason and the remedy's key."""
+    alone = (res.info.get("basin") or {}).get("alone")
+    if not alone:
+        return "", "moved"
+    far = [f"{q} {getattr(res, q) - alone[q]:+.1f} px" for q in moved
+           if abs(getattr(res, q) - alone[q]) > MOVE_LIMIT * own.sd[q]]
+    if not far:
+        return ("; the step alone on the adjustment's board is within 3 sd of it: the board's "
+                "estimated shape moved it", "moved_board")
+    return (f"; from the step alone on the adjustment's board too ({', '.join(far)}): the "
+            "other steps moved it", "moved")
