@@ -85,6 +85,9 @@ def test_the_other_basin_is_found_from_either_side(seed):
         assert np.sign(check.second.dist[2]) != np.sign(truth["p1"])
         assert check.second_excess > 100
         assert check.to_dict()["second"]["cy"] == pytest.approx(check.second.cy)
+        # white noise: every view prefers the chosen basin; no mixture of the two
+        assert check.second_view_t > check.second_view_t_needed
+        assert not check.ambiguous and check.half_gap() == {}
     # both sides end at the same camera
     assert from_right.fit.cy == pytest.approx(from_wrong.fit.cy, abs=0.1 * right.sd["cy"])
 
@@ -112,6 +115,14 @@ def test_a_move_that_two_views_alone_make_is_flagged(seed):
     assert check.view_t < check.view_t_needed and check.views_disagree
     assert check.to_dict()["views_disagree"] is True
     assert check.to_dict()["view_t"] == pytest.approx(check.view_t)
+    # nor do they agree that the chosen basin is lower than the one left: the step is a
+    # mixture of the two, half their distance its sd's share
+    assert check.second is not None and check.ambiguous
+    gap = check.half_gap()
+    for q in ("fx", "cx", "cy"):
+        assert gap[q] == pytest.approx(0.5 * abs(getattr(check.fit, q) - getattr(check.second, q)))
+    assert gap["cy"] > 10 * check.fit.sd["cy"]
+    assert check.to_dict()["half_gap_px"] == gap
 
 
 def test_a_move_without_a_paired_test_is_not_called_disagreed():

@@ -12,6 +12,7 @@ import scipy.stats
 
 from zoomcalib.calibrate.checks import (
     Z_LIMIT,
+    _basin_flags,
     conditioning_flags,
     cross_validate,
     split_halves,
@@ -847,3 +848,40 @@ def test_an_exact_print_is_found_exact(sweep):
     assert points.print_test is None
     for name, r in points.results.items():
         assert zw.results[name].cx == r.cx and zw.results[name].sd == r.sd, name
+
+
+def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
+    # the narrowest step's basin check is made to report a second basin (80, -40 px away in
+    # cx, cy) that its views do not tell from the chosen one: the adjustment is unchanged,
+    # and that step's sigmas of cx, cy take half the distance in quadrature, no other's
+    import copy
+    import dataclasses
+
+    import zoomcalib.calibrate.zoomwide as zoomwide
+
+    obs, _, _ = sweep_observations(rng, steps=3, views=8, fx_range=(2300.0, 6000.0))
+    plain = calibrate_zoom_wide(obs, select=False)
+    real = zoomwide.best_basin
+
+    def two_basins(step_obs, K, dist, flags, noise_px):
+        check = real(step_obs, K, dist, flags, noise_px)
+        if check.fit is None or K[0, 0] < 5000.0:
+            return check
+        other = copy.copy(check.fit)
+        other.K = check.fit.K + np.array([[0.0, 0, 80], [0, 0, -40], [0, 0, 0]])
+        return dataclasses.replace(check, second=other, second_view_t=0.5,
+                                   second_view_t_needed=3.6)
+
+    monkeypatch.setattr(zoomwide, "best_basin", two_basins)
+    mixed = calibrate_zoom_wide(obs, select=False)
+    narrow = max(plain.results, key=lambda n: plain.results[n].fx)
+    for name, r in mixed.results.items():
+        before = plain.results[name]
+        assert r.cx == before.cx and r.fx == before.fx, name
+        gap = {"fx": 0.0, "cx": 40.0, "cy": 20.0} if name == narrow else dict.fromkeys(
+            ("fx", "cx", "cy"), 0.0)
+        for q, g in gap.items():
+            assert r.sd[q] == pytest.approx(np.hypot(before.sd[q], g), rel=1e-9), (name, q)
+        assert r.info["basin"]["ambiguous"] == (name == narrow)
+    flags = _basin_flags(mixed.results[narrow].info["basin"])
+    assert [f.severity for f in flags if "two basins" in f.text] == ["note"], flags

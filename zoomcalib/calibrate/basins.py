@@ -33,6 +33,16 @@ The basin not chosen is reported (``BasinCheck.second``) when its principal poin
 from the chosen one's (more than :data:`DISTINCT_SD` of their combined sigma apart): the best
 free fit, from the profile's starts, the mirrored one or the given camera, that lands
 elsewhere, with its cost.
+
+*Two basins the views do not tell apart.* The chosen basin is put to the same paired test
+against the second one (``second_view_t``: the views' cost drops from the second basin to the
+chosen). Where it does not pass, which basin holds the principal point rests on a few views,
+and neither basin's linearised sigma says so: the halves of a real narrow step's frames (15
+each) chose basins 120 px apart in cx, each by 140-480 noise variances, with sigmas of 10-20
+px. The step is then a mixture of the two, and each of ``fx``, ``cx``, ``cy`` takes the
+variance that an even choice between them adds, ``(Delta / 2)^2`` with ``Delta`` the
+distance between the two fits (:meth:`BasinCheck.half_gap`; the zoom-wide adjustment adds it
+to its covariance).
 """
 
 from __future__ import annotations
@@ -90,6 +100,8 @@ class BasinCheck:
     noise_px: float = float("nan")
     view_t: float = float("nan")
     view_t_needed: float = float("nan")
+    second_view_t: float = float("nan")
+    second_view_t_needed: float = float("nan")
 
     @property
     def chosen_cost_px2(self) -> float:
@@ -102,6 +114,24 @@ class BasinCheck:
         was no test: fewer than 2 views)."""
         return bool(self.moved and np.isfinite(self.view_t)
                     and self.view_t <= self.view_t_needed)
+
+    @property
+    def ambiguous(self) -> bool:
+        """There is a second basin and the views' paired test does not say the chosen one is
+        lower (``second_view_t`` at most its quantile): which basin holds the principal point
+        rests on a few views' errors (module docstring, "Two basins the views do not tell
+        apart")."""
+        return bool(self.fit is not None and self.second is not None
+                    and np.isfinite(self.second_view_t)
+                    and self.second_view_t <= self.second_view_t_needed)
+
+    def half_gap(self) -> dict[str, float]:
+        """Half the distance between the chosen and the second basin's ``fx``, ``cx``, ``cy``,
+        px, where :attr:`ambiguous` (else empty): the sd a choice between the two adds."""
+        if not self.ambiguous:
+            return {}
+        return {q: 0.5 * abs(getattr(self.fit, q) - getattr(self.second, q))
+                for q in ("fx", "cx", "cy")}
 
     @property
     def second_excess(self) -> float:
@@ -127,7 +157,8 @@ class BasinCheck:
                "cost_px2": number(self.cost_px2),
                "other_cost_px2": number(self.other_cost_px2), "why": self.why,
                "view_t": number(self.view_t), "view_t_needed": number(self.view_t_needed),
-               "views_disagree": self.views_disagree}
+               "views_disagree": self.views_disagree, "ambiguous": self.ambiguous,
+               "half_gap_px": self.half_gap()}
         if self.fit is not None:  # the step alone on the adjustment's board
             out["alone"] = {"fx": self.fit.fx, "cx": self.fit.cx, "cy": self.fit.cy}
         if self.moved and self.fit is not None:
@@ -136,7 +167,9 @@ class BasinCheck:
             out["second"] = {"cx": self.second.cx, "cy": self.second.cy,
                              "fx": self.second.fx, "p1": float(self.second.dist[2]),
                              "cost_px2": number(self.second_cost_px2),
-                             "excess_noise_variances": number(self.second_excess)}
+                             "excess_noise_variances": number(self.second_excess),
+                             "view_t": number(self.second_view_t),
+                             "view_t_needed": number(self.second_view_t_needed)}
         return out
 
 
@@ -213,9 +246,12 @@ def best_basin(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int,
     chosen = best if moved else here
     others = [f for f in [here, *fits] if _distinct(f, chosen)]
     second = min(others, key=_cost, default=None)
+    second_t, second_needed = _paired_views(obs, second, chosen) if second is not None else (
+        float("nan"), float("inf"))
     return BasinCheck(chosen, moved, given, cost_here,
                       np.inf if best is None else _cost(best), profile, None, second,
-                      np.nan if second is None else _cost(second), noise_px, view_t, needed)
+                      np.nan if second is None else _cost(second), noise_px, view_t, needed,
+                      second_t, second_needed)
 
 
 def _paired_views(obs: Observations, here: CalibrationResult,

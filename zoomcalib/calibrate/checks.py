@@ -254,6 +254,15 @@ def _basin_flags(basin: dict) -> list[Flag]:
                           f"{basin.get('view_t_needed') or float('nan'):.1f} for 3 sigma): a "
                           "few views' errors may have chosen it"))
     second = basin.get("second")
+    if basin.get("ambiguous") and second:
+        gap = basin.get("half_gap_px") or {}
+        flags.append(Flag("basin", "note", "two basins the views do not tell apart",
+                          f"a second basin puts the principal point at ({second['cx']:.0f}, "
+                          f"{second['cy']:.0f}) px and the views do not agree that the chosen "
+                          f"one is lower (paired t {second.get('view_t') or float('nan'):.1f}, "
+                          f"{second.get('view_t_needed') or float('nan'):.1f} for 3 sigma): "
+                          "the sigmas cover both (half their distance added: "
+                          + ", ".join(f"{q} {v:.0f} px" for q, v in gap.items()) + ")"))
     excess = (second or {}).get("excess_noise_variances")
     if excess is not None and excess < MIN_GAIN:
         cost = (f"{excess:.1f} noise variances more cost" if excess >= 0 else

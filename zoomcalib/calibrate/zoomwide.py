@@ -1479,7 +1479,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     prob = problem(free, {k: m.tau for k, m in models.items()}, models, forms)
     solve, more = _solve_with_noise(prob, state, free, max_rounds)
     result = _finish(prob, solve, solve.state, init, terms, held, models, iterations + more,
-                     inflation)
+                     inflation, basins)
     result.skipped, result.tau_source = skipped, tau_source
     result.board_sessions = session_names
     result.print_test = print_test
@@ -1910,7 +1910,7 @@ def _view_scatter(prob: _ZoomProblem, r: np.ndarray, J, camera_pose: np.ndarray,
 
 
 def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior], iterations,
-            inflation: list[tuple] = ()) -> ZoomWideResult:
+            inflation: list[tuple] = (), basins: list[BasinCheck] = ()) -> ZoomWideResult:
     tau = {k: float(m.tau) for k, m in models.items()}
     cov, scatter = _posterior_covariance(prob, state)
     # a step's sigmas are at least its views' scatter (scatter.SCALE_UNTESTED)
@@ -1920,6 +1920,11 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior],
     for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
         col = prob.cam_col[steps, j]
         cov[np.ix_(col, col)] += extra
+    for s, check in enumerate(basins):  # two basins the views do not tell apart (basins.py)
+        for q, gap in check.half_gap().items():
+            col = prob.cam_col[s, PARAMS.index(q)]
+            if col >= 0:
+                cov[col, col] += gap**2
     if np.any(np.diag(cov) <= 0):
         raise RuntimeError("zoom-wide covariance is not positive definite")
     n_cam, n_modes = prob.n_cam, prob.n_modes
