@@ -357,3 +357,19 @@ def test_calibrate_warns_of_a_solve_that_did_not_converge(tmp_path, monkeypatch)
                                     "--backend", "both", "--workers", "1",
                                     "--out", str(tmp_path / "out")])
     assert "step . (opencv) did not converge" in res.output, res.output
+
+
+def test_diagnose_passes_no_report_to_the_calibration(tmp_path, monkeypatch):
+    seen = {}
+
+    def record(*args, **kwargs):
+        seen.update(kwargs)
+        raise ValueError("recorded")
+
+    monkeypatch.setattr(zoomcalib.diagnose.run, "diagnose_input", record)
+    table = zoom_table(tmp_path / "t.csv", [1000.0, 2000.0, 3000.0, 4000.0, 5000.0])
+    for extra, report in (([], True), (["--no-report"], False)):
+        res = CliRunner().invoke(main, ["diagnose", str(table), "--out", str(tmp_path / "d"),
+                                        *extra])
+        assert res.exit_code == 1 and "recorded" in res.output, res.output
+        assert seen["report"] is report

@@ -52,7 +52,8 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
     assert (tmp_path / "set" / "steps.csv").read_text().count(",out,") == 5
 
     run = diagnose_input(tmp_path / "set", tmp_path / "diag", lens, sensor.pixel_pitch_mm, tol,
-                         "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
+                         "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None,
+                   report=False)
     doc = read_json(tmp_path / "diag" / "diagnosis.json")
     assert doc["cause"] == "backlash", doc["candidates"]
     ext = run.diagnosis.extended
@@ -130,8 +131,10 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
                    sensor=sensor, direction="in", axis_tilt_mrad=tuple(truth),
                    optics=Optics(psf="elliptical"))
     diagnose_input(tmp_path / "set", tmp_path / "diag", lens, sensor.pixel_pitch_mm, tol,
-                   "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None)
+                   "chessboard:9x6:25", ("opencv",), workers=1, log=lambda m: None,
+                   report=False)
     doc = read_json(tmp_path / "diag" / "diagnosis.json")
+    assert not (tmp_path / "diag" / "calibration" / "report.html").exists()  # report=False
     assert doc["cause"] == "axis_tilt", (doc["candidates"], doc["distortion_evidence"])
     assert [c["cause"] for c in doc["causes"]] == ["axis_tilt"]
     evidence = doc["distortion_evidence"]

@@ -921,7 +921,10 @@ def study(lens, tolerances, tolerance_scale, steps, quick, seeds, views, noise, 
               help="Detection processes for an image folder (0: all cores).")
 @click.option("--out", default="zoomcalib-diagnose", show_default=True,
               type=click.Path(file_okay=False), help="Output folder.")
-def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, workers, out):
+@click.option("--no-report", is_flag=True,
+              help="For an image folder: do not write OUT/calibration/report.html.")
+def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, workers, out,
+             no_report):
     """Show what the simulation gets wrong on measured per-zoom data, and name the cause.
 
     INPUT is a zoom_calibration.csv (needs zoom, fx, fy, cx, cy; uses sd_cx, sd_cy, direction,
@@ -973,7 +976,8 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
         with click.progressbar(length=n_images, label="detecting", file=sys.stderr,
                                hidden=n_images == 0) as bar:
             run = diagnose_input(input_path, out, lens_rx, pixel_pitch, tol, pattern, backends,
-                                 workers or os.cpu_count() or 1, bar.update, messages.append)
+                                 workers or os.cpu_count() or 1, bar.update, messages.append,
+                                 report=not no_report)
     except (FocalRangeError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     for m in messages:

@@ -196,7 +196,7 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
                    pixel_pitch: float | str = 0.00645, tolerances: Tolerances | None = None,
                    pattern: str | None = None, backends: tuple[str, ...] = ("opencv",),
                    workers: int = 1, progress: Callable[[int], None] | None = None,
-                   log: Callable[[str], None] = print) -> DiagnoseRun:
+                   log: Callable[[str], None] = print, report: bool = True) -> DiagnoseRun:
     """Diagnose a ``zoom_calibration.csv`` or a folder of zoom-step images.
 
     Parameters
@@ -216,8 +216,9 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
         mm; ``'auto'`` fits it.
     tolerances : Tolerances, optional
         For the random-play scatter (default: built-in).
-    pattern, backends, workers, progress, log
-        Passed to :func:`zoomcalib.calibrate.run.calibrate_folder` for an image folder.
+    pattern, backends, workers, progress, log, report
+        Passed to :func:`zoomcalib.calibrate.run.calibrate_folder` for an image folder
+        (``report``: write the calibration's ``report.html``).
     """
     source, out = Path(source), Path(out)
     groups = moving_groups(lens) if lens is not None else None
@@ -240,7 +241,8 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
         # per-step calibrations: the diagnosis treats the rows as independent measurements,
         # which the zoom-wide adjustment's rows (tied by its smoothness prior) are not
         cal = calibrate_folder(source, pattern, out / "calibration", backends,
-                               workers=workers, progress=progress, log=log, zoom_wide=False)
+                               workers=workers, progress=progress, log=log, zoom_wide=False,
+                               report=report)
         failures = list(cal.failures)
         table_path = out / "calibration" / "zoom_calibration.csv"
         if not table_path.exists():
