@@ -839,7 +839,8 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
 def test_an_exact_print_is_found_exact(sweep):
     # the shared sweep's board is printed exactly: the print's modes do not pass their test
     # (chi-square of 24 at p = 0.001: 51.2) and are left out: the adjustment is then the one
-    # without them, the same to the last digit
+    # without them (it goes on from the test's solve, whose noise estimates and inliers
+    # differ a little: the same within a tenth of a sigma)
     obs, _, _, points = sweep
     zw = calibrate_zoom_wide(obs, print_shape=True)
     test = zw.print_test
@@ -847,7 +848,10 @@ def test_an_exact_print_is_found_exact(sweep):
     assert test.dof == 2 * zw.board_modes.size and zw.print_modes is None
     assert points.print_test is None
     for name, r in points.results.items():
-        assert zw.results[name].cx == r.cx and zw.results[name].sd == r.sd, name
+        got = zw.results[name]
+        for q in ("fx", "cx", "cy"):  # seen: up to 0.04 sigma, sigmas within 1.1 %
+            assert abs(getattr(got, q) - getattr(r, q)) < 0.1 * r.sd[q], (name, q)
+            assert got.sd[q] == pytest.approx(r.sd[q], rel=0.03), (name, q)
 
 
 def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
@@ -885,3 +889,24 @@ def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
         assert r.info["basin"]["ambiguous"] == (name == narrow)
     flags = _basin_flags(mixed.results[narrow].info["basin"])
     assert [f.severity for f in flags if "two basins" in f.text] == ["note"], flags
+
+
+def test_the_basin_check_fits_the_corners_the_adjustment_keeps(rng):
+    # a few corners of the narrowest step are 15-30 px off (drawn): the adjustment rejects
+    # them, and the basin check's fit of the step alone on its board (info["basin"]["alone"])
+    # must see the same corners, landing where the adjustment's solve without the prior is
+    obs, _, _ = sweep_observations(rng, steps=3, views=8, fx_range=(2300.0, 6000.0))
+    narrow = list(obs)[-1]
+    views = []
+    for ids, uv in obs[narrow].views:
+        uv = uv.copy()
+        bad = rng.choice(len(uv), size=3, replace=False)
+        uv[bad] += rng.uniform(15.0, 30.0, (3, 2)) * rng.choice([-1.0, 1.0], (3, 2))
+        views.append((ids, uv))
+    obs = obs | {narrow: Observations(obs[narrow].object_points, views, obs[narrow].image_size)}
+    zw = calibrate_zoom_wide(obs, select=False)
+    r = zw.results[narrow]
+    assert len(r.rejected) >= 3 * len(views)
+    basin = r.info["basin"]
+    for q, start in zip(("cx", "cy"), basin["start_px"], strict=True):
+        assert abs(basin["alone"][q] - start) < 3 * r.info["sd_noise_model"][q], (q, basin)

@@ -1453,10 +1453,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         first = _solve_with_noise(problem(free), copy.deepcopy(state), free, max_rounds)[0]
         print_test = _print_test(problem(free), first)
         keep_print = print_test.kept
-        if keep_print:  # the solve below goes on from this one (its noise and inliers)
+        if first.converged:  # the solve below goes on from this one (its noise and inliers)
             state = first.state
-        else:  # as if the print had not been asked for
+        else:  # from the start, as if the print had not been asked for
             steps = given_steps
+        if not keep_print:
             state.modes = state.modes[:phi.shape[1] * len(session_names)]
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
@@ -1660,7 +1661,9 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
     """Per step of ``prob``: :func:`~zoomcalib.calibrate.basins.best_basin` of its views on
     its board's estimated points, from its camera in ``state``; where another basin has the
     lower cost, the step's intrinsics and poses in ``state`` are set to that fit's (its
-    aspect ratio is the state's). Steps run in ``workers`` processes."""
+    aspect ratio is the state's). The fits see the corners the adjustment keeps (its
+    inliers): a corner it rejected would pull a narrow step's OpenCV fit far from the
+    adjustment's own. Steps run in ``workers`` processes."""
     items = []
     for s, step in enumerate(prob.steps):
         obs = observations[step.name]
@@ -1669,7 +1672,7 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
         rational = bool(np.any(cam[9:]))
         flags = _distortion_flags(tuple(p for p, f in zip(PARAMS[4:], prob.free[s, 4:],
                                                           strict=True) if f))
-        items.append((Observations(prob.points(state, s), obs.views, obs.image_size,
+        items.append((Observations(prob.points(state, s), _inlier_views(step), obs.image_size,
                                    obs.names),
                       K, cam[4:] if rational else cam[4:9], flags, step.sigma))
     checks = _map_steps(best_basin, items, workers)
@@ -1683,6 +1686,17 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
                                                       fit.dist, 0.0)
         state.rvecs[first:last], state.tvecs[first:last] = fit.rvecs, fit.tvecs
     return checks
+
+
+def _inlier_views(step: _Step, fewest: int = 6) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each view's ``(ids, uv)`` of the step's inlier corners, in view order; a view with
+    fewer than ``fewest`` inliers keeps all its corners (every view must stay placeable)."""
+    views = []
+    for v in range(step.n_views):
+        mine = step.view == v
+        keep = mine & step.inlier if np.sum(mine & step.inlier) >= fewest else mine
+        views.append((step.point[keep], step.uv[keep]))
+    return views
 
 
 def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
