@@ -887,6 +887,13 @@ def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
         for q, g in gap.items():
             assert r.sd[q] == pytest.approx(np.hypot(before.sd[q], g), rel=1e-9), (name, q)
         assert r.info["basin"]["ambiguous"] == (name == narrow)
+        # the noise model's sigma is without the gap; the rows of the solve without the
+        # prior (the held-out checks and a diagnosis read them) carry it as the table does
+        for q in ("fx", "cx", "cy"):
+            assert r.info["sd_noise_model"][q] == pytest.approx(
+                before.info["sd_noise_model"][q], rel=1e-9), (name, q)
+            assert mixed.unsmoothed[name][f"sd_{q}"] == pytest.approx(np.hypot(
+                plain.unsmoothed[name][f"sd_{q}"], gap[q]), rel=1e-9), (name, q)
     flags = _basin_flags(mixed.results[narrow].info["basin"])
     assert [f.severity for f in flags if "two basins" in f.text] == ["note"], flags
 

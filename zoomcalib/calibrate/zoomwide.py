@@ -137,7 +137,7 @@ in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -1194,23 +1194,29 @@ def _zoom_models(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarra
 
 
 def _with_scatter(result: ZoomWideResult, names: list[str], cams: np.ndarray, noise,
-                  free: np.ndarray) -> tuple:
+                  free: np.ndarray, gaps: Sequence[Mapping[str, float]] = ()) -> tuple:
     """``(cams, noise, free)`` with the noise scaled per step and parameter by the factor the
-    views' scatter put on the adjustment's sigma (``sd / sd_noise_model``): a held-out step
-    is then judged by the sigmas the table reports."""
+    views' scatter put on the adjustment's sigma (the table's sigma without the basin gap over
+    ``sd_noise_model``), and each step's basin gap (:func:`_basin_gaps`, px) added in
+    quadrature: a held-out step is then judged by the sigmas the table reports."""
     factor = np.ones((len(names), len(PARAMS)))
+    gap2 = np.zeros((len(names), len(PARAMS)))
+    for s, gap in enumerate(gaps):
+        for q, half in gap.items():
+            gap2[s, PARAMS.index(q)] = half**2
     for s, n in enumerate(names):
         res = result.results[n]
         base = res.info.get("sd_noise_model", {})
         for j, q in enumerate(PARAMS):
             if base.get(q, 0.0) > 0 and q in res.sd:
-                factor[s, j] = max(res.sd[q] / base[q], 1.0)
+                own = np.sqrt(max(res.sd[q] ** 2 - gap2[s, j], 0.0))
+                factor[s, j] = max(own / base[q], 1.0)
     if callable(noise):
         def scaled(steps, j, noise=noise):
             f = factor[steps, j]
-            return noise(steps, j) * np.outer(f, f)
+            return noise(steps, j) * np.outer(f, f) + np.diag(gap2[steps, j])
         return cams, scaled, free
-    return cams, np.asarray(noise, float) * factor, free
+    return cams, np.sqrt((np.asarray(noise, float) * factor) ** 2 + gap2), free
 
 
 def _unsmoothed_rows(cams: np.ndarray, cov, free: np.ndarray, names: list[str]
@@ -1491,7 +1497,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         result.board_modes_sd = result.board_modes_sd[:-prob.n_print]
     result.board_heights = None if solve.state.heights is None else solve.state.heights.copy()
     result.u = {n: float(v) for n, v in zip(names, u, strict=True)}
-    scaled = _with_scatter(result, names, *unsmoothed)
+    scaled = _with_scatter(result, names, *unsmoothed, _basin_gaps(prob.cam_col, basins))
     held_paths = _held_out_paths(*scaled, chain_idx, u, forms, models, names)
     if joint_cov is not None:
         result.unsmoothed = _unsmoothed_rows(*scaled, names)
@@ -1934,11 +1940,11 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior],
     for steps, j, extra in inflation:  # the uncertainty of tau (_zoom_models)
         col = prob.cam_col[steps, j]
         cov[np.ix_(col, col)] += extra
-    for s, check in enumerate(basins):  # two basins the views do not tell apart (basins.py)
-        for q, gap in check.half_gap().items():
+    gaps = _basin_gaps(prob.cam_col, basins)
+    for s, gap in enumerate(gaps):  # two basins the views do not tell apart (basins.py)
+        for q, half in gap.items():
             col = prob.cam_col[s, PARAMS.index(q)]
-            if col >= 0:
-                cov[col, col] += gap**2
+            cov[col, col] += half**2
     if np.any(np.diag(cov) <= 0):
         raise RuntimeError("zoom-wide covariance is not positive definite")
     n_cam, n_modes = prob.n_cam, prob.n_modes
@@ -1951,7 +1957,8 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior],
                                           init[step.name], terms, tau)
         results[step.name].info.update({
             "view_scatter": step_scatter[step.name].to_dict() | {"applied": True},
-            "sd_noise_model": {p: float(v / f) for (p, v), f in zip(
+            "sd_noise_model": {p: float(np.sqrt(max(v * v - gaps[s].get(p, 0.0) ** 2, 0.0))
+                                        / f) for (p, v), f in zip(
                 results[step.name].sd.items(), _step_scale(prob, s, scale), strict=False)},
             "converged": solve.converged, "stop_reason": solve.stop_reason,
             "distortion_choice": held[step.name].to_dict() if step.name in held else {},
@@ -1965,6 +1972,16 @@ def _finish(prob, solve, state, init, terms, held, models: dict[str, PathPrior],
                           tau, terms, held, solve.converged, solve.stop_reason, iterations,
                           zoom_models={k: m.to_dict() for k, m in models.items()},
                           aspect=float(state.aspect), aspect_sd=aspect_sd)
+
+
+def _basin_gaps(cam_col: np.ndarray, basins: Sequence[BasinCheck]) -> list[dict[str, float]]:
+    """Per step (``cam_col`` (S, 12) its columns, -1 where held), the half gap between two
+    basins its views do not tell apart (:meth:`~zoomcalib.calibrate.basins.BasinCheck.
+    half_gap`) of its free parameters, px; empty dicts without basin checks."""
+    gaps = [{} for _ in range(len(cam_col))]
+    for s, check in enumerate(basins):
+        gaps[s] = {q: v for q, v in check.half_gap().items() if cam_col[s, PARAMS.index(q)] >= 0}
+    return gaps
 
 
 def _step_scale(prob: _ZoomProblem, s: int, scale: np.ndarray) -> np.ndarray:
