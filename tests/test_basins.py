@@ -122,7 +122,10 @@ def test_a_move_that_two_views_alone_make_is_flagged(seed):
     for q in ("fx", "cx", "cy"):
         assert gap[q] == pytest.approx(0.5 * abs(getattr(check.fit, q) - getattr(check.second, q)))
     assert gap["cy"] > 10 * check.fit.sd["cy"]
-    assert check.to_dict()["half_gap_px"] == gap
+    # the decentring too: the second basin's p1 has the other sign
+    assert gap["p1"] == pytest.approx(0.5 * abs(check.fit.dist[2] - check.second.dist[2]))
+    assert gap["p1"] > 0.5 * abs(check.fit.dist[2])
+    assert check.to_dict()["half_gap"] == gap
 
 
 def test_a_move_without_a_paired_test_is_not_called_disagreed():

@@ -856,8 +856,9 @@ def test_an_exact_print_is_found_exact(sweep):
 
 def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
     # the narrowest step's basin check is made to report a second basin (80, -40 px away in
-    # cx, cy) that its views do not tell from the chosen one: the adjustment is unchanged,
-    # and that step's sigmas of cx, cy take half the distance in quadrature, no other's
+    # cx, cy, p1 0.02 away) that its views do not tell from the chosen one: the adjustment
+    # is unchanged, and that step's sigmas of cx, cy, p1 take half the distance in
+    # quadrature, no other's
     import copy
     import dataclasses
 
@@ -873,6 +874,8 @@ def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
             return check
         other = copy.copy(check.fit)
         other.K = check.fit.K + np.array([[0.0, 0, 80], [0, 0, -40], [0, 0, 0]])
+        other.dist = np.asarray(check.fit.dist, float).copy()
+        other.dist[2] += 0.02  # p1 (a term the step estimates only where it has k1)
         return dataclasses.replace(check, second=other, second_view_t=0.5,
                                    second_view_t_needed=3.6)
 
@@ -886,6 +889,9 @@ def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
             ("fx", "cx", "cy"), 0.0)
         for q, g in gap.items():
             assert r.sd[q] == pytest.approx(np.hypot(before.sd[q], g), rel=1e-9), (name, q)
+        # the decentring takes its gap too (every term is free: select=False)
+        p1_gap = 0.01 if name == narrow else 0.0
+        assert r.sd["p1"] == pytest.approx(np.hypot(before.sd["p1"], p1_gap), rel=1e-6), name
         assert r.info["basin"]["ambiguous"] == (name == narrow)
         # the noise model's sigma is without the gap; the rows of the solve without the
         # prior (the held-out checks and a diagnosis read them) carry it as the table does

@@ -41,7 +41,8 @@ and neither basin's linearised sigma says so: the halves of a real narrow step's
 each) chose basins 120 px apart in cx, each by 140-480 noise variances, with sigmas of 10-20
 px. The step is then a mixture of the two, and each of ``fx``, ``cx``, ``cy`` takes the
 variance that an even choice between them adds, ``(Delta / 2)^2`` with ``Delta`` the
-distance between the two fits (:meth:`BasinCheck.half_gap`; the zoom-wide adjustment adds it
+distance between the two fits (and so does each distortion term: the second basin's
+decentring has the other sign) (:meth:`BasinCheck.half_gap`; the zoom-wide adjustment adds it
 to its covariance).
 """
 
@@ -56,6 +57,8 @@ import scipy.stats
 from .opencv_backend import calibrate_opencv, not_a_camera, pose_sigmas_unused
 from .result import CalibrationResult, Observations, one_opencv_thread
 
+#: OpenCV's distortion terms, in its order.
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 #: Rows (and columns) of the profile, as fractions of the image's height (width).
 GRID = (1 / 14, 3 / 14, 5 / 14, 7 / 14, 9 / 14, 11 / 14, 13 / 14)
 #: OpenCV's stop rule for the grid's fits: the profile needs the basin, not its last digit.
@@ -126,12 +129,17 @@ class BasinCheck:
                     and self.second_view_t <= self.second_view_t_needed)
 
     def half_gap(self) -> dict[str, float]:
-        """Half the distance between the chosen and the second basin's ``fx``, ``cx``, ``cy``,
-        px, where :attr:`ambiguous` (else empty): the sd a choice between the two adds."""
+        """Half the distance between the chosen and the second basin's ``fx``, ``cx``, ``cy``
+        (px) and distortion terms (OpenCV's names, as many as both fits have), where
+        :attr:`ambiguous` (else empty): the sd a choice between the two adds."""
         if not self.ambiguous:
             return {}
-        return {q: 0.5 * abs(getattr(self.fit, q) - getattr(self.second, q))
-                for q in ("fx", "cx", "cy")}
+        gap = {q: 0.5 * abs(getattr(self.fit, q) - getattr(self.second, q))
+               for q in ("fx", "cx", "cy")}
+        a, b = np.ravel(self.fit.dist), np.ravel(self.second.dist)
+        n = min(len(a), len(b))
+        return gap | {q: 0.5 * abs(float(x - y))
+                      for q, x, y in zip(DISTORTION_NAMES[:n], a[:n], b[:n], strict=True)}
 
     @property
     def second_excess(self) -> float:
@@ -158,7 +166,7 @@ class BasinCheck:
                "other_cost_px2": number(self.other_cost_px2), "why": self.why,
                "view_t": number(self.view_t), "view_t_needed": number(self.view_t_needed),
                "views_disagree": self.views_disagree, "ambiguous": self.ambiguous,
-               "half_gap_px": self.half_gap()}
+               "half_gap": self.half_gap()}
         if self.fit is not None:  # the step alone on the adjustment's board
             out["alone"] = {"fx": self.fit.fx, "cx": self.fit.cx, "cy": self.fit.cy}
         if self.moved and self.fit is not None:

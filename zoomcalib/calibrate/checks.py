@@ -255,7 +255,7 @@ def _basin_flags(basin: dict) -> list[Flag]:
                           "few views' errors may have chosen it"))
     second = basin.get("second")
     if basin.get("ambiguous") and second:
-        gap = basin.get("half_gap_px") or {}
+        gap = {q: v for q, v in (basin.get("half_gap") or {}).items() if q in ("fx", "cx", "cy")}
         flags.append(Flag("basin", "note", "two basins the views do not tell apart",
                           f"a second basin puts the principal point at ({second['cx']:.0f}, "
                           f"{second['cy']:.0f}) px and the views do not agree that the chosen "

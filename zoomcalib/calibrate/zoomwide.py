@@ -1980,7 +1980,8 @@ def _basin_gaps(cam_col: np.ndarray, basins: Sequence[BasinCheck]) -> list[dict[
     half_gap`) of its free parameters, px; empty dicts without basin checks."""
     gaps = [{} for _ in range(len(cam_col))]
     for s, check in enumerate(basins):
-        gaps[s] = {q: v for q, v in check.half_gap().items() if cam_col[s, PARAMS.index(q)] >= 0}
+        gaps[s] = {q: v for q, v in check.half_gap().items()
+                   if q in PARAMS and cam_col[s, PARAMS.index(q)] >= 0}
     return gaps
 
 
