@@ -4,19 +4,40 @@ Ctrl-C in a terminal reaches the whole process group. Workers started with
 :func:`ignore_interrupt` as their initializer leave it to the main process, which ends them
 with :func:`stop_pool` instead of waiting for their running tasks (``shutdown(wait=True)``
 joins each worker after its task, and can hang on an idle worker's queue).
+
+The pool supplies the parallelism: its workers run BLAS on one thread. Two workers on two
+cores that each start a BLAS thread per core for products of a few hundred rows spend more time
+waking threads than computing (``docs/performance.md``, "BLAS threads").
 """
 
 from __future__ import annotations
 
+import functools
 import signal
 from concurrent.futures import ProcessPoolExecutor
 
-__all__ = ["ignore_interrupt", "map_in_processes", "stop_pool"]
+from threadpoolctl import threadpool_limits
+
+__all__ = ["ignore_interrupt", "map_in_processes", "one_blas_thread", "stop_pool"]
 
 
 def ignore_interrupt() -> None:
-    """Pool initializer: the worker ignores SIGINT (the main process stops the pool)."""
+    """Pool initializer: the worker ignores SIGINT (the main process stops the pool) and runs
+    BLAS on one thread (module docstring)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threadpool_limits(1, user_api="blas")
+
+
+def one_blas_thread(function):
+    """Decorator: run ``function`` with BLAS (OpenBLAS, MKL) on one thread. For solvers whose
+    products are small (a few hundred columns): there a second thread costs more than it
+    gives (``benchmarks/bench_blas_threads.py``: the zoom-wide adjustment of the real PTZ set
+    ran 1.2-1.5 times faster on one thread)."""
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(1, user_api="blas"):
+            return function(*args, **kwargs)
+    return wrapper
 
 
 def stop_pool(pool: ProcessPoolExecutor) -> None:

@@ -147,7 +147,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.stats
 
-from ..pool import map_in_processes
+from ..pool import map_in_processes, one_blas_thread
 from .basins import BasinCheck, best_basin
 from .bundle import project_jacobian
 from .opencv_backend import (
@@ -1323,6 +1323,7 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
     return changed
 
 
+@one_blas_thread
 def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
                         board_degree: int = 4, board_prior_mm: float = 1.0,
                         board_points: bool = True, print_shape: bool = False,
