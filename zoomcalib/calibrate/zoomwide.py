@@ -1451,17 +1451,20 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
 
     keep_print = bool(print_shape and phi.shape[1])
 
-    print_test = None
+    print_test, solved = None, None
     if keep_print:  # does the print's shape pay? (PrintTest; a solve of its own, on copies)
         given_steps = steps
         steps = copy.deepcopy(steps)
         # as the solve below: rounds of noise re-estimation (a first round at the steps' own
         # noise can stop at the iteration cap where the next converges in a few iterations)
-        first = _solve_with_noise(problem(free), copy.deepcopy(state), free, max_rounds)[0]
+        first, first_iterations = _solve_with_noise(problem(free), copy.deepcopy(state), free,
+                                                    max_rounds)
         print_test = _print_test(problem(free), first)
         keep_print = print_test.kept
         if first.converged:  # the solve below goes on from this one (its noise and inliers)
             state = first.state
+            # kept: the test's solve is the first solve below
+            solved = (first, first_iterations) if keep_print else None
         else:  # from the start, as if the print had not been asked for
             steps = given_steps
         if not keep_print:
@@ -1469,7 +1472,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
         problem, state, free, max_rounds, observations, bool(select and phi.shape[1]), init,
-        terms, held, decentring, workers, held_terms)
+        terms, held, decentring, workers, held_terms, solved)
     forms = _Form.of(pp_model, np.exp(u),
                      0.5 * np.hypot(*observations[names[0]].image_size))
     if joint_cov is not None:
@@ -1627,8 +1630,10 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
                       observations: Mapping[str, Observations], reselect: bool,
                       init: Mapping[str, CalibrationResult], terms: dict, held: dict,
                       decentring: bool = True, workers: int = 1,
-                      held_terms: tuple[str, ...] = ()):
-    """The solve without the smoothness prior (``problem(free)`` builds it). With
+                      held_terms: tuple[str, ...] = (),
+                      solved: tuple[_Solve, int] | None = None):
+    """The solve without the smoothness prior (``problem(free)`` builds it; ``solved``: that
+    solve and its iterations, already made from ``state``, as the print's test makes it). With
     ``reselect`` the distortion terms are then chosen again on the board's estimated shape
     (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
     repeated when a step's terms changed, from the first solve's state. Then every step's
@@ -1638,7 +1643,10 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
     none), the iterations and the basin checks (one :class:`~zoomcalib.calibrate.basins.
     BasinCheck` per step)."""
     unsmoothed = problem(free)
-    solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
+    if solved is None:
+        solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
+    else:
+        solve, iterations = solved
     if reselect and _select_on_board(
             observations, init, [unsmoothed.points(solve.state, s)
                                  for s in range(len(init))], terms, held, decentring,
