@@ -1,7 +1,7 @@
 """The zoom-wide adjustment with BLAS on one thread per process, against two (its peer).
 
 ``python benchmarks/bench_blas_threads.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
-[--board-shape points] [--repeats 1]``
+[--board-shape print] [--repeats 1]``
 
 ``FOLDER`` is a zoom set (step subfolders), e.g. the real PTZ set's ``calibration_images``
 (``bench_real_ptz.py``; nothing of it is kept here) or ``data/synthetic/example``. Its
@@ -84,7 +84,7 @@ def main() -> None:
     ap.add_argument("folder", type=Path)
     ap.add_argument("--out", type=Path, default=Path("bench-blas-threads"))
     ap.add_argument("--pattern", default="chessboard:22x15:25")
-    ap.add_argument("--board-shape", default="points", choices=zoomwide.BOARD_SHAPES)
+    ap.add_argument("--board-shape", default="print", choices=zoomwide.BOARD_SHAPES)
     ap.add_argument("--repeats", type=int, default=1)
     args = ap.parse_args()
     blas = [(i["internal_api"], i["num_threads"]) for i in threadpool_info()

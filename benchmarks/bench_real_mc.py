@@ -2,7 +2,7 @@
 
 ``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
 [--draws 10] [--seed 0] [--errors resampled|imitated] [--in-plane-mm 0.3]
-[--board-shape points] [--draws-board-shape print] [--verbose]``
+[--board-shape print] [--draws-board-shape points] [--verbose]``
 
 ``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
 ``e-cagan/camera-calibration``, read where it lies; detections cached in ``DIR/detections``).
@@ -139,8 +139,9 @@ def main() -> None:
     ap.add_argument("--errors", default="resampled", choices=("resampled", "imitated"))
     ap.add_argument("--in-plane-mm", type=float, default=0.3,
                     help="in-plane board errors of the imitated errors, mm RMS")
-    ap.add_argument("--board-shape", default="points", choices=BOARD_SHAPES,
-                    help="the real run's board model, whose board the draws carry")
+    ap.add_argument("--board-shape", default="print", choices=BOARD_SHAPES,
+                    help="the real run's board model, whose board the draws carry (default "
+                         "print, as calibrate)")
     ap.add_argument("--draws-board-shape", default=None, choices=BOARD_SHAPES,
                     help="the board model that calibrates the draws (default: --board-shape); "
                          "another one measures what that model does to a board like the real "

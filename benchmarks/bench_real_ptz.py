@@ -2,7 +2,7 @@
 
 ``python benchmarks/bench_real_ptz.py FOLDER [--out DIR] [--pattern chessboard:22x15:25]
 [--splits 5] [--seed 0] [--one-session] [--free-aspect] [--board-degree 4]
-[--board-shape points] [--own-session STEP ...]``
+[--board-shape print] [--own-session STEP ...]``
 
 ``FOLDER`` is an image folder of zoom-step subfolders, e.g. the ``calibration_images`` folder
 of the public set ``e-cagan/camera-calibration`` (10 steps ``zoom_1x`` .. ``zoom_10x`` of a
@@ -27,11 +27,12 @@ repository; this script reads it where it lies and writes to ``--out`` (default
 ``--one-session`` calibrates with one board shape for all steps, ``--free-aspect`` with a
 ``fy`` per step: the settings before they became the default. ``--board-degree N`` gives the
 zoom-wide board modes up to degree ``N`` (the default run's 4; a paper board taped to a wall
-ripples beyond it, ``bench_real_board.py``), for the table and the halves; ``--board-shape
-print`` adds the print's in-plane shape (``calibrate_zoom_wide(print_shape=True)``),
-``modes`` leaves out the height of every board point and session (``board_points=False``,
-the earlier default). ``--own-session STEP ...``
-gives those steps a board of their own (as a ``session`` column of ``steps.csv`` would).
+ripples beyond it, ``bench_real_board.py``), for the table and the halves; ``--board-shape``
+as calibrate's: ``print`` (the default) with the print's in-plane shape where its test says
+it pays, ``points`` without it (the default before), ``modes`` without the height of every
+board point and session (``board_points=False``, the default before that).
+``--own-session STEP ...`` gives those steps a board of their own (as a ``session`` column
+of ``steps.csv`` would).
 ``--halves-steps S ...``
 calibrates the halves of those steps alone (the splits drawn as for all steps, so split ``k``
 is the same as in a run over all steps): what the long end's own frames determine without the
@@ -179,8 +180,8 @@ def main() -> None:
     ap.add_argument("--free-aspect", action="store_true")
     ap.add_argument("--board-degree", type=int, default=4,
                     help="highest degree of the zoom-wide board modes (default 4, as calibrate)")
-    ap.add_argument("--board-shape", default="points", choices=BOARD_SHAPES,
-                    help="the zoom-wide board (calibrate's --board-shape; default points, as "
+    ap.add_argument("--board-shape", default="print", choices=BOARD_SHAPES,
+                    help="the zoom-wide board (calibrate's --board-shape; default print, as "
                          "calibrate)")
     ap.add_argument("--own-session", nargs="+", default=(),
                     help="give these steps a board session of their own")
@@ -215,7 +216,7 @@ def main() -> None:
     for step in args.own_session:
         sessions[step] = f"{sessions.get(step, '')} {step}"
     if (args.one_session or args.free_aspect or args.board_degree != 4
-            or args.board_shape != "points" or args.own_session):
+            or args.board_shape != "print" or args.own_session):
         sessions = None if args.one_session else sessions
         t = time.perf_counter()
         zw = calibrate_zoom_wide(run.observations, sessions=sessions, **kwargs)

@@ -645,12 +645,13 @@ def detect(folder, pattern, methods, workers, out):
               help="Also say per step and per capture session what the residual is made of: "
                    "lens terms, board shape, a focal length per view and a readout shift, "
                    "each judged on held-out corners (calibration.md, 'Residual budget').")
-@click.option("--board-shape", default="points", show_default=True,
+@click.option("--board-shape", default="print", show_default=True,
               type=click.Choice(["print", "points", "modes"]),
               help="Zoom-wide: the board of each capture session, a smooth surface of degree 4 "
-                   "plus a height for every point (the ripples of a paper board) (points); "
-                   "and the print's in-plane shape, shared by the sessions, where a test says "
-                   "it pays (print); or the smooth surface alone (modes).")
+                   "plus a height for every point (the ripples of a paper board), and the "
+                   "print's in-plane shape, shared by the sessions, where a test says it pays "
+                   "(print); without the print's shape (points); or the smooth surface alone "
+                   "(modes).")
 @click.option("--model", default="standard", show_default=True,
               type=click.Choice(["standard", "rational"]),
               help="Distortion model: k1, k2, p1, p2, k3, or OpenCV's rational k1..k6, p1, p2.")

@@ -265,7 +265,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      cross_validate: bool = False, grid_points: int = 50,
                      camera_name: str | None = None, report: bool = True,
                      report_distance: float | None = None, pp_model: str = "angle2",
-                     residual_budget: bool = False, board_shape: str = "points",
+                     residual_budget: bool = False, board_shape: str = "print",
                      fixed: tuple[str, ...] = ()) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
@@ -314,9 +314,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         ``calibration.json``'s ``meta.residual_budget``).
     board_shape : {'print', 'points', 'modes'}
         The zoom-wide adjustment's board: height modes to degree 4 per capture session, a
-        height for every point and the print's in-plane modes (``print``); without the
-        print's (``points``, the default); or the height modes alone (``modes``;
-        ``board_points`` and ``print_shape`` of
+        height for every point and the print's in-plane modes where their test says they pay
+        (``print``, the default); without the print's (``points``); or the height modes alone
+        (``modes``; ``board_points`` and ``print_shape`` of
         :func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`).
     fixed : tuple of str
         Intrinsics the per-step OpenCV fits and the zoom-wide adjustment hold (keys of
@@ -736,7 +736,7 @@ def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2",
                sessions: dict[str, str] | None = None, workers: int = 1,
-               board_shape: str = "points") -> None:
+               board_shape: str = "print") -> None:
     """The zoom-wide adjustment of every calibrated step, added to ``run.results`` as backend
     ``"zoom-wide"`` (the steps reached zooming in and out are separate chains of its prior);
     a failure is logged and recorded (the per-step results stay)."""
@@ -781,7 +781,7 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
 
 def _cross_validate(run: CalibrateRun, model: str, target: Target, pp_model: str = "angle2",
                     sessions: dict[str, str] | None = None, workers: int = 1,
-                    board_shape: str = "points"):
+                    board_shape: str = "print"):
     """Two-halves check with the backend (and mode) of the zoom table (zoom-wide: with the
     board sessions of the full set)."""
     from .checks import cross_validate
