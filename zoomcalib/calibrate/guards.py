@@ -188,13 +188,14 @@ def _cached(cache: Path, settings: dict) -> tuple[dict[tuple, Detection], list[s
 
 
 def detect_with_cache(cache: Path, files: list[Path], target: Target, settings: dict,
-                      workers: int = 1, progress: Callable[[int], object] | None = None
-                      ) -> tuple[list[Detection], int, list[dict]]:
+                      workers: int = 1, progress: Callable[[int], object] | None = None,
+                      pool=None) -> tuple[list[Detection], int, list[dict]]:
     """Detections of ``files``, reusing those of ``cache`` made from the same image content
     with the same ``settings`` (:func:`detection_settings`); the others are detected, and the
     cache is rewritten when anything changed. A failure from outside the image (``transient``:
     a worker killed, an unexpected exception) is written with ``"reuse": false`` in its
-    fingerprint and detected again next time.
+    fingerprint and detected again next time. ``pool``: detection workers to use
+    (:func:`~zoomcalib.detect.opencv.detection_pool`), else ``workers`` new ones.
 
     Returns
     -------
@@ -214,7 +215,8 @@ def detect_with_cache(cache: Path, files: list[Path], target: Target, settings: 
         progress(reused)
     try:
         fresh = iter(detect_folder(todo, target, settings["method"], workers=workers,
-                                   progress=progress, **settings["options"]) if todo else [])
+                                   progress=progress, pool=pool, **settings["options"])
+                     if todo else [])
     except DetectionInterrupted as stop:  # keep what was finished: a rerun resumes there
         done = iter(stop.finished)
         kept = [(fp, d if d is not None else next(done))

@@ -41,7 +41,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..detect import image_files
+from ..detect import detection_pool, image_files
+from ..pool import map_in_processes, stop_pool
 from ..targets import Target, parse_pattern
 from .advice import advise
 from .export import write_exports
@@ -352,25 +353,34 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     settings = detection_settings(target, method)
     provenance: dict[str, dict] = {}
     extras_of: dict[str, dict] = {}
-    for step, _, zoom, extras in steps:
-        dets = _step_detections(out, step, step_files[step], target, settings, workers,
-                                progress, run, provenance, log)
-        obs = _step_observations(step, dets, target, run, log, step_files[step], method)
-        if obs is None:
-            continue
-        run.observations[step] = obs
-        run.zoom[step] = zoom
-        run.zoom_source[step] = extras.get("zoom_source")
-        if extras.get("zoom_note"):
-            log(f"step {step}: {extras['zoom_note']}"
-                + ("; its zoom is unknown" if zoom is None else ""))
-        step_results = _calibrate_step(step, obs, backends, model, target, run, log)
-        if not step_results and not zoom_wide:
-            run.backend_failures.pop(step, None)
-            run.dropped.append(step)
-            continue
-        run.results[step] = step_results  # empty: left to the zoom-wide adjustment
-        extras_of[step] = extras
+    # one pool of detection workers for every step (started at its first image to detect)
+    pool = detection_pool(workers) if workers > 1 and len(steps) > 1 else None
+    try:
+        for step, _, zoom, extras in steps:
+            dets = _step_detections(out, step, step_files[step], target, settings, workers,
+                                    progress, run, provenance, log, pool)
+            obs = _step_observations(step, dets, target, run, log, step_files[step], method)
+            if obs is None:
+                continue
+            run.observations[step] = obs
+            run.zoom[step] = zoom
+            run.zoom_source[step] = extras.get("zoom_source")
+            if extras.get("zoom_note"):
+                log(f"step {step}: {extras['zoom_note']}"
+                    + ("; its zoom is unknown" if zoom is None else ""))
+            step_results = _calibrate_step(step, obs, backends, model, target, run, log)
+            if not step_results and not zoom_wide:
+                run.backend_failures.pop(step, None)
+                run.dropped.append(step)
+                continue
+            run.results[step] = step_results  # empty: left to the zoom-wide adjustment
+            extras_of[step] = extras
+    except BaseException:
+        if pool is not None:
+            stop_pool(pool)
+        raise
+    if pool is not None:
+        pool.shutdown()
     _pool_view_scatter(run, backends)
     # the capture sessions go to the table's session column either way; the zoom-wide
     # adjustment also gives each its own board shape
@@ -408,7 +418,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if run.results:
         run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
                                    log)
-        run.files += _figures(run, out, zoom_set)
+        run.files += _figures(run, out, zoom_set, workers)
     if report and run.results:
         _report(run, out, report_distance, log)
     run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
@@ -649,10 +659,12 @@ def _without_copies(step: str, files: list[Path], run: CalibrateRun,
 
 def _step_detections(out: Path, step: str, files: list[Path], target: Target, settings: dict,
                      workers: int, progress, run: CalibrateRun, provenance: dict,
-                     log: Callable[[str], None]):
-    """The step's detections, from the cache for unchanged images; records and logs reuse."""
+                     log: Callable[[str], None], pool=None):
+    """The step's detections, from the cache for unchanged images (the others detected by
+    ``pool``, else ``workers`` new processes); records and logs reuse."""
     cache = out / "detections" / f"{run.stems[step]}.json"
-    dets, reused, prints = detect_with_cache(cache, files, target, settings, workers, progress)
+    dets, reused, prints = detect_with_cache(cache, files, target, settings, workers, progress,
+                                             pool)
     provenance[step] = {"file": cache.relative_to(out).as_posix(), "reused": reused,
                         "detected": len(files) - reused, "images": prints}
     if reused:
@@ -938,7 +950,9 @@ def _table_rows(run: CalibrateRun, extras_of: dict[str, dict],
             | ({"session": sessions.get(step)} if several else {})
             for step in run.results]
 
-def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
+def _figures(run: CalibrateRun, out: Path, zoom_set: bool, workers: int = 1) -> list[Path]:
+    """The run's figures; the steps' residual plots in ``workers`` processes (matplotlib's
+    drawing of their thousands of arrows is most of the time)."""
     from ..plots import (
         plot_focal_length,
         plot_principal_point_spiral,
@@ -973,12 +987,8 @@ def _figures(run: CalibrateRun, out: Path, zoom_set: bool) -> list[Path]:
                                            out / "cross_validation.png",
                                            title=f"Cross-validation ({cv.backend}): even vs "
                                                  "odd images"))
-    for s in steps:
-        obs = run.observations[s]
-        res = residual_vectors(best[s], obs)
-        pts = [p for _, p in obs.views]
-        files.append(plot_residuals(pts, res, obs.image_size,
-                                    out / f"residuals_{run.stems[s]}.png",
-                                    title=f"step {s}: {best[s].backend}, rms "
-                                          f"{best[s].rms_px:.3f} px"))
-    return files
+    plots = [([p for _, p in run.observations[s].views],
+              residual_vectors(best[s], run.observations[s]), run.observations[s].image_size,
+              out / f"residuals_{run.stems[s]}.png",
+              f"step {s}: {best[s].backend}, rms {best[s].rms_px:.3f} px") for s in steps]
+    return files + map_in_processes(plot_residuals, plots, workers)

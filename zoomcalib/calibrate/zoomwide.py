@@ -654,28 +654,38 @@ class _ZoomProblem:
         return r, scipy.sparse.vstack([J, self.prior_rows], format="csr")
 
     def _global_block(self, s: int, step: _Step, Jc: np.ndarray, Jx: np.ndarray,
-                      state: _State) -> tuple[np.ndarray, np.ndarray]:
-        """Step ``s``'s unweighted derivatives by the global unknowns it touches, (n, 2, k),
-        and their columns (k,): its free intrinsics, the shared aspect ratio, its session's
-        board modes and the print's in-plane modes."""
+                      state: _State, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Step ``s``'s derivatives by the global unknowns it touches times ``scale``, (n, 2,
+        k), and their columns (k,): its free intrinsics, the shared aspect ratio, its
+        session's board modes and the print's in-plane modes. Written into one array, block
+        by block (the normal equations' largest array: no concatenation, no copies)."""
         sel = step.inlier
         free = np.flatnonzero(self.free[s])
-        if self.shared_aspect:  # fy = aspect fx: fx moves fy too; the aspect column
-            Jc = Jc.copy()
-            Jc[:, :, 0] += state.aspect * Jc[:, :, 1]
-        blocks, cols = [Jc[:, :, free]], [self.cam_col[s, free]]
-        if self.aspect_col >= 0:
-            blocks.append(state.cams[s, 0] * Jc[:, :, 1:2])
+        n_basis, n_print = self.n_basis, self.n_print
+        aspect = self.aspect_col >= 0
+        k = len(free) + int(aspect) + (n_basis + n_print if n_basis else 0)
+        G = np.empty((Jc.shape[0], 2, k))
+        G[:, :, :len(free)] = Jc[:, :, free]
+        if self.shared_aspect and len(free) and free[0] == 0:  # fy = aspect fx: fx moves fy
+            G[:, :, 0] += state.aspect * Jc[:, :, 1]
+        cols = [self.cam_col[s, free]]
+        at = len(free)
+        if aspect:
+            np.multiply(Jc[:, :, 1], state.cams[s, 0], out=G[:, :, at])
             cols.append(np.array([self.aspect_col]))
-        if self.n_basis:
-            first = self.n_cam + self.n_basis * int(self.session[s])
+            at += 1
+        if n_basis:
             phi = self.phi[step.point[sel]][:, None, :]
-            blocks.append(Jx[:, :, 2:3] * phi)
-            cols.append(first + np.arange(self.n_basis))
-            if self.n_print:
-                blocks += [Jx[:, :, 0:1] * phi, Jx[:, :, 1:2] * phi]
-                cols.append(self.n_cam + self.n_modes - self.n_print + np.arange(self.n_print))
-        return np.concatenate(blocks, axis=2), np.concatenate(cols)
+            first = self.n_cam + n_basis * int(self.session[s])
+            np.multiply(Jx[:, :, 2:3], phi, out=G[:, :, at:at + n_basis])
+            cols.append(first + np.arange(n_basis))
+            if n_print:
+                np.multiply(Jx[:, :, 0:1], phi, out=G[:, :, at + n_basis:at + 2 * n_basis])
+                np.multiply(Jx[:, :, 1:2], phi, out=G[:, :, at + 2 * n_basis:at + 3 * n_basis])
+                cols.append(self.n_cam + self.n_modes - n_print + np.arange(n_print))
+        if scale != 1.0:
+            G *= scale
+        return G, np.concatenate(cols)
 
     def _jacobian_entries(self, s, step, jac, row0, rows, cols, vals, state: _State):
         Jc, Jp, Jx = jac
@@ -712,8 +722,8 @@ class _ZoomProblem:
             w = 1.0 / step.sigma
             r = (uv - step.uv[sel]) * w                                       # (n, 2)
             res.append(r.ravel())
-            G, cols = self._global_block(s, step, Jc, Jx, state)
-            G, P = G * w, Jp * w
+            G, cols = self._global_block(s, step, Jc, Jx, state, w)
+            P = Jp * w
             views = step.view[sel]
             n_local = step.n_views
             # per view sums of per-corner products: one sparse (views x corners) sum matrix

@@ -85,6 +85,7 @@ __all__ = [
     "default_method",
     "detect_folder",
     "detect_image",
+    "detection_pool",
     "image_files",
     "read_detections",
     "write_detections",
@@ -767,9 +768,19 @@ class DetectionInterrupted(KeyboardInterrupt):
         self.finished = finished
 
 
+def detection_pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
+    """A pool of ``workers`` spawned detection processes (one OpenCV thread each, Ctrl-C left
+    to the main process) for several :func:`detect_folder` calls (``pool=``): a zoom set's
+    steps then pay the workers' start once, not once per step. The caller shuts it down
+    (:func:`zoomcalib.pool.stop_pool` on an interrupt)."""
+    return concurrent.futures.ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+
+
 def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLike],
                   target: Target | str, method: str | None = None, workers: int = 1,
                   progress: Callable[[int], object] | None = None,
+                  pool: concurrent.futures.ProcessPoolExecutor | None = None,
                   **options) -> list[Detection]:
     """Detect the target in every image of a folder, or in a list of image files.
 
@@ -787,6 +798,9 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
         each). Results are in input order and do not depend on ``workers``.
     progress : callable, optional
         Called with 1 each time an image is finished.
+    pool : ProcessPoolExecutor, optional
+        Workers to use instead of starting ``workers`` new ones (:func:`detection_pool`);
+        left running, except on Ctrl-C, which stops it.
     **options
         Method options, as in :func:`detect_image`.
 
@@ -829,9 +843,9 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
                 progress(1)
         return out
     results: list[Detection | None] = [None] * len(files)
-    ctx = multiprocessing.get_context("spawn")
-    pool = concurrent.futures.ProcessPoolExecutor(min(workers, len(files)), mp_context=ctx,
-                                                  initializer=_worker_init)
+    own_pool = pool is None
+    if own_pool:
+        pool = detection_pool(min(workers, len(files)))
     try:
         futures = {pool.submit(_detect_safely, f, target, method, options): i
                    for i, f in enumerate(files)}
@@ -849,7 +863,8 @@ def detect_folder(folder_or_files: str | os.PathLike | Iterable[str | os.PathLik
     except KeyboardInterrupt:
         stop_pool(pool)
         raise DetectionInterrupted(results) from None
-    pool.shutdown()
+    if own_pool:
+        pool.shutdown()
     return [r for r in results if r is not None]
 
 
