@@ -17,6 +17,7 @@ from zoomcalib.detect import (
     Detection,
     detect_folder,
     detect_image,
+    detection_pool,
     read_detections,
     write_detections,
 )
@@ -254,6 +255,25 @@ def test_folder_with_workers_gives_the_same_results(mixed_folder):
         assert a.error == b.error
         np.testing.assert_array_equal(a.points, b.points)
     assert "cannot read image" in parallel[3].error
+
+
+def test_a_shared_pool_serves_several_folders_and_is_left_running(mixed_folder):
+    # calibrate's steps share one pool of workers: each call gives what its own pool would,
+    # and the pool stays usable for the next call until its owner shuts it down
+    own = detect_folder(mixed_folder, CHESS, "classic", workers=2)
+    pool = detection_pool(2)
+    try:
+        first = detect_folder(mixed_folder, CHESS, "classic", workers=2, pool=pool)
+        second = detect_folder(mixed_folder, CHESS, "classic", workers=2, pool=pool)
+        assert pool.submit(int, "7").result() == 7  # still running
+    finally:
+        pool.shutdown()
+    for run in (first, second):
+        assert [d.file for d in run] == [d.file for d in own]
+        for a, b in zip(own, run, strict=True):
+            assert a.error == b.error
+            if a.points is not None:
+                np.testing.assert_array_equal(a.points, b.points)
 
 
 def test_bad_inputs_give_one_line_errors(tmp_path):

@@ -31,8 +31,7 @@ def ignore_interrupt() -> None:
 def one_blas_thread(function):
     """Decorator: run ``function`` with BLAS (OpenBLAS, MKL) on one thread. For solvers whose
     products are small (a few hundred columns): there a second thread costs more than it
-    gives (``benchmarks/bench_blas_threads.py``: the zoom-wide adjustment of the real PTZ set
-    ran 1.2-1.5 times faster on one thread)."""
+    gives (``benchmarks/bench_blas_threads.py``; ``docs/performance.md``, "BLAS threads")."""
     @functools.wraps(function)
     def wrapper(*args, **kwargs):
         with threadpool_limits(1, user_api="blas"):
