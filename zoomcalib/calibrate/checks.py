@@ -95,7 +95,8 @@ ACTIONS = {
     "near_singular": "add views tilted 30-45 degrees about both axes",
     "views": "keep the camera and the board still while each frame is taken (no live-stream "
              "grabs during a move), or use the sigmas as widened",
-    "board": "use a rigid flat board (glass or aluminium), or keep --board-shape points",
+    "board": "use a rigid flat board (glass or aluminium), or keep the board's shape fitted "
+             "(--board-shape print, the default, or points)",
     "model_choice": "add views with the board in the image corners, where the two lens "
                     "models differ",
     "few_views": "add 4 or more views tilted 20-45 degrees, in turn about each axis",
