@@ -394,6 +394,30 @@ def test_board_sessions_from_steps_csv_or_the_capture_dates_in_the_names():
     assert "some steps only" in logged[-1]
 
 
+def test_a_step_taken_in_two_sittings_is_named():
+    # frames of one step with a gap of more than an hour (drawn) between two runs of
+    # minutes: the step and both sittings are logged; a step taken in one run is not
+    from zoomcalib.calibrate.result import Observations
+    from zoomcalib.calibrate.run import CalibrateRun, _log_sittings
+
+    rng = np.random.default_rng(11)
+    gap_min = int(rng.integers(75, 240))
+    start = 9 * 60 + int(rng.integers(0, 60))
+    minutes = np.r_[start + np.sort(rng.integers(0, 15, 5)),
+                    start + 15 + gap_min + np.sort(rng.integers(0, 15, 7))]
+    names = [f"live_ch0_20250805{m // 60:02d}{m % 60:02d}{rng.integers(0, 60):02d}.png"
+             for m in rng.permutation(minutes)]
+    run = CalibrateRun()
+    run.observations["two"] = Observations(np.zeros((1, 3)), [], (64, 48), names + ["x.png"])
+    run.observations["one"] = Observations(np.zeros((1, 3)), [], (64, 48), sorted(names)[:5])
+    logged = []
+    _log_sittings(run, logged.append)
+    assert len(logged) == 1 and logged[0].startswith("step two: ")
+    assert "2 sittings" in logged[0] and "5 frames" in logged[0] and "7 frames" in logged[0]
+    first = minutes[:5].min()
+    assert f"2025-08-05 {first // 60:02d}:{first % 60:02d}-" in logged[0]
+
+
 @pytest.mark.parametrize("text, message", [
     ("step,zoom\na,0.1\nb,wide\n", r"steps.csv row 2: zoom 'wide' is not a number"),
     ("step,zoom,direction\na,0.1,up\nb,0.2,in\n", r"steps.csv row 1: direction 'up'"),

@@ -62,6 +62,7 @@ sd_k6`` of the distortion terms.
 from __future__ import annotations
 
 import csv
+import datetime
 import io
 import json
 import math
@@ -83,6 +84,7 @@ __all__ = [
     "ZOOM_TABLE_OPTIONAL",
     "ZOOM_TABLE_REQUIRED",
     "capture_date",
+    "capture_sittings",
     "exif_focal_length",
     "read_calibration",
     "read_zoom_table",
@@ -629,6 +631,35 @@ def capture_date(names: list[str]) -> tuple[str | None, int]:
         return None, len(names)
     best = max(dict.fromkeys(known), key=known.count)
     return best, len(names) - known.count(best)
+
+
+_NAME_TIME = re.compile(r"(?<!\d)(20\d{2}(?:0[1-9]|1[0-2])(?:0[1-9]|[12]\d|3[01])"
+                        r"(?:[01]\d|2[0-3])[0-5]\d[0-5]\d)(?!\d)")
+
+
+def capture_sittings(names: list[str], gap_hours: float = 1.0
+                     ) -> list[tuple[datetime.datetime, datetime.datetime, int]]:
+    """The sittings of ``names`` (image file names carrying a capture time
+    ``YYYYMMDDhhmmss``): in time order, a new sitting after a gap of more than ``gap_hours``.
+    Per sitting its first and last capture time and its number of names; names without a
+    time are left out (``[]`` when none has one).
+
+    Examples
+    --------
+    >>> [(a.strftime("%H:%M"), b.strftime("%H:%M"), n) for a, b, n in capture_sittings(
+    ...     ["live_ch0_20250805120423.png", "live_ch0_20250805121945.png",
+    ...      "live_ch0_20250805150754.png", "1x_zoom_1.png"])]
+    [('12:04', '12:19', 2), ('15:07', '15:07', 1)]
+    """
+    times = sorted(datetime.datetime.strptime(m.group(1), "%Y%m%d%H%M%S")
+                   for m in (_NAME_TIME.search(n) for n in names) if m)
+    gap = datetime.timedelta(hours=gap_hours)
+    sittings: list[list[datetime.datetime]] = []
+    for t in times:
+        if not sittings or t - sittings[-1][-1] > gap:
+            sittings.append([])
+        sittings[-1].append(t)
+    return [(group[0], group[-1], len(group)) for group in sittings]
 
 
 def _is_output_folder(folder: Path) -> bool:

@@ -58,6 +58,7 @@ from .guards import (
 from .io import (
     KEYSTONE_COLUMNS,
     capture_date,
+    capture_sittings,
     ignored_top_images,
     write_calibration,
     write_zoom_table,
@@ -382,6 +383,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if pool is not None:
         pool.shutdown()
     _pool_view_scatter(run, backends)
+    _log_sittings(run, log)
     # the capture sessions go to the table's session column either way; the zoom-wide
     # adjustment also gives each its own board shape
     capture = _board_sessions(run, extras_of, log if zoom_wide else (lambda message: None))
@@ -710,6 +712,27 @@ def _pool_view_scatter(run: CalibrateRun, backends: Sequence[str]) -> None:
                                     if backend in r})
         for step, res in pooled.items():
             run.results[step][backend] = res
+
+
+#: Frames of one step more than this apart (hours) are taken as two sittings (logged).
+SITTING_GAP_H = 1.0
+
+
+def _log_sittings(run: CalibrateRun, log: Callable[[str], None]) -> None:
+    """Name the steps whose frames were taken in several sittings (capture times in the
+    image names more than :data:`SITTING_GAP_H` apart, :func:`capture_sittings`): a board
+    re-taped or moved between them is not one shape, and the board model's sessions are whole
+    steps (on the real PTZ set one step's two sittings saw two board shapes:
+    ``docs/real-camera.md``)."""
+    for step, obs in run.observations.items():
+        sittings = capture_sittings(list(obs.names), SITTING_GAP_H)
+        if len(sittings) < 2:
+            continue
+        spans = "; ".join(f"{a:%Y-%m-%d %H:%M}-{b:%H:%M}, {n} frame{'s' if n > 1 else ''}"
+                          for a, b, n in sittings)
+        log(f"step {step}: its frames were taken in {len(sittings)} sittings more than "
+            f"{SITTING_GAP_H:g} h apart ({spans}); the board model gives them one shape: if "
+            "the board was re-taped or moved between them, recapture the step in one sitting")
 
 
 def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
