@@ -168,6 +168,20 @@ def test_result_fields_match_opencv(zc_obs, zc_result):
     assert r.info["sd_rvecs"].shape == (13, 3)
 
 
+def test_a_camera_only_fit_is_the_same_camera_without_the_checks(zc_obs, zc_result):
+    # the held-out folds and the starts use the camera alone: the same solve, the checks
+    # that only the reported sigmas and the diagnosis use skipped, and said so
+    light = calibrate_opencv(zc_obs, camera_only=True)
+    np.testing.assert_array_equal(light.K, zc_result.K)
+    np.testing.assert_array_equal(light.dist, zc_result.dist)
+    np.testing.assert_array_equal(light.rvecs, zc_result.rvecs)
+    assert light.info["camera_only"] and "camera_only" not in zc_result.info
+    assert "view_scatter" not in light.info and "keystone_response" not in light.info
+    assert zc_result.info["view_scatter"]["applied"]
+    # its sigmas are the noise model's, which the full fit keeps beside its scaled ones
+    assert light.sd == pytest.approx(zc_result.info["sd_noise_model"], rel=1e-12)
+
+
 def test_rational_model_and_schur_bit(zc_obs, zc_result):
     r8 = calibrate_opencv(zc_obs, model="rational")
     assert r8.dist.shape == (8,) and {"k4", "k5", "k6"} <= set(r8.sd)

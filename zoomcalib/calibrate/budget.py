@@ -349,7 +349,8 @@ def _train(obs: Observations, start: CalibrationResult, terms: tuple[str, ...],
         return _train_board(obs, start.K, dist0, flags, None)
     if "board" in training:
         return _train_board(obs, start.K, dist0, flags, 0.01)
-    res = calibrate_opencv(obs, flags=flags, K_guess=start.K, dist_guess=dist0)
+    res = calibrate_opencv(obs, flags=flags, K_guess=start.K, dist_guess=dist0,
+                           camera_only=True)
     return res.K, np.ravel(res.dist), np.asarray(obs.object_points, float)
 
 

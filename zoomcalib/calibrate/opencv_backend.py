@@ -639,9 +639,11 @@ def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None
 def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, flags: int,
             n_dist: int, model: str, names: list[str], opencv_rms: float,
             opencv_per_view, criteria, groups: np.ndarray | None = None,
-            point_ids: np.ndarray | None = None) -> tuple[CalibrationResult, list[str]]:
+            point_ids: np.ndarray | None = None, camera_only: bool = False
+            ) -> tuple[CalibrationResult, list[str]]:
     """The result of one OpenCV calibration, and the names of its invalid 1-sigmas;
-    ``groups`` and ``point_ids`` as in :func:`_view_scatter`."""
+    ``groups`` and ``point_ids`` as in :func:`_view_scatter`; ``camera_only`` as in
+    :func:`calibrate_opencv`."""
     K = np.asarray(out_K, np.float64).reshape(3, 3)
     dist_all = np.asarray(out_dist, np.float64).ravel()
     dist = dist_all[:n_dist].copy()
@@ -662,7 +664,7 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
             sd.update(sd_check["sd"])
             # the poses' sigmas come from the same truncated inverse: the full one's replace them
             sde = np.full((len(obj), 6), np.inf) if covariance is None else covariance[1]
-        if covariance is not None:
+        if covariance is not None and not camera_only:
             sd_noise_model = dict(sd)
             scatter = _view_scatter(at_solution, covariance, groups, point_ids)
             sd = scatter.scaled(sd)
@@ -689,7 +691,9 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
         info["sd_noise_model"] = sd_noise_model
     if notes:
         info["notes"] = notes
-    if backend == "opencv":  # the object-releasing fit moves the target too: not modelled
+    if camera_only:
+        info["camera_only"] = True
+    elif backend == "opencv":  # the object-releasing fit moves the target too: not modelled
         response = keystone_response(obj, K, dist, rv, tv, flags, n_dist)
         if response is not None:
             info["keystone_response"] = {k: v.tolist() for k, v in response.items()}
@@ -703,7 +707,7 @@ def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, fla
 def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
                      fix_aspect: bool = False, *, K_guess: np.ndarray | None = None,
                      dist_guess: Sequence[float] | None = None, criteria=None,
-                     min_views: int = 3) -> CalibrationResult:
+                     min_views: int = 3, camera_only: bool = False) -> CalibrationResult:
     """Calibrate with ``cv2.calibrateCameraExtended`` (target points taken as exact).
 
     Parameters
@@ -730,6 +734,10 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
         Fewest views accepted. Two views of a plane give exactly the four constraints that the
         four intrinsics of a zero-skew camera need, leaving nothing to check them by; 3 is the
         default.
+    camera_only : bool
+        For a caller that uses the camera and the poses alone (a held-out fold, a start): the
+        view-scatter check and the keystone response are not computed, so the 1-sigmas are
+        the noise model's (still checked), and ``info["camera_only"]`` is True.
 
     Returns
     -------
@@ -763,8 +771,9 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
     rms, K, dist, rvecs, tvecs, sdi, sde, per_view = out
     res, invalid = _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist,
                            model, names, rms, per_view, _criteria(criteria),
-                           view_groups(obs.views, obs.image_size),
-                           np.concatenate([np.asarray(ids) for ids, _ in obs.views]))
+                           None if camera_only else view_groups(obs.views, obs.image_size),
+                           np.concatenate([np.asarray(ids) for ids, _ in obs.views]),
+                           camera_only)
     _check_sd(res, invalid, 4 + n_dist)
     return res
 
@@ -819,12 +828,13 @@ def not_a_camera(result: CalibrationResult, image_size: tuple[int, int]) -> str 
 
 
 def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flags: int = 0,
-                                focal_range: tuple[float, float] = (0.5, 32.0), starts: int = 4
-                                ) -> CalibrationResult | None:
+                                focal_range: tuple[float, float] = (0.5, 32.0), starts: int = 4,
+                                camera_only: bool = False) -> CalibrationResult | None:
     """:func:`calibrate_opencv` from ``starts`` focal lengths log-spaced over ``focal_range``
     times the image's larger side (principal point at the centre and square pixels held for a
     first solve, then freed); the result with the smallest RMS that is a camera
-    (:func:`not_a_camera`), or None.
+    (:func:`not_a_camera`), or None; ``camera_only`` as in :func:`calibrate_opencv` (the
+    first solves, with the principal point held, are always camera only).
 
     OpenCV's own start comes from the views' homographies (Zhang's closed form), which is
     ill-posed when the views are nearly fronto-parallel, as at the long end of a zoom: through
@@ -837,8 +847,9 @@ def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flag
         K = np.array([[focal, 0.0, (w - 1) / 2.0], [0.0, focal, (h - 1) / 2.0], [0, 0, 1]])
         try:
             held = calibrate_opencv(obs, model, flags | cv2.CALIB_FIX_PRINCIPAL_POINT,
-                                    fix_aspect=True, K_guess=K)
-            result = calibrate_opencv(obs, model, flags, K_guess=held.K, dist_guess=held.dist)
+                                    fix_aspect=True, K_guess=K, camera_only=True)
+            result = calibrate_opencv(obs, model, flags, K_guess=held.K, dist_guess=held.dist,
+                                      camera_only=camera_only)
         except (ValueError, RuntimeError):
             continue
         if not_a_camera(result, obs.image_size) is None and (
@@ -870,25 +881,28 @@ def fix_flags(names) -> int:
 
 
 def calibrate_opencv_robust(obs: Observations, model: str = "standard", flags: int = 0,
-                            fronto_parallel_deg: float | None = None) -> CalibrationResult:
+                            fronto_parallel_deg: float | None = None, camera_only: bool = False
+                            ) -> CalibrationResult:
     """:func:`calibrate_opencv` from OpenCV's own start and also from
     :func:`calibrate_opencv_multistart`: always, or with ``fronto_parallel_deg`` only when the
     first is no camera (:func:`not_a_camera`) or all its views are tilted less than that
     (degrees) from fronto-parallel, where OpenCV's own start is ill-posed. Returns the camera
     with the smallest RMS (``info["start"]``: ``"opencv"`` or ``"multi-start"``); raises what
-    OpenCV raised, or ValueError naming why its result is no camera, when no start gives one.
+    OpenCV raised, or ValueError naming why its result is no camera, when no start gives one;
+    ``camera_only`` as in :func:`calibrate_opencv`.
     """
     from .quality import view_geometry
 
     try:
-        own = calibrate_opencv(obs, model, flags)
+        own = calibrate_opencv(obs, model, flags, camera_only=camera_only)
         failure = not_a_camera(own, obs.image_size)
     except (ValueError, RuntimeError) as exc:
         own, failure, error = None, str(exc), exc
     candidates = [] if failure else [own]
     if (fronto_parallel_deg is None or failure
             or view_geometry(own, obs).tilt_deg.max() < fronto_parallel_deg):
-        candidates += [r for r in [calibrate_opencv_multistart(obs, model, flags)] if r]
+        candidates += [r for r in [calibrate_opencv_multistart(obs, model, flags,
+                                                               camera_only=camera_only)] if r]
     if not candidates:
         if own is None:
             raise error

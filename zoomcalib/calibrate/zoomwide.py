@@ -306,7 +306,7 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
         with pose_sigmas_unused():  # a pose's sigma is not used here
-            res = calibrate_opencv(obs.subset(train), flags=flags, **guess)
+            res = calibrate_opencv(obs.subset(train), flags=flags, camera_only=True, **guess)
         if (why := not_a_camera(res, obs.image_size)) is not None:
             raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
                                f"diverged: {why}")
@@ -1073,7 +1073,7 @@ def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
     or None when no start gives a camera."""
     try:
         return calibrate_opencv_robust(obs, flags=_distortion_flags(
-            _without(("k1",), held_terms)))
+            _without(("k1",), held_terms)), camera_only=True)
     except (ValueError, RuntimeError):
         return None
 
@@ -1586,7 +1586,7 @@ def _model_shift(obs: Observations, res: CalibrationResult, term_sets: list[tupl
         try:
             with pose_sigmas_unused():  # a pose's sigma is not used here
                 fit = calibrate_opencv(on_board, flags=_distortion_flags(terms),
-                                       **_guess(res, terms))
+                                       camera_only=True, **_guess(res, terms))
         except (ValueError, cv2.error) as exc:
             raise RuntimeError(f"{'+'.join(terms)}: {' '.join(str(exc).split())}") from exc
         if (why := not_a_camera(fit, obs.image_size)) is not None:
