@@ -854,6 +854,29 @@ def test_an_exact_print_is_found_exact(sweep):
             assert got.sd[q] == pytest.approx(r.sd[q], rel=0.03), (name, q)
 
 
+def test_a_basin_is_judged_with_the_terms_its_chain_lends_it():
+    # a pincushion with k2: the wider steps' held-out views choose k2, the narrowest k1
+    # alone, and the adjustment ties k2 into them through its zoom model; their principal
+    # point's basin is judged with it (a basin that needs k2 must not lose for want of it),
+    # and the state they keep has their own terms
+    rng = np.random.default_rng(5)
+    obs, truth, _ = sweep_observations(rng, steps=7, views=10, fx_range=(2300.0, 9000.0),
+                                       dist=lambda u: np.array([-0.2, 8.0, 0.0, 0.0, 0.0]))
+    zw = calibrate_zoom_wide(obs)
+    own = {n: set(r.info["distortion_choice"]["terms"]) for n, r in zw.results.items()}
+    judged = {n: set(r.info["basin"]["terms"]) for n, r in zw.results.items()}
+    lent = [n for n in obs if own[n] == {"k1"}]
+    assert sum("k2" in t for t in own.values()) >= 3 and lent, own
+    for n in obs:  # its own terms with their decentring, and the chain's k2
+        assert judged[n] == own[n] | {"k1", "k2", "p1", "p2"}, (n, own[n], judged[n])
+    for n in lent:  # the smoothness prior frees k2 there, as the basin check assumed
+        assert "k2" in zw.results[n].info["zoom_model"], n
+        assert zw.results[n].dist[1] != 0.0, n
+    z = [(getattr(zw.results[n], q) - t[q]) / zw.results[n].sd[q]
+         for n, t in truth.items() for q in ("fx", "cx", "cy")]
+    assert max(np.abs(z)) < 4 and 0.4 < np.sqrt(np.mean(np.square(z))) < 1.6, z
+
+
 def test_a_step_between_two_basins_takes_both_into_its_sigmas(rng, monkeypatch):
     # the narrowest step's basin check is made to report a second basin (80, -40 px away in
     # cx, cy, p1 0.02 away) that its views do not tell from the chosen one: the adjustment

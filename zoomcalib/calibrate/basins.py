@@ -88,7 +88,8 @@ class BasinCheck:
     ``noise_px``: the corner noise the costs are compared in; ``view_t``: the views' paired
     test statistic of the cost's drop from the given basin to the best other fit (NaN with
     fewer than 2 views or no other fit), ``view_t_needed`` the quantile it passes when the
-    views agree on the drop.
+    views agree on the drop. ``terms``: the distortion terms the basins were judged with, as
+    the caller names them (empty when it does not).
     """
 
     fit: CalibrationResult | None
@@ -105,6 +106,7 @@ class BasinCheck:
     view_t_needed: float = float("nan")
     second_view_t: float = float("nan")
     second_view_t_needed: float = float("nan")
+    terms: tuple[str, ...] = ()
 
     @property
     def chosen_cost_px2(self) -> float:
@@ -166,7 +168,7 @@ class BasinCheck:
                "other_cost_px2": number(self.other_cost_px2), "why": self.why,
                "view_t": number(self.view_t), "view_t_needed": number(self.view_t_needed),
                "views_disagree": self.views_disagree, "ambiguous": self.ambiguous,
-               "half_gap": self.half_gap()}
+               "half_gap": self.half_gap(), "terms": list(self.terms)}
         if self.fit is not None:  # the step alone on the adjustment's board
             out["alone"] = {"fx": self.fit.fx, "cx": self.fit.cx, "cy": self.fit.cy}
         if self.moved and self.fit is not None:

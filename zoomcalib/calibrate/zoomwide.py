@@ -1146,17 +1146,21 @@ def _start(init: Mapping[str, CalibrationResult], terms) -> tuple[_State, np.nda
     return _State(cams, np.zeros(0), rvecs, tvecs), free, sds
 
 
+#: The fewest steps of a chain that estimate a parameter for it to have a zoom model.
+MIN_MODEL_STEPS = 3
+
+
 def _series(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
             j: int, form: _Form) -> list[tuple[list[int], tuple]]:
-    """Per chain of 3 or more free steps of parameter ``j``: the steps and the chain
-    ``(values, noise, u, offset)`` (:mod:`~zoomcalib.calibrate.zoommodel`); ``noise`` from the
-    sigmas ``cov`` (S, 12) or a function ``cov(steps, j)`` giving a covariance. With a
-    ``form.weight`` ``w`` the values are ``w q``, their noise scaled alike and ``w`` the free
-    offset's direction."""
+    """Per chain of :data:`MIN_MODEL_STEPS` or more free steps of parameter ``j``: the steps
+    and the chain ``(values, noise, u, offset)`` (:mod:`~zoomcalib.calibrate.zoommodel`);
+    ``noise`` from the sigmas ``cov`` (S, 12) or a function ``cov(steps, j)`` giving a
+    covariance. With a ``form.weight`` ``w`` the values are ``w q``, their noise scaled alike
+    and ``w`` the free offset's direction."""
     series, tied = [], _tied(free, j)
     for chain in chains:
         steps = [s for s in chain if tied[s]]
-        if len(steps) < 3:
+        if len(steps) < MIN_MODEL_STEPS:
             continue
         values = cams[steps, j]
         noise = cov(steps, j) if callable(cov) else np.asarray(cov, float)[steps, j]
@@ -1686,22 +1690,23 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
     """Per step of ``prob``: :func:`~zoomcalib.calibrate.basins.best_basin` of its views on
     its board's estimated points, from its camera in ``state``; where another basin has the
     lower cost, the step's intrinsics and poses in ``state`` are set to that fit's (its
-    aspect ratio is the state's). The fits see the corners the adjustment keeps (its
+    aspect ratio is the state's), judged with the terms of :func:`_basin_terms`. The fits
+    see the corners the adjustment keeps (its
     inliers): a corner it rejected would pull a narrow step's OpenCV fit far from the
     adjustment's own. Steps run in ``workers`` processes."""
-    items = []
+    items, judged = [], [_basin_terms(prob, s) for s in range(len(prob.steps))]
     for s, step in enumerate(prob.steps):
         obs = observations[step.name]
         cam = state.cams[s]
         K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
         rational = bool(np.any(cam[9:]))
-        flags = _distortion_flags(tuple(p for p, f in zip(PARAMS[4:], prob.free[s, 4:],
-                                                          strict=True) if f))
         items.append((Observations(prob.points(state, s), _inlier_views(step), obs.image_size,
                                    obs.names),
-                      K, cam[4:] if rational else cam[4:9], flags, step.sigma))
+                      K, cam[4:].copy() if rational else cam[4:9].copy(),
+                      _distortion_flags(judged[s]), step.sigma))
     checks = _map_steps(best_basin, items, workers)
     for s, check in enumerate(checks):
+        check.terms = judged[s]
         if not check.moved:
             continue
         fit, first, last = check.fit, prob.view_start[s], prob.view_start[s + 1]
@@ -1711,6 +1716,25 @@ def _move_to_best_basins(prob: _ZoomProblem, state: _State,
                                                       fit.dist, 0.0)
         state.rvecs[first:last], state.tvecs[first:last] = fit.rvecs, fit.tvecs
     return checks
+
+
+def _basin_terms(prob: _ZoomProblem, s: int) -> tuple[str, ...]:
+    """The distortion terms step ``s``'s basin is judged with: its own, and, where it has a
+    radial term (and not the rational model's), each of ``k1, k2, p1, p2, k3`` that
+    :data:`MIN_MODEL_STEPS` or more steps of its chain estimate. The adjustment with the
+    smoothness prior frees those at this step (:func:`_tie_terms`, the zoom models of
+    :func:`_series`), so a basin that needs the chain's k2 to fit would otherwise lose to one
+    that does not, and then be the start the adjustment cannot leave (the halves of a real
+    narrow step's frames chose basins far apart that way, ``docs/real-camera.md``, "The
+    halves"). The state keeps the step's own terms: a lent term's value is dropped when the
+    step moves."""
+    own = tuple(p for p, f in zip(PARAMS[4:], prob.free[s, 4:], strict=True) if f)
+    if not {"k1", "k2", "k3"} & set(own) or set(RATIONAL_TERMS) & set(own):
+        return own
+    chain = next((c for c in prob.chains if s in c), np.array([s]))
+    lent = {q for q in ("k1", "k2", "p1", "p2", "k3")
+            if _tied(prob.free, PARAMS.index(q))[chain].sum() >= MIN_MODEL_STEPS}
+    return tuple(q for q in PARAMS[4:] if q in own or q in lent)
 
 
 def _inlier_views(step: _Step, fewest: int = 6) -> list[tuple[np.ndarray, np.ndarray]]:
