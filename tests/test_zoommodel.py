@@ -12,6 +12,7 @@ import pytest
 from zoomcalib.calibrate.zoommodel import (
     PathPrior,
     divided_difference,
+    held_out_residuals,
     marginal_tau,
     path_posterior,
     pooled_prior_strength,
@@ -139,6 +140,27 @@ def test_marginalised_tau_covers_paths_that_reml_calls_straight(rng):
     assert 0.8 < np.sqrt(np.mean(z_marginal ** 2)) < 1.1
     assert np.mean(z_marginal > 2) < 0.0455  # no more misses than a Gaussian's
     assert z_marginal.max() < z_plugin.max()
+
+
+def test_held_out_steps_are_predicted_with_tau_marginalised(rng):
+    # the same bent paths, each step predicted from the others: at REML's plug-in tau the
+    # predictions are too sure where the others look straight (more misses beyond 2 and 3
+    # sigma than a Gaussian's); averaged over tau's posterior they are not, at the price of
+    # sigmas somewhat wide on average
+    z_plugin, z_marginal = [], []
+    for _, chain in _bent_angle_chains(rng, 40, 3e-3):
+        for marginal, z in ((False, z_plugin), (True, z_marginal)):
+            resid, sd = held_out_residuals(chain, 2, 0.0, True, marginal=marginal)
+            z.extend(resid / sd)
+    z_plugin, z_marginal = np.abs(z_plugin), np.abs(z_marginal)
+    rms = np.sqrt(np.mean(z_marginal ** 2))
+    for name, z in (("plug-in", z_plugin), ("marginalised", z_marginal)):
+        print(f"{name}: RMS z {np.sqrt(np.mean(z ** 2)):.3f}, beyond 2 {np.mean(z > 2):.3f}, "
+              f"beyond 3 {int(np.sum(z > 3))} of {len(z)}")
+    # 280 z values, correlated within a draw: two-sided, the RMS known to about 10 %
+    assert 0.6 < rms < 1.1 and rms < np.sqrt(np.mean(z_plugin ** 2))
+    assert np.mean(z_marginal > 2) < 0.0455 < np.mean(z_plugin > 2)
+    assert np.sum(z_marginal > 3) < np.sum(z_plugin > 3)
 
 
 def test_marginalised_tau_adds_little_where_the_data_pin_tau_down(rng):

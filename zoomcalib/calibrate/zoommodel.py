@@ -361,13 +361,20 @@ def held_out_densities(chains: list[tuple], order: int, reml: bool) -> np.ndarra
     return np.array(out)
 
 
-def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool
-                       ) -> tuple[np.ndarray, np.ndarray] | None:
+def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool,
+                       marginal: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """Each step of a chain ``(values, sd, u[, offset])`` predicted from the others under the
     difference prior of ``order``: the residual (value minus prediction) and the predictive
     1-sigma ``1 / sqrt(Q_ii)`` (the step's own noise included; module docstring, "Held-out
     choice"), both (n,) in the chain's units. ``tau`` is used as given, or with ``reml``
     estimated again without the step. None when the chain is too short to predict a step.
+
+    With ``reml`` and ``marginal`` the prediction is averaged over the posterior of ``tau``
+    given the other steps (:func:`tau_posterior`) instead of taken at its REML value: the
+    residual is the posterior mean of ``r(t) = (Q(t) q)_i / Q(t)_ii`` and the variance
+    ``E[1 / Q(t)_ii] + Var[r(t)]`` (the law of total variance, as in :func:`marginal_tau`).
+    From the few differences of a short chain REML can sit at a ``tau`` far smoother than the
+    data allow, and a plug-in prediction is then too sure of itself.
 
     Examples
     --------
@@ -386,15 +393,24 @@ def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool
         return None
     resid, spread = np.empty(n), np.empty(n)
     for i in range(n):
-        t = tau
+        taus, weights = np.array([tau]), np.ones(1)
         if reml:
             keep = np.arange(n) != i
-            rest = (values[keep], S[np.ix_(keep, keep)], u[keep])
-            t = pooled_prior_strength([rest + (() if offset is None else (offset[keep],))],
-                                      order)[0]
-        Q = _restricted_precision(S, u, order, t, offset)
-        resid[i] = (Q @ values)[i] / Q[i, i]
-        spread[i] = 1.0 / np.sqrt(Q[i, i])
+            rest = [(values[keep], S[np.ix_(keep, keep)], u[keep])
+                    + (() if offset is None else (offset[keep],))]
+            taus, weights = tau_posterior(rest, order) if marginal else (np.zeros(0),) * 2
+            if len(taus):
+                keep_t = weights >= 1e-6 * weights.max()
+                taus, weights = taus[keep_t], weights[keep_t]
+            else:  # the plug-in (also where the other steps give no posterior)
+                taus, weights = np.array([pooled_prior_strength(rest, order)[0]]), np.ones(1)
+        r_t, var_t = np.empty(len(taus)), np.empty(len(taus))
+        for k, t in enumerate(taus):
+            Q = _restricted_precision(S, u, order, t, offset)
+            r_t[k], var_t[k] = (Q @ values)[i] / Q[i, i], 1.0 / Q[i, i]
+        weights = weights / weights.sum()
+        resid[i] = weights @ r_t
+        spread[i] = np.sqrt(weights @ var_t + weights @ (r_t - resid[i]) ** 2)
     return resid, spread
 
 

@@ -382,7 +382,7 @@ def _focal_path(result, steps: list[str], zoom: np.ndarray, fx: np.ndarray,
     tau = prior_strength(values, cov, zoom, 2)[0]
     path = _Path(list(steps), zoom.copy(), values, cov, 2, float(tau) if np.isfinite(tau)
                  else 0.0)
-    got = held_out_residuals((values, cov, zoom), 2, path.tau, True)
+    got = held_out_residuals((values, cov, zoom), 2, path.tau, True, marginal=True)
     if got is None:
         return path, None
     return path, {"steps": list(steps), "error": [float(v) for v in got[0] * fx],

@@ -1265,8 +1265,9 @@ def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.nda
                     names: list[str]) -> dict[str, dict]:
     """Per modelled parameter: each step of its chains predicted from the other steps' values
     (``cams``, sigmas or joint covariance ``cov`` as :func:`_series` reads them) under its zoom
-    model (:func:`~zoomcalib.calibrate.zoommodel.held_out_residuals`; a REML ``tau`` estimated
-    again without the step; the values' noise scaled by :func:`_with_scatter`):
+    model (:func:`~zoomcalib.calibrate.zoommodel.held_out_residuals`; a REML ``tau``
+    marginalised over its posterior given the other steps; the values' noise scaled by
+    :func:`_with_scatter`):
     ``{"steps": [...], "error": [...], "sd": [...]}``, the value minus
     its prediction and the predictive 1-sigma (the step's own noise included), in the
     parameter's units. A chain too short to predict from is left out."""
@@ -1276,7 +1277,7 @@ def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.nda
         reml = CANDIDATES.get(model.name, (2, True))[1] and model.tau_kind != "given"
         record: dict[str, list] = {"steps": [], "error": [], "sd": []}
         for steps, chain in _series(cams, cov, free, chains, u, j, form):
-            got = held_out_residuals(chain, model.order, model.tau, reml)
+            got = held_out_residuals(chain, model.order, model.tau, reml, marginal=True)
             if got is None:
                 continue
             w = form.at(steps)
