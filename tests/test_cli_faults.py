@@ -316,6 +316,24 @@ def test_a_write_failing_during_the_work_is_one_line(tmp_path, monkeypatch):
     one_line_error(res, 1, f"{tmp_path / 'sim' / 'spiral.png'}: No space left on device")
 
 
+@pytest.mark.parametrize("command, args", [("simulate", []), ("detect", ["--pattern", CHESS]),
+                                           ("study", ["--quick"])])
+def test_ctrl_c_in_any_command_is_one_line_and_exit_130(tmp_path, monkeypatch, command, args):
+    # calibrate's own handling (detections kept, a real signal) is tested in
+    # test_calibrate_cli.py; every other command ends the same way through the group
+    def pressed(*a, **kw):
+        raise KeyboardInterrupt
+
+    module, name = WORK[command]
+    monkeypatch.setattr(module, name, pressed)
+    folder = linked_folder(tmp_path, ["left01.jpg"]) if command == "detect" else None
+    res = CliRunner().invoke(main, [command, *([str(folder)] if folder else []), *args,
+                                    "--out", str(tmp_path / "o")])
+    assert res.exit_code == 130, res.output
+    assert res.output.strip().splitlines()[-1] == "interrupted (exit code 130)"
+    assert "Aborted" not in res.output and "Traceback" not in res.output
+
+
 @pytest.mark.parametrize("failed, code", [(1, 3), ("all", 4)])
 def test_study_exit_codes_name_failed_sets(tmp_path, monkeypatch, failed, code):
     import zoomcalib.study.run as study_run
@@ -373,3 +391,26 @@ def test_diagnose_passes_no_report_to_the_calibration(tmp_path, monkeypatch):
                                         *extra])
         assert res.exit_code == 1 and "recorded" in res.output, res.output
         assert seen["report"] is report
+
+
+def test_a_requested_output_that_cannot_be_written_makes_the_run_partial(tmp_path):
+    """The report and the ROS files are asked for (the default); where they cannot be written
+    (a folder in the report's place, a file in the ros folder's) the rest is written and the run
+    ends partial (exit 3), naming them."""
+    folder = linked_folder(tmp_path, ["left01.jpg", "left02.jpg", "left03.jpg", "left04.jpg"])
+    out = tmp_path / "c"
+    (out / "report.html").mkdir(parents=True)
+    (out / "ros").write_text("in the way\n")
+    res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", CHESS, "--backend",
+                                    "opencv", "--workers", "1", "--out", str(out)])
+    assert res.exit_code == 3, res.output
+    assert "report.html: not written" in res.output
+    assert "ros/: not written" in res.output
+    assert "partial result: not calibrated, skipped or not written: " in res.output
+    named = res.output.split("partial result")[1]
+    assert "ros/ not written" in named and "report.html not written" in named
+    assert (out / "calibration.json").is_file() and any((out / "opencv").glob("*.yml"))
+    res = CliRunner().invoke(main, ["calibrate", str(folder), "--pattern", CHESS, "--backend",
+                                    "opencv", "--workers", "1", "--out", str(tmp_path / "c2")])
+    assert res.exit_code == 0, res.output
+    assert "not written" not in res.output

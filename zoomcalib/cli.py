@@ -48,11 +48,16 @@ EXIT_CODES = ("Exit codes: 0 all done; 1 the input could not be used, or a file 
 
 class _Group(click.Group):
     """The command group; an operating-system error that no check foresaw (a disk full, a
-    file removed while in use) ends with one line naming the file, never a traceback."""
+    file removed while in use) ends with one line naming the file, never a traceback, and
+    Ctrl-C in any command with one line and exit code 130 (the shell's for SIGINT), where
+    click would say "Aborted!" with 1."""
 
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("\ninterrupted (exit code 130)", err=True)
+            sys.exit(130)
         except BrokenPipeError:
             raise
         except OSError as exc:
@@ -750,8 +755,10 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
                 + [f"step {s} {', '.join(b)}" for s, b in run.backend_failures.items()]
                 + _calibration_problems([], messages)
                 + [f"image {name}" if s == "." else f"image {s}/{name}"
-                   for s, names in run.left_out.items() for name in names])
-    _exit_if_partial(problems, "not calibrated or skipped")
+                   for s, names in run.left_out.items() for name in names]
+                + [f"{what} not written" for what in run.not_written])
+    _exit_if_partial(problems, "not calibrated, skipped or not written" if run.not_written
+                     else "not calibrated or skipped")
 
 
 def _print_calibration(run) -> None:

@@ -397,19 +397,26 @@ def write_exports(out: str | os.PathLike, run: CalibrateRun, camera_name: str,
         The files written.
     """
     out = Path(out)
-    for sub in ("opencv", "ros", "mrcal"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
     ros_entries: list[dict] = []
-    for step in run.results:
+
+    def attempt(what: str, write: Callable[[], list[Path]]) -> None:
         try:
-            files += _export_step(out, run, step, camera_name, ros_entries)
-        except ValueError as exc:
-            run.failures.append(f"step {step}: not exported: {exc}")
+            files.extend(write())
+        except (ValueError, OSError) as exc:
+            run.not_written.append(what)
+            run.failures.append(f"{what}: not written: {' '.join(str(exc).split())}")
             log(run.failures[-1])
+
+    for sub in ("opencv", "ros", "mrcal"):
+        attempt(f"{sub}/", lambda sub=sub: (out / sub).mkdir(parents=True, exist_ok=True) or [])
+    for step in run.results:
+        attempt(f"step {step} exports",
+                lambda step=step: _export_step(out, run, step, camera_name, ros_entries))
     if ros_entries:
-        files.append(write_ros_index(out / "ros" / ROS_INDEX, camera_name, ros_entries))
+        attempt(f"ros/{ROS_INDEX}", lambda: [write_ros_index(out / "ros" / ROS_INDEX,
+                                                             camera_name, ros_entries)])
     if run.zoom_model is not None:
-        files.append(write_zoom_model_grid(out / "zoom_model_grid.csv", run.zoom_model,
-                                           grid_points))
+        attempt("zoom_model_grid.csv", lambda: [write_zoom_model_grid(
+            out / "zoom_model_grid.csv", run.zoom_model, grid_points)])
     return files

@@ -104,7 +104,10 @@ class CalibrateRun:
     :class:`~zoomcalib.calibrate.checks.Flag` records (severity, few words, one action), the
     most severe first (:func:`set_step_flags`); ``step_dirs`` each step's image folder;
     ``fixed`` the intrinsics held (names of :data:`~zoomcalib.calibrate.opencv_backend.
-    FIXABLE`) and ``fix_flags`` OpenCV's flags for them in the per-step fits.
+    FIXABLE`) and ``fix_flags`` OpenCV's flags for them in the per-step fits;
+    ``not_written`` the requested outputs that could not be written (``report.html``,
+    ``step S exports``, ...; the reason is in ``failures`` or the log), which make the run
+    :attr:`partial`.
     """
 
     results: dict[str, dict[str, CalibrationResult]] = field(default_factory=dict)
@@ -134,11 +137,13 @@ class CalibrateRun:
     status: dict[str, StepStatus] = field(default_factory=dict)
     budget: dict = field(default_factory=dict)
     budget_sessions: dict = field(default_factory=dict)
+    not_written: list[str] = field(default_factory=list)
 
     @property
     def partial(self) -> bool:
-        """True when a step was dropped or a backend failed on a step."""
-        return bool(self.dropped or self.backend_failures)
+        """True when a step was dropped, a backend failed on a step or an output was not
+        written."""
+        return bool(self.dropped or self.backend_failures or self.not_written)
 
     def partial_message(self) -> str:
         """One line saying what is missing ('' when the run is complete)."""
@@ -148,6 +153,8 @@ class CalibrateRun:
         if self.backend_failures:
             parts.append("backends failed: " + "; ".join(
                 f"{', '.join(b)} on {s}" for s, b in self.backend_failures.items()))
+        if self.not_written:
+            parts.append("not written: " + ", ".join(self.not_written))
         return "partial result (" + "; ".join(parts) + ")" if parts else ""
 
 
@@ -930,6 +937,7 @@ def _report(run: CalibrateRun, out: Path, distance: float | None,
     try:
         run.files.append(write_report(run, out, distance))
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as exc:
+        run.not_written.append("report.html")
         log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
 
 
