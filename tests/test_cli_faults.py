@@ -324,11 +324,19 @@ def test_ctrl_c_in_any_command_is_one_line_and_exit_130(tmp_path, monkeypatch, c
     def pressed(*a, **kw):
         raise KeyboardInterrupt
 
+    import signal
+
     module, name = WORK[command]
     monkeypatch.setattr(module, name, pressed)
     folder = linked_folder(tmp_path, ["left01.jpg"]) if command == "detect" else None
-    res = CliRunner().invoke(main, [command, *([str(folder)] if folder else []), *args,
-                                    "--out", str(tmp_path / "o")])
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        res = CliRunner().invoke(main, [command, *([str(folder)] if folder else []), *args,
+                                        "--out", str(tmp_path / "o")])
+        # the ending process ignores a second press (a real one: test_calibrate_cli.py)
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, handler)
     assert res.exit_code == 130, res.output
     assert res.output.strip().splitlines()[-1] == "interrupted (exit code 130)"
     assert "Aborted" not in res.output and "Traceback" not in res.output

@@ -9,6 +9,7 @@ import contextlib
 import math
 import os
 import re
+import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -56,6 +57,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second press cannot cut the exit
             click.echo("\ninterrupted (exit code 130)", err=True)
             sys.exit(130)
         except BrokenPipeError:
@@ -732,6 +734,7 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
                                    residual_budget=residual_budget,
                                    board_shape=board_shape, fixed=tuple(fixed))
     except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second press cannot cut the exit
         for m in messages:
             click.echo(m)
         click.echo(f"\ninterrupted: the detections finished so far are kept in {out}/detections;"

@@ -12,13 +12,16 @@ waking threads than computing (``docs/performance.md``, "BLAS threads").
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import signal
+import threading
 from concurrent.futures import ProcessPoolExecutor
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["ignore_interrupt", "map_in_processes", "one_blas_thread", "stop_pool"]
+__all__ = ["ignore_interrupt", "interrupts_ignored", "map_in_processes", "one_blas_thread",
+           "stop_pool"]
 
 
 def ignore_interrupt() -> None:
@@ -44,19 +47,36 @@ def stop_pool(pool: ProcessPoolExecutor) -> None:
     still alive after a second), then wait briefly for the pool's manager thread to see them
     gone and close its wake-up pipe: left running, it races the interpreter's exit hook for
     that pipe, which then prints a traceback (``OSError: Bad file descriptor``) after the
-    interrupt message."""
+    interrupt message. A second Ctrl-C while this runs (a user pressing again) is ignored,
+    so that it cannot cut the clean-up short and leave workers behind; the handler is
+    restored after."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
     manager = getattr(pool, "_executor_manager_thread", None)
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        if proc.is_alive():
-            proc.terminate()
-    for proc in processes:
-        proc.join(timeout=1.0)
-        if proc.is_alive():
-            proc.kill()
-    if manager is not None:
-        manager.join(timeout=0.5)
+    with interrupts_ignored():
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in processes:
+            proc.join(timeout=1.0)
+            if proc.is_alive():
+                proc.kill()
+        if manager is not None:
+            manager.join(timeout=0.5)
+
+
+@contextlib.contextmanager
+def interrupts_ignored():
+    """Within the block SIGINT is ignored (only in the main thread, where Python handles it;
+    elsewhere the block runs as it is); the previous handler is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def map_in_processes(function, items: list[tuple], workers: int) -> list:
