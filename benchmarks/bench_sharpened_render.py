@@ -5,7 +5,8 @@
 
 Each seed renders (:func:`zoomcalib.render.sweep.render_zoom_sweep`) one step of a 22 x 15-corner
 chessboard (25 mm squares, fx 1500 px, 1280 x 720, tilts up to 40 degrees, ``--noise-dn``
-of read noise (2 DN; the real PTZ frames' flat squares carry 6-10, ``docs/performance.md``),
+of read noise (2 DN; the real PTZ frames' flat squares carry 6-10,
+``docs/notes/performance-real-detector.md``),
 0.8 px Gaussian blur) three times from the same seed, so the poses and the noise are the same:
 ``plain`` (PNG), ``sharpened`` (the camera's unsharp mask, 0.8 at 1.2 px, as
 ``render-sweep --sharpen 0.8,1.2``) and ``stream`` (sharpened, then JPEG at quality 85). Every
@@ -18,7 +19,7 @@ edge pixels' mean by side), and the sharpened PSF the default fitted (median amo
 radius over the frames that chose it; ``sharp``: their share). The sharpened frames carry
 the plain frames' information (an unsharp mask is invertible but for clipping and
 rounding), so the default's error on them against its error on the plain ones (at the
-Cramer-Rao bound, ``docs/performance.md``) is how far the sharpening costs it.
+Cramer-Rao bound, ``docs/notes/performance-real-detector.md``) is how far the sharpening costs it.
 """
 
 from __future__ import annotations

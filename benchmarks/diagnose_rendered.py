@@ -15,7 +15,8 @@ from a static decentre on this lens by the principal points alone. ``tilt_design
 designs: the static decentre of the variator takes 98.2-98.7 % of the tilt's signature off the
 baseline for every placement (uniform, long- or short-end heavy), 8-16 settings, 10-20 views,
 a 9x6 or 13x9 board and 640-1920 px wide sensors, so a larger set buys a stronger tilt but not
-a separation (docs/diagnose.md). ``--settings``, ``--sensor`` and ``--board`` render the others.
+a separation (docs/notes/diagnose-axis-tilt.md). ``--settings``, ``--sensor`` and ``--board``
+render the others.
 What parts them is the tangential distortion of each setting's calibration, which the diagnosis
 fits beside the principal points when the two are not told apart, or when the table carries the
 calibrations' keystone response and the tilt was not selected (printed as ``distortion

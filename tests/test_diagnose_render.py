@@ -114,7 +114,7 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     Each calibration takes most of the keystone into its poses, which leaves the tilt a faint
     trace in the principal points (``fx theta (1 - (f / L) A)``) and a clear one in the
     tangential distortion; the diagnosis reads both with the table's keystone response
-    (docs/diagnose.md, "Axis tilt with the keystone")."""
+    (docs/diagnose.md, "The diagnosis with the keystone")."""
     rng = np.random.default_rng(20261124)
     angle = rng.uniform(0.0, 2.0 * np.pi)
     truth = rng.uniform(0.9, 1.0) * np.array([np.cos(angle), np.sin(angle)])

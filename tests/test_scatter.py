@@ -562,7 +562,8 @@ def sample_views() -> Observations:
 
 def test_real_halves_agree_once_the_views_scatter_is_counted(sample_views):
     """OpenCV's 13 sample images (real, JPEG, one camera): the even and odd halves' cx differ
-    by about 3 of the noise model's combined sigmas with either backend (docs/calibration.md);
+    by about 3 of the noise model's combined sigmas with either backend
+    (docs/notes/calibration-cross-validation.md);
     the check scales the sigmas where the views disagree, and every compared value is then
     well within 3."""
     for backend, fn in (("opencv", calibrate_opencv), ("bundle", calibrate_bundle)):

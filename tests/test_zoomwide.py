@@ -812,7 +812,7 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
     # a print that is a trapezoid and a bow of a few tenths of a mm (drawn, kept from the
     # fit): the print's in-plane modes find it, and the principal point stays within its
     # sigmas; taking the print to be exact moves the narrow steps' principal point by many
-    # of theirs (on a real PTZ sweep by 130-190 px, docs/real-camera.md)
+    # of theirs (on a real PTZ sweep by 130-190 px, docs/notes/real-camera-print.md)
     rng = np.random.default_rng(71)
     trapezoid = rng.uniform(0.3, 0.6) * rng.choice([-1.0, 1.0])
     bow = rng.uniform(-0.3, 0.3)

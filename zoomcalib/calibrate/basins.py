@@ -21,8 +21,9 @@ half of a real narrow step's frames in the basin the other half chose where a fe
 made another 110 noise variances cheaper, but it left synthetic sweeps with the real views'
 own errors (``benchmarks/bench_real_mc.py``) in the wrong basin at 6x-10x (their cy spread
 80-170 px, pooled RMS z 3.65): the views' errors hide right moves too
-(``docs/real-camera.md``, "The halves"). A move the views do not agree on is flagged. The fits
-use the board's estimated 3-D points, so a waving board does not make a basin of its own.
+(``docs/notes/real-camera-halves.md``, "The halves"). A move the views do not agree on is
+flagged. The fits use the board's estimated 3-D points, so a waving board does not make a
+basin of its own.
 
 A free fit also starts from the other basin that the decentring predicts (:func:`_mirrored`):
 where a step has k1, the same centre of distortion is reached with the decentring negated and

@@ -1649,7 +1649,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Stop when the linear model predicts a cost decrease below ``tol`` times the cost. That
         last step is still taken, so the solution is off by about its square; the change from
         1e-7 to 1e-8 on the benchmark sets is printed by ``python benchmarks/bench_bundle.py
-        --accuracy`` (results in ``docs/calibration.md``).
+        --accuracy`` (results in ``docs/notes/calibration-checks.md``).
     return_covariance : bool
         Also put the full covariances of all free parameters, both kinds, in
         ``info['covariance_repeatability']`` and ``info['covariance_posterior']`` (module

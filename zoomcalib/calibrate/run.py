@@ -730,7 +730,7 @@ def _log_sittings(run: CalibrateRun, log: Callable[[str], None]) -> None:
     image names more than :data:`SITTING_GAP_H` apart, :func:`capture_sittings`): a board
     re-taped or moved between them is not one shape, and the board model's sessions are whole
     steps (on the real PTZ set one step's two sittings saw two board shapes:
-    ``docs/real-camera.md``)."""
+    ``docs/notes/real-camera-table.md``)."""
     for step, obs in run.observations.items():
         sittings = capture_sittings(list(obs.names), SITTING_GAP_H)
         if len(sittings) < 2:

@@ -27,7 +27,7 @@ of pose). The amplitudes ``a_m`` (mm) carry a weak zero-mean prior of sd ``board
 Steps captured in different sessions (``sessions``: a paper board taped to a wall is re-taped,
 and bends otherwise, each time) each have their session's amplitudes; the steps of one
 session share them. On a real PTZ sweep of four capture days, one shape for all moved the
-first day's 1x step by 9 of its own sigmas in fx (docs/calibration.md).
+first day's 1x step by 9 of its own sigmas in fx (docs/notes/calibration-zoom-wide.md).
 
 A paper board ripples at a finer scale than any low degree follows (1-2 mm on that sweep,
 millimetres apart). With ``board_points`` (the default) each session's board also has a height
@@ -1385,7 +1385,8 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         point (module docstring), that prior in px, or the model chosen by held-out steps among
         the difference priors in px of order 2 and 3 and the polynomials of degree 1-3 in
         ``log fx`` (:mod:`~zoomcalib.calibrate.zoommodel`). ``select`` can pick a polynomial
-        that the traced lens path does not follow (``docs/calibration.md``).
+        that the traced lens path does not follow
+        (``docs/notes/calibration-zoom-prior.md``).
     prior_strength : mapping of parameter name to float, optional
         A known ``tau`` for some of :data:`SMOOTHED` (e.g. from an earlier calibration of the
         same lens), used as it is instead of being estimated; units of the prior: radians per
@@ -1726,9 +1727,9 @@ def _basin_terms(prob: _ZoomProblem, s: int) -> tuple[str, ...]:
     smoothness prior frees those at this step (:func:`_tie_terms`, the zoom models of
     :func:`_series`), so a basin that needs the chain's k2 to fit would otherwise lose to one
     that does not, and then be the start the adjustment cannot leave (the halves of a real
-    narrow step's frames chose basins far apart that way, ``docs/real-camera.md``, "The
-    halves"). The state keeps the step's own terms: a lent term's value is dropped when the
-    step moves."""
+    narrow step's frames chose basins far apart that way, ``docs/notes/real-camera-print.md``,
+    "The default since e8d9d7f"). The state keeps the step's own terms: a lent term's value is
+    dropped when the step moves."""
     own = tuple(p for p, f in zip(PARAMS[4:], prob.free[s, 4:], strict=True) if f)
     if not {"k1", "k2", "k3"} & set(own) or set(RATIONAL_TERMS) & set(own):
         return own
@@ -2081,7 +2082,7 @@ def _step_result(prob: _ZoomProblem, s: int, state: _State, cov: np.ndarray, X: 
 
 
 #: The zoom-wide adjustment's board models, richest first (``board_shape`` of the calibrate
-#: job; ``points`` is its default, docs/calibration.md says why ``print`` is not).
+#: job, whose default is ``print``; docs/real-camera.md says why).
 BOARD_SHAPES = ("print", "points", "modes")
 
 

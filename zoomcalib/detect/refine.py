@@ -951,7 +951,8 @@ def refine_corners(
     says which; each evaluation costs two Gaussian ones). On unsharp-masked renders it
     recovers the mask and brings the residual down to the noise (``tests/test_refine.py``);
     on a real stream's frames the sharpened fits do not converge and do not fit better
-    (``sharpening_gain`` about 1; ``docs/performance.md``), and the choice below applies.
+    (``sharpening_gain`` about 1; ``docs/notes/performance-real-detector.md``), and the choice
+    below applies.
 
     Otherwise, when the sampled corners' fits put the blur below 0.5 px
     (``_STEEP_EDGE_BLUR``) and their residual RMS exceeds 3 % (``_STEEP_EDGE_MISFIT``) of their
@@ -1092,7 +1093,8 @@ def _fit_chunk(whole: _CornerChunk, blur: Blur | None, out: RefineResult,
     fine = whole.subset(~cheap)
     if len(fine.p):
         # The cheap model brings every corner close (its iterations cost a fraction of a
-        # quadrature one), so the quadrature stage only polishes (docs/performance.md). A
+        # quadrature one), so the quadrature stage only polishes
+        # (docs/notes/performance-real-detector.md). A
         # corner it brought close converges in a few of these iterations; one it did not
         # rarely does at all, and must not cost max_iter quadrature ones.
         fine.fit(blur, "gaussian", 1, max_iter, 1e-3)

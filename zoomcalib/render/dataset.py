@@ -148,8 +148,8 @@ def generate_poses(target: Target, mapping, sensor: Sensor, n_views: int, distan
 MAX_PSF_FRACTION = 0.01
 """Largest PSF sigma, as a fraction of the image's shorter side (but at least
 ``MIN_PSF_LIMIT_PX``). Beyond it the renderer's time and memory grow with the blur's reach (the
-measured cost is in ``docs/commands.md``) while the corners it renders are too soft to
-calibrate."""
+measured cost is in ``docs/notes/commands-examples.md``) while the corners it renders are too
+soft to calibrate."""
 
 MIN_PSF_LIMIT_PX = 3.0
 """The PSF sigma limit of small images, px (cheap to render at any image size)."""

@@ -354,7 +354,8 @@ def _try(c: _Candidate, data: _Data, kind: str, lo: float, hi: float, n_points: 
 def _choose(tried: list[_Tried]) -> _Tried:
     """The smallest held-out mean square wins; ties go to the simpler candidate. (The
     one-standard-error rule, the simplest candidate within a standard error of the best, was
-    measured and is worse here: ``benchmarks/bench_zoom_curve.py``, docs/calibration.md.)"""
+    measured and is worse here: ``benchmarks/bench_zoom_curve.py``,
+    docs/notes/calibration-zoom-model.md.)"""
     return min(tried, key=lambda t: (t.mse, t.complexity))
 
 
