@@ -265,6 +265,24 @@ def test_calibrate_writes_the_report_unless_told_not_to(rendered, tmp_path):
     assert text.count("<h3>The image of the largest error</h3>") == 2
     assert len(page.images) == 6 * 2 + 1
     assert "report.html" in (tmp_path / "a" / "manifest.json").read_text()
+    # images chosen by the user are drawn too: all of zoom_01's, one of which is its worst
+    chosen = [f"--report-image=zoom_01/view_{i:02d}.png" for i in range(5)]
+    res = CliRunner().invoke(main, [*args, *chosen, "--out", str(tmp_path / "c")])
+    assert res.exit_code == 0, res.output
+    path = tmp_path / "c" / "report.html"
+    text = path.read_text(encoding="utf-8")
+    assert text.count("<h3>A chosen image</h3>") == 4
+    assert all(f"corners of view_{i:02d}.png" in text for i in range(5))
+    page = _check_structure(text, ["zoom_00", "zoom_01"])
+    assert len(page.images) == 6 * 2 + 1 + 4
+    dom = _chromium_dom(path, tmp_path / "profile")
+    if dom is not None:
+        assert re.search(r'<body[^>]*data-images-loaded="all"', dom), dom[:500]
+        assert f'data-image-count="{len(page.images)}"' in dom
+    res = CliRunner().invoke(main, [*args, "--report-image", "zoom_01/nope.png",
+                                    "--out", str(tmp_path / "d")])
+    assert res.exit_code == 2 and "zoom_01/nope.png: no such image in step zoom_01" \
+        in res.output, res.output
     res = CliRunner().invoke(main, [*args, "--report-distance", "250", "--no-report",
                                     "--out", str(tmp_path / "b")])
     assert res.exit_code == 0, res.output
@@ -432,3 +450,18 @@ def test_fix_holds_intrinsics_per_step_and_zoom_wide(rendered, tmp_path):
                                     "chessboard:9x6:25", "--fix", "k3", "--per-step",
                                     "--backend", "bundle", "--out", str(tmp_path / "no")])
     assert res.exit_code == 2 and "--fix" in res.output, res.output
+
+
+def test_a_chosen_image_is_found_by_name_or_step_and_name():
+    from zoomcalib.calibrate.report import chosen_views
+    from zoomcalib.calibrate.result import Observations
+    from zoomcalib.calibrate.run import CalibrateRun
+
+    board = np.zeros((4, 3))
+    views = [(np.arange(4), np.zeros((4, 2)))] * 3
+    run = CalibrateRun(results={"a": {}, "b": {}}, observations={
+        "a": Observations(board, views, (64, 48), ["x.png", "y.png", "z.png"]),
+        "b": Observations(board, views, (64, 48), ["y.png", "w.png", "x.png"])})
+    chosen, unknown = chosen_views(run, ("y.png", "b/x.png", "a/w.png", "q.png"))
+    assert chosen == {"a": [1], "b": [0, 2]}
+    assert unknown == ["a/w.png", "q.png"]

@@ -682,9 +682,13 @@ def detect(folder, pattern, methods, workers, out):
 @click.option("--report-distance", type=click.FloatRange(min=0, min_open=True),
               help="Distance (mm) of the report's projection-uncertainty maps; default: each "
                    "step's median board distance.")
+@click.option("--report-image", "report_images", multiple=True, metavar="[STEP/]NAME",
+              help="Also draw this image's detected corners and the fit's projections in the "
+                   "report (each step's image of the largest error is always drawn); "
+                   "repeatable.")
 def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, residual_budget,
               board_shape, model, fixed, method, workers, out, grid_points, camera_name,
-              no_report, report_distance):
+              no_report, report_distance, report_images):
     """Calibrate FOLDER: one calibration, or one per zoom-step subfolder.
 
     The zoom of each step comes from FOLDER/steps.csv, else the number in the folder name,
@@ -720,6 +724,12 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     if camera_name is not None and not re.fullmatch(r"[A-Za-z0-9_]+", camera_name):
         raise click.BadParameter(f"{camera_name!r}: ROS camera names are letters, digits and _",
                                  param_hint="--camera-name")
+    for image in report_images:
+        step_name, _, name = image.rpartition("/")
+        if not any((d / name).is_file() for s, d, _, _ in steps if step_name in ("", s)):
+            raise click.BadParameter(
+                f"{image}: no such image in {'step ' + step_name if step_name else 'any step'}"
+                f" of {folder}", param_hint="--report-image")
     _check_out_folder(out)
     n_images = sum(len(image_files(d)) for _, d, _, _ in steps)
     messages = []
@@ -732,7 +742,8 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
                                    camera_name=camera_name, report=not no_report,
                                    report_distance=report_distance, pp_model=pp_model,
                                    residual_budget=residual_budget,
-                                   board_shape=board_shape, fixed=tuple(fixed))
+                                   board_shape=board_shape, fixed=tuple(fixed),
+                                   report_images=tuple(report_images))
     except KeyboardInterrupt:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second press cannot cut the exit
         for m in messages:

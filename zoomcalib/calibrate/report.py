@@ -69,8 +69,8 @@ window.addEventListener('load', function () {
 """
 
 
-def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None = None
-                 ) -> Path:
+def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None = None,
+                 images: tuple[str, ...] = ()) -> Path:
     """Write ``out/report.html`` for a :class:`zoomcalib.calibrate.run.CalibrateRun`.
 
     Parameters
@@ -81,6 +81,10 @@ def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None =
     distance_mm : float, optional
         Range (object-point units, mm) of the points whose projection uncertainty is mapped;
         default: each step's median distance to the board centre.
+    images : tuple of str
+        Images whose detected corners and the fit's projections are drawn, beside each step's
+        image of the largest error: a file name (``view_03.png``, every step that has it) or
+        ``STEP/NAME``. A name no step has is listed among the run's problems.
 
     Returns
     -------
@@ -88,19 +92,44 @@ def write_report(run: CalibrateRun, out: str | Path, distance_mm: float | None =
         The report.
     """
     path = Path(out) / "report.html"
-    path.write_text(report_html(run, distance_mm), encoding="utf-8")
+    path.write_text(report_html(run, distance_mm, images), encoding="utf-8")
     return path
 
 
-def report_html(run: CalibrateRun, distance_mm: float | None = None) -> str:
+def chosen_views(run: CalibrateRun, images: tuple[str, ...]
+                 ) -> tuple[dict[str, list[int]], list[str]]:
+    """Per step, the indices of its views that ``images`` names (``NAME`` or ``STEP/NAME``;
+    see :func:`write_report`), and the names no step has."""
+    chosen: dict[str, list[int]] = {}
+    unknown = []
+    for image in images:
+        step_name, _, name = image.rpartition("/")
+        found = False
+        for step in run.results:
+            if step_name and step_name != step:
+                continue
+            names = _view_names(run.observations[step])
+            if name in names:
+                chosen.setdefault(step, []).append(names.index(name))
+                found = True
+        if not found:
+            unknown.append(image)
+    return chosen, unknown
+
+
+def report_html(run: CalibrateRun, distance_mm: float | None = None,
+                images: tuple[str, ...] = ()) -> str:
     """The report's HTML text (see :func:`write_report`)."""
     steps = list(run.results)
+    chosen, unknown = chosen_views(run, images)
+    problems = run.failures + [f"report image {name}: no calibrated step has a view of that "
+                               "name" for name in unknown]
     body = [f"<h1>Calibration report</h1>{_summary(run, steps)}"]
-    if run.failures:
+    if problems:
         body.append("<h3>Problems of this run</h3><ul>" + "".join(
-            f"<li class='bad'>{_e(f)}</li>" for f in run.failures) + "</ul>")
+            f"<li class='bad'>{_e(f)}</li>" for f in problems) + "</ul>")
     for step in steps:
-        body.append(_step_section(run, step, distance_mm))
+        body.append(_step_section(run, step, distance_mm, chosen.get(step, [])))
     if len(steps) >= 2:
         body.append(_zoom_section(run, steps))
     if run.budget:
@@ -185,7 +214,8 @@ def _absent_images(run: CalibrateRun, step: str) -> list[tuple[str, str]]:
     return out
 
 
-def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> str:
+def _step_section(run: CalibrateRun, step: str, distance_mm: float | None,
+                  chosen: list[int]) -> str:
 
     res = run.results[step][run.table_backend[step]]
     obs = run.observations[step]
@@ -211,7 +241,13 @@ def _step_section(run: CalibrateRun, step: str, distance_mm: float | None) -> st
     parts.append(f"<h3>Residuals</h3>{_img(png, f'residuals of step {step}')}"
                  f"<p>Arrows drawn {scale:.0f} times their length; residual = projected minus "
                  f"observed. The residuals show {_e(pattern)}.</p>")
-    parts.append(_worst_image(run, step, obs, resid, scale))
+    rms = [np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in np.split(
+        resid, np.cumsum([len(p) for _, p in obs.views])[:-1])]
+    worst = int(np.argmax(rms))
+    parts.append(_view_corners(run, step, obs, resid, scale, worst,
+                               "The image of the largest error"))
+    parts += [_view_corners(run, step, obs, resid, scale, i, "A chosen image")
+              for i in dict.fromkeys(chosen) if i != worst]
     geometry = view_geometry(res, obs)
     problems, summary = coverage_verdict(points, obs.image_size, geometry)
     parts.append("<h3>Coverage</h3>" + _img(figs.coverage_figure(
@@ -278,27 +314,25 @@ def _uncertainty(run: CalibrateRun, step: str, res: CalibrationResult, obs: Obse
             + _reading(res, sigma, inside, diff))
 
 
-def _worst_image(run: CalibrateRun, step: str, obs: Observations, resid: np.ndarray,
-                 scale: float) -> str:
-    """The image of the step's largest reprojection RMS with its corners and the fit's
-    projections drawn over it; a note when the image cannot be read (a report written from
-    results alone, or a file moved since)."""
-    rms = [np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in np.split(
-        resid, np.cumsum([len(p) for _, p in obs.views])[:-1])]
-    worst = int(np.argmax(rms))
-    name = _view_names(obs)[worst]
+def _view_corners(run: CalibrateRun, step: str, obs: Observations, resid: np.ndarray,
+                  scale: float, index: int, title: str) -> str:
+    """View ``index``'s image with its detected corners and the fit's projections drawn over
+    it, under ``title``; a note when the image cannot be read (a report written from results
+    alone, or a file moved since)."""
+    points = obs.views[index][1]
+    start = int(np.sum([len(p) for _, p in obs.views[:index]]))
+    error = resid[start:start + len(points)]
+    rms = float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+    name = _view_names(obs)[index]
     folder = run.step_dirs.get(step)
     image = None if folder is None else cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
     if image is None:
-        return (f"<p>The image of the largest error, {_e(name)} ({rms[worst]:.3g} px RMS), "
-                "could not be read to draw its corners.</p>")
-    detected = obs.views[worst][1]
-    start = int(np.sum([len(p) for _, p in obs.views[:worst]]))
-    projected = detected + resid[start:start + len(detected)]
-    return ("<h3>The image of the largest error</h3>"
-            + _img(figs.corners_figure(image, detected, projected, name, scale),
+        return (f"<p>{_e(title)}, {_e(name)} ({rms:.3g} px RMS), could not be read to draw "
+                "its corners.</p>")
+    return (f"<h3>{_e(title)}</h3>"
+            + _img(figs.corners_figure(image, points, points + error, name, scale),
                    f"corners of {name}")
-            + f"<p>{_e(name)}: {rms[worst]:.3g} px RMS; residuals drawn {scale:.0f} times "
+            + f"<p>{_e(name)}: {rms:.3g} px RMS; residuals drawn {scale:.0f} times "
               "their length, as above.</p>")
 
 

@@ -275,7 +275,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                      camera_name: str | None = None, report: bool = True,
                      report_distance: float | None = None, pp_model: str = "angle2",
                      residual_budget: bool = False, board_shape: str = "print",
-                     fixed: tuple[str, ...] = ()) -> CalibrateRun:
+                     fixed: tuple[str, ...] = (), report_images: tuple[str, ...] = ()
+                     ) -> CalibrateRun:
     """Run the calibrate job (see the module docstring).
 
     Parameters
@@ -317,6 +318,9 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     report_distance : float, optional
         Distance (mm) of the report's projection-uncertainty maps; default each step's median
         board distance.
+    report_images : tuple of str
+        Images whose corners the report draws beside each step's image of the largest error
+        (``NAME`` or ``STEP/NAME``; :func:`~zoomcalib.calibrate.report.write_report`).
     residual_budget : bool
         Also the residual budget of every usable step and capture session
         (:mod:`zoomcalib.calibrate.budget`; ``run.budget``, ``run.budget_sessions`` and
@@ -429,7 +433,7 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
                                    log)
         run.files += _figures(run, out, zoom_set, workers)
     if report and run.results:
-        _report(run, out, report_distance, log)
+        _report(run, out, report_distance, report_images, log)
     run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
     return run
 
@@ -929,13 +933,17 @@ def _table_backends(run: CalibrateRun, log: Callable[[str], None]) -> dict[str, 
     return chosen
 
 
-def _report(run: CalibrateRun, out: Path, distance: float | None,
+def _report(run: CalibrateRun, out: Path, distance: float | None, images: tuple[str, ...],
             log: Callable[[str], None]) -> None:
-    """Write ``report.html``; a failure is logged in one line (the other outputs stand)."""
-    from .report import write_report
+    """Write ``report.html``; a failure is logged in one line (the other outputs stand), and
+    so is a chosen image no step has."""
+    from .report import chosen_views, write_report
 
+    for name in chosen_views(run, images)[1]:
+        run.not_written.append(f"report image {name}")
+        log(f"report image {name}: no calibrated step has a view of that name")
     try:
-        run.files.append(write_report(run, out, distance))
+        run.files.append(write_report(run, out, distance, images))
     except (ValueError, RuntimeError, np.linalg.LinAlgError, cv2.error, OSError) as exc:
         run.not_written.append("report.html")
         log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
