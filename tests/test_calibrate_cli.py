@@ -78,9 +78,16 @@ def test_calibrate_zoom_set_recovers_rendered_cameras(zoom_set, tmp_path):
     # a rerun reuses the cached detections
     stamp = (out / "detections" / "zoom_00.json").stat().st_mtime_ns
     res = CliRunner().invoke(main, ["calibrate", str(zoom_set), "--pattern", "chessboard:9x6:25",
-                                    "--backend", "opencv", "--method", "model", "--out", str(out)])
+                                    "--backend", "opencv", "--method", "model",
+                                    "--camera-name", "ptz_cam", "--out", str(out)])
     assert res.exit_code == 3
     assert (out / "detections" / "zoom_00.json").stat().st_mtime_ns == stamp
+    # a camera name given reaches the ROS index and every ROS file
+    index = yaml.safe_load((out / "ros" / "camera_info_index.yaml").read_text())
+    assert index["camera_name"] == "ptz_cam"
+    for entry in index["steps"]:
+        assert yaml.safe_load((out / "ros" / entry["file"]).read_text())["camera_name"] \
+            == "ptz_cam"
 
 
 def test_the_residual_budget_is_written_and_said(zoom_set, tmp_path):

@@ -67,3 +67,13 @@ def test_a_second_basin_near_in_cost_is_a_warning():
                            "views_disagree": True})
     detail = {f.kind: f for f in step_flags(moved, (1280, 720))}["basin"].detail
     assert "the views do not agree on it (paired t 0.6, 3.4 for 3 sigma)" in detail
+
+
+def test_flags_are_ordered_most_severe_then_shortest_first():
+    rng = np.random.default_rng(7)
+    texts = ["".join("x" * n) for n in rng.permutation(np.arange(1, 10))]
+    flags = [Flag("correlated", SEVERITIES[i % 3], t, t) for i, t in enumerate(texts)]
+    ordered = by_severity(flags)
+    ranks = [(-SEVERITIES.index(f.severity), len(f.text)) for f in ordered]
+    assert ranks == sorted(ranks) and len(ordered) == len(flags)
+    assert ordered[0].severity == "error" and ordered[-1].severity == "note"
