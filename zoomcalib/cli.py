@@ -705,7 +705,7 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     """
     import os
 
-    from .calibrate.run import calibrate_folder
+    from .calibrate.run import CalibrateOptions, calibrate_folder
     from .detect import image_files
 
     _parse_target(pattern)
@@ -735,15 +735,15 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     messages = []
     try:
         with _image_progress(n_images, "detecting") as advance:
-            run = calibrate_folder(folder, pattern, out, backends, model, method,
-                                   workers or os.cpu_count() or 1, advance,
-                                   messages.append, zoom_wide=not per_step,
-                                   cross_validate=cross_validate, grid_points=grid_points,
-                                   camera_name=camera_name, report=not no_report,
-                                   report_distance=report_distance, pp_model=pp_model,
-                                   residual_budget=residual_budget,
-                                   board_shape=board_shape, fixed=tuple(fixed),
-                                   report_images=tuple(report_images))
+            options = CalibrateOptions(
+                model=model, method=method, zoom_wide=not per_step,
+                cross_validate=cross_validate, pp_model=pp_model, grid_points=grid_points,
+                camera_name=camera_name, report=not no_report, report_distance=report_distance,
+                report_images=tuple(report_images), residual_budget=residual_budget,
+                board_shape=board_shape, fixed=tuple(fixed))
+            run = calibrate_folder(folder, pattern, out, backends, options,
+                                   workers=workers or os.cpu_count() or 1, progress=advance,
+                                   log=messages.append)
     except KeyboardInterrupt:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second press cannot cut the exit
         for m in messages:

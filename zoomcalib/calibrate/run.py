@@ -35,7 +35,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -73,7 +73,8 @@ from .result import DIST_NAMES, CalibrationResult, Observations, residual_vector
 from .scatter import pooled_over_steps
 from .status import StepStatus, sensor_aspect, step_status
 
-__all__ = ["CalibrateRun", "calibrate_folder", "residual_vectors", "step_file_stems", "BACKENDS"]
+__all__ = ["CalibrateOptions", "CalibrateRun", "calibrate_folder", "residual_vectors",
+           "step_file_stems", "BACKENDS"]
 
 BACKENDS = ("opencv", "bundle")
 
@@ -266,36 +267,16 @@ def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResu
     return row
 
 
-def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
-                     backends: tuple[str, ...] = BACKENDS, model: str = "standard",
-                     method: str | None = None, workers: int = 1,
-                     progress: Callable[[int], None] | None = None,
-                     log: Callable[[str], None] = print, zoom_wide: bool = True,
-                     cross_validate: bool = False, grid_points: int = 50,
-                     camera_name: str | None = None, report: bool = True,
-                     report_distance: float | None = None, pp_model: str = "angle2",
-                     residual_budget: bool = False, board_shape: str = "print",
-                     fixed: tuple[str, ...] = (), report_images: tuple[str, ...] = ()
-                     ) -> CalibrateRun:
-    """Run the calibrate job (see the module docstring).
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """What the calibrate job does beyond detecting and calibrating each step
+    (:func:`calibrate_folder`); every field's default is the CLI's.
 
-    Parameters
+    Attributes
     ----------
-    folder : path
-        Image folder, or folder of step subfolders.
-    pattern : str
-        Target spec, e.g. ``chessboard:9x6:25``.
-    backends : tuple of {'opencv', 'bundle'}
     model : {'standard', 'rational'}
     method : str, optional
         Detection method (default: the target's usual one).
-    workers : int
-        Processes for detection and for the zoom-wide adjustment's per-step OpenCV fits.
-    progress : callable, optional
-        Called with the number of images done: each detected or reused, and the byte-identical
-        copies left out.
-    log : callable
-        Receives one-line messages (skipped images and steps).
     zoom_wide : bool
         For a zoom set of 2 or more steps, also calibrate all steps together
         (:func:`zoomcalib.calibrate.zoomwide.calibrate_zoom_wide`; with ``model`` standard the
@@ -336,21 +317,63 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         :data:`~zoomcalib.calibrate.opencv_backend.FIXABLE`: the principal point at the image
         centre, the aspect ratio at 1, k1, k2, k3 or the tangential terms at 0). Not with the
         bundle backend (ValueError).
+    """
+
+    model: str = "standard"
+    method: str | None = None
+    zoom_wide: bool = True
+    cross_validate: bool = False
+    pp_model: str = "angle2"
+    grid_points: int = 50
+    camera_name: str | None = None
+    report: bool = True
+    report_distance: float | None = None
+    report_images: tuple[str, ...] = ()
+    residual_budget: bool = False
+    board_shape: str = "print"
+    fixed: tuple[str, ...] = ()
+
+
+def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
+                     backends: tuple[str, ...] = BACKENDS,
+                     options: CalibrateOptions | None = None, *, workers: int = 1,
+                     progress: Callable[[int], None] | None = None,
+                     log: Callable[[str], None] = print, **fields) -> CalibrateRun:
+    """Run the calibrate job (see the module docstring).
+
+    Parameters
+    ----------
+    folder : path
+        Image folder, or folder of step subfolders.
+    pattern : str
+        Target spec, e.g. ``chessboard:9x6:25``.
+    backends : tuple of {'opencv', 'bundle'}
+    options : CalibrateOptions, optional
+        What else the job does (default: the CLI's defaults); ``fields``, keywords named as
+        its fields, replace them (``zoom_wide=False, report=False``).
+    workers : int
+        Processes for detection and for the zoom-wide adjustment's per-step OpenCV fits.
+    progress : callable, optional
+        Called with the number of images done: each detected or reused, and the byte-identical
+        copies left out.
+    log : callable
+        Receives one-line messages (skipped images and steps).
 
     Returns
     -------
     CalibrateRun
     """
+    opts = replace(options or CalibrateOptions(), **fields)
     target: Target = parse_pattern(pattern)
     from .zoomwide import board_options
 
-    board_options(board_shape)  # an unknown board model is refused before any detection
+    board_options(opts.board_shape)  # an unknown board model is refused before any detection
     out = Path(out)
     steps = zoom_steps(folder)
-    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fixed=tuple(fixed),
-                       fix_flags=fix_flags(fixed))
-    if fixed and set(backends) - {"opencv"}:
-        raise ValueError(f"fixed {', '.join(fixed)}: the bundle estimates every intrinsic; "
+    run = CalibrateRun(stems=step_file_stems(s[0] for s in steps), fixed=tuple(opts.fixed),
+                       fix_flags=fix_flags(opts.fixed))
+    if opts.fixed and set(backends) - {"opencv"}:
+        raise ValueError(f"fixed {', '.join(opts.fixed)}: the bundle estimates every intrinsic; "
                          "the OpenCV backend and the zoom-wide adjustment hold them "
                          "(--backend opencv)")
     every_file = {step: image_files(step_dir) for step, step_dir, _, _ in steps}
@@ -362,16 +385,64 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     if copies and progress is not None:  # counted as done: the bar's length is every file
         progress(copies)
     _report_ignored(folder, run, log)
-    settings = detection_settings(target, method)
+    settings = detection_settings(target, opts.method)
     provenance: dict[str, dict] = {}
+    extras_of = _each_step(run, steps, step_files, out, target, settings, backends, opts,
+                           workers, progress, provenance, log)
+    _pool_view_scatter(run, backends)
+    _log_sittings(run, log)
+    # the capture sessions go to the table's session column either way; the zoom-wide
+    # adjustment also gives each its own board shape
+    capture = _board_sessions(run, extras_of, log if opts.zoom_wide else (lambda message: None))
+    sessions = capture if opts.zoom_wide else {}
+    if opts.zoom_wide and len(run.observations) >= 2:
+        directions = {s: e.get("direction") or "" for s, e in extras_of.items()}
+        _zoom_wide(run, opts.model, target, log, directions, opts.pp_model, sessions, workers,
+                   opts.board_shape)
+    _drop_uncalibrated(run)
+    run.table_backend = _table_backends(run, log)
+    if opts.cross_validate and run.results:
+        run.cross_validation = _cross_validate(run, opts.model, target, opts.pp_model,
+                                               sessions, workers, opts.board_shape)
+    set_step_flags(run)
+    run.status = _step_statuses(run)
+    _log_unusable(run, log)
+    if opts.residual_budget and run.results:
+        _residual_budget(run, sessions, workers, log)
+    rows = _table_rows(run, extras_of, capture)
+
+    call = {"pattern": pattern, "backends": list(backends), "model": opts.model,
+            "method": opts.method, "fixed": list(opts.fixed), "detection_settings": settings}
+    zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
+    _write_results(run, out, _meta(run, {"folder": str(folder)} | call, provenance),
+                   rows if zoom_set else [], log)
+    if run.results:
+        run.files += write_exports(out, run, opts.camera_name or _camera_name(folder),
+                                   opts.grid_points, log)
+        run.files += _figures(run, out, zoom_set, workers)
+    if opts.report and run.results:
+        _report(run, out, opts.report_distance, opts.report_images, log)
+    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
+    return run
+
+
+def _each_step(run: CalibrateRun, steps: list, step_files: dict[str, list[Path]], out: Path,
+               target: Target, settings: dict, backends: tuple[str, ...],
+               opts: CalibrateOptions, workers: int, progress: Callable[[int], None] | None,
+               provenance: dict[str, dict], log: Callable[[str], None]) -> dict[str, dict]:
+    """Detect (or reuse the detections of) each step's images and calibrate the step on its
+    own, filling ``run``; returns each kept step's extras (``zoom_steps``). A step without
+    observations is skipped; one no backend calibrated is dropped unless the zoom-wide
+    adjustment is to calibrate it. One pool of detection workers serves every step (started
+    at the first image to detect), stopped at once on any exception (Ctrl-C)."""
     extras_of: dict[str, dict] = {}
-    # one pool of detection workers for every step (started at its first image to detect)
     pool = detection_pool(workers) if workers > 1 and len(steps) > 1 else None
     try:
         for step, _, zoom, extras in steps:
             dets = _step_detections(out, step, step_files[step], target, settings, workers,
                                     progress, run, provenance, log, pool)
-            obs = _step_observations(step, dets, target, run, log, step_files[step], method)
+            obs = _step_observations(step, dets, target, run, log, step_files[step],
+                                     opts.method)
             if obs is None:
                 continue
             run.observations[step] = obs
@@ -380,8 +451,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
             if extras.get("zoom_note"):
                 log(f"step {step}: {extras['zoom_note']}"
                     + ("; its zoom is unknown" if zoom is None else ""))
-            step_results = _calibrate_step(step, obs, backends, model, target, run, log)
-            if not step_results and not zoom_wide:
+            step_results = _calibrate_step(step, obs, backends, opts.model, target, run, log)
+            if not step_results and not opts.zoom_wide:
                 run.backend_failures.pop(step, None)
                 run.dropped.append(step)
                 continue
@@ -393,49 +464,21 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
         raise
     if pool is not None:
         pool.shutdown()
-    _pool_view_scatter(run, backends)
-    _log_sittings(run, log)
-    # the capture sessions go to the table's session column either way; the zoom-wide
-    # adjustment also gives each its own board shape
-    capture = _board_sessions(run, extras_of, log if zoom_wide else (lambda message: None))
-    sessions = capture if zoom_wide else {}
-    if zoom_wide and len(run.observations) >= 2:
-        _zoom_wide(run, model, target, log, {s: e.get("direction") or "" for s, e in
-                                             extras_of.items()}, pp_model, sessions, workers,
-                   board_shape)
-    _drop_uncalibrated(run)
-    run.table_backend = _table_backends(run, log)
-    if cross_validate and run.results:
-        run.cross_validation = _cross_validate(run, model, target, pp_model, sessions,
-                                               workers, board_shape)
-    set_step_flags(run)
-    run.status = _step_statuses(run)
-    _log_unusable(run, log)
-    if residual_budget and run.results:
-        _residual_budget(run, sessions, workers, log)
-    rows = _table_rows(run, extras_of, capture)
+    return extras_of
 
-    call = {"pattern": pattern, "backends": list(backends), "model": model, "method": method,
-            "fixed": list(fixed),
-            "detection_settings": settings}
-    meta = _meta(run, {"folder": str(folder)} | call, provenance)
+
+def _write_results(run: CalibrateRun, out: Path, meta: dict, rows: list[dict],
+                   log: Callable[[str], None]) -> None:
+    """``calibration.json`` and ``.yml``, and for a zoom set (``rows``: the zoom table's, else
+    empty) ``zoom_calibration.csv``, its unsmoothed twin and the zoom model."""
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
-    zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
-    if zoom_set and rows:
+    if rows:
         run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
         unsmoothed = _unsmoothed_table(run, rows)
         if unsmoothed:
             run.files.append(write_zoom_table(out / UNSMOOTHED_TABLE, unsmoothed))
         _zoom_model(run, [r for r in rows if r["status"] != "unusable"], out, log)
-    if run.results:
-        run.files += write_exports(out, run, camera_name or _camera_name(folder), grid_points,
-                                   log)
-        run.files += _figures(run, out, zoom_set, workers)
-    if report and run.results:
-        _report(run, out, report_distance, report_images, log)
-    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
-    return run
 
 
 # ----------------------------------------------------------------------------------------------
