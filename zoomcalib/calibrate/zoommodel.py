@@ -324,14 +324,23 @@ def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
 
 
 def _restricted_precision(S: np.ndarray, u: np.ndarray, order: int, tau: float,
-                          offset: np.ndarray | None = None) -> np.ndarray:
+                          offset: np.ndarray | None = None,
+                          bases: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``Q = C^{-1} - C^{-1} A (A^T C^{-1} A)^{-1} A^T C^{-1}``, ``C = S + tau^2 G G^T``
-    (module docstring, "Held-out choice")."""
-    A, _ = _null_basis(u, order, offset)
-    G = _rough_basis(u, order) * tau
+    (module docstring, "Held-out choice"); ``bases``: ``(A, G)`` at ``tau = 1`` of
+    :func:`_precision_bases`, which do not depend on ``tau`` (given for many ``tau``)."""
+    A, G = _precision_bases(u, order, offset) if bases is None else bases
+    G = G * tau
     C_inv = np.linalg.inv(S + G @ G.T)
     CA = C_inv @ A
     return C_inv - CA @ np.linalg.solve(A.T @ CA, CA.T)
+
+
+def _precision_bases(u: np.ndarray, order: int, offset: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The fixed effects' columns ``A`` (:func:`_null_basis`) and the rough basis ``G``
+    (:func:`_rough_basis`) of :func:`_restricted_precision`."""
+    return _null_basis(u, order, offset)[0], _rough_basis(u, order)
 
 
 def _loo_density(values: np.ndarray, S: np.ndarray, u: np.ndarray, order: int, tau: float,
@@ -392,6 +401,7 @@ def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool,
     if n < order + (2 if reml else 1) + (offset is not None):
         return None
     resid, spread = np.empty(n), np.empty(n)
+    bases = _precision_bases(u, order, offset)
     for i in range(n):
         taus, weights = np.array([tau]), np.ones(1)
         if reml:
@@ -406,7 +416,7 @@ def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool,
                 taus, weights = np.array([pooled_prior_strength(rest, order)[0]]), np.ones(1)
         r_t, var_t = np.empty(len(taus)), np.empty(len(taus))
         for k, t in enumerate(taus):
-            Q = _restricted_precision(S, u, order, t, offset)
+            Q = _restricted_precision(S, u, order, t, offset, bases)
             r_t[k], var_t[k] = (Q @ values)[i] / Q[i, i], 1.0 / Q[i, i]
         weights = weights / weights.sum()
         resid[i] = weights @ r_t
