@@ -23,11 +23,13 @@ from zoomcalib.calibrate.bundle import (
     _Problem,
     _State,
     calibrate_bundle,
+    shape_precision,
+)
+from zoomcalib.calibrate.geometry import (
     fit_similarity,
     left_jacobian,
     project_jacobian,
     rodrigues,
-    shape_precision,
 )
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.result import Observations

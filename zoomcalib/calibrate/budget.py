@@ -72,7 +72,8 @@ import numpy as np
 import scipy.optimize
 
 from ..pool import map_in_processes
-from .bundle import calibrate_bundle, fit_similarity
+from .bundle import calibrate_bundle
+from .geometry import fit_similarity
 from .opencv_backend import calibrate_opencv
 from .result import CalibrationResult, Observations
 

@@ -149,7 +149,7 @@ import scipy.stats
 
 from ..pool import map_in_processes, one_blas_thread
 from .basins import BasinCheck, best_basin
-from .bundle import project_jacobian
+from .geometry import project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
     calibrate_opencv_multistart,
