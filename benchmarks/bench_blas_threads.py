@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
 from threadpoolctl import threadpool_info, threadpool_limits  # noqa: E402
 
+import zoomcalib.calibrate.solver as solver  # noqa: E402
 import zoomcalib.calibrate.zoomwide as zoomwide  # noqa: E402
 import zoomcalib.pool as pool  # noqa: E402
 from zoomcalib.calibrate.io import capture_date  # noqa: E402
@@ -42,7 +43,7 @@ from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
 def _timed_schur():
     """Wrap the Schur step to sum its time; returns the list the wrapper adds to."""
     spent = [0.0]
-    original = zoomwide._schur_step
+    original = solver.schur_step
 
     def timed(*args):
         t = time.perf_counter()
@@ -50,7 +51,7 @@ def _timed_schur():
         spent[0] += time.perf_counter() - t
         return out
 
-    zoomwide._schur_step = timed
+    solver.schur_step = timed
     return spent, original
 
 
@@ -69,7 +70,7 @@ def _run(obs, sessions, kwargs: dict, threads: int):
             result = adjust(obs, sessions=sessions, workers=2, **kwargs)
             wall = time.perf_counter() - t
     finally:
-        zoomwide._schur_step = original
+        solver.schur_step = original
         pool.ignore_interrupt = default_init
     return result, wall, spent[0]
 

@@ -139,7 +139,6 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -159,6 +158,7 @@ from .opencv_backend import (
 )
 from .result import CalibrationResult, Observations
 from .scatter import ViewScatter, deletion_steps, noise_share, view_groups, view_scatter
+from .solver import NormalBlocks, Solve, levenberg_marquardt
 from .zoommodel import (
     CANDIDATES,
     PathPrior,
@@ -587,6 +587,7 @@ class _ZoomProblem:
         self.n_unknowns = self.n_glob + 6 * int(self.view_start[-1])
         self.prior_rows = self._prior_rows()
         self.covariance_ridge = 0.0  # set by the posterior covariance (_inverse_or_ridge)
+        self._view_sum_cache: dict[int, tuple[np.ndarray, scipy.sparse.csr_matrix]] = {}
 
     def _prior_rows(self) -> scipy.sparse.csr_matrix:
         rows = []
@@ -702,9 +703,32 @@ class _ZoomProblem:
             cols.append(np.repeat(col[:, None, :], 2, axis=1).ravel())
             vals.append((block * w).ravel())
 
-    def normal_equations(self, state: _State) -> tuple[np.ndarray, _NormalBlocks]:
+    def _view_sums(self, s: int, inlier: np.ndarray) -> scipy.sparse.csr_matrix:
+        """The sparse (views x inlier corners) matrix of ones that sums step ``s``'s per-corner
+        products by view; made once per set of inliers (they change only between solves)."""
+        cached = self._view_sum_cache.get(s)
+        if cached is not None and np.array_equal(cached[0], inlier):
+            return cached[1]
+        views = self.steps[s].view[inlier]
+        by_view = scipy.sparse.csr_matrix((np.ones(len(views)), (views, np.arange(len(views)))),
+                                          shape=(self.steps[s].n_views, len(views)))
+        self._view_sum_cache[s] = (inlier.copy(), by_view)
+        return by_view
+
+    def linearise(self, state: _State) -> tuple[float, NormalBlocks]:
+        """The cost ``|r|^2`` (prior rows included) and the normal blocks at ``state`` (the
+        :class:`~zoomcalib.calibrate.solver.LeastSquaresProblem` protocol)."""
+        r, blocks = self.normal_equations(state)
+        return float(r @ r), blocks
+
+    def cost(self, state: _State) -> float:
+        """``|r|^2`` at ``state``, prior rows included."""
+        r = self.evaluate(state, jacobian=False)
+        return float(r @ r)
+
+    def normal_equations(self, state: _State) -> tuple[np.ndarray, NormalBlocks]:
         """The weighted residuals (as :meth:`evaluate`) and the blocks of ``J^T J`` and
-        ``J^T r`` (:class:`_NormalBlocks`), summed step by step and view by view from the dense
+        ``J^T r`` (:class:`NormalBlocks`), summed step by step and view by view from the dense
         derivatives without forming ``J``: a corner's rows touch its step's global columns and
         its view's six pose columns only, and the prior rows the global columns only."""
         n_views = int(self.view_start[-1])
@@ -726,10 +750,7 @@ class _ZoomProblem:
             P = Jp * w
             views = step.view[sel]
             n_local = step.n_views
-            # per view sums of per-corner products: one sparse (views x corners) sum matrix
-            by_view = scipy.sparse.csr_matrix(
-                (np.ones(len(views)), (views, np.arange(len(views)))),
-                shape=(n_local, len(views)))
+            by_view = self._view_sums(s, sel)
             # the sums as matrix products (BLAS), the corners' two rows stacked
             G2 = G.reshape(-1, G.shape[2])
             U[np.ix_(cols, cols)] += G2.T @ G2
@@ -746,7 +767,7 @@ class _ZoomProblem:
         U += (glob.T @ glob).toarray()
         g_glob += glob.T @ prior
         return (np.concatenate([r, prior]),
-                _NormalBlocks(U, W.reshape(self.n_glob, -1), V, g_glob, g_pose.ravel()))
+                NormalBlocks(U, W.reshape(self.n_glob, -1), V, g_glob, g_pose.ravel()))
 
     def apply(self, state: _State, delta: np.ndarray) -> _State:
         cams = state.cams.copy()
@@ -762,30 +783,9 @@ class _ZoomProblem:
                       aspect, state.heights)
 
 
-@dataclass
-class _Solve:
-    state: _State
-    cost: float
-    iterations: int
-    converged: bool
-    stop_reason: str
-
-
-class _NormalBlocks(NamedTuple):
-    """``J^T J`` split into the global block ``U`` (intrinsics, board modes, aspect; dense),
-    the coupling ``W`` (global x poses, dense) and the per-view 6 x 6 pose blocks ``V``
-    (views, 6, 6); and ``J^T r`` split likewise into ``g_glob`` and ``g_pose``."""
-
-    U: np.ndarray
-    W: np.ndarray
-    V: np.ndarray
-    g_glob: np.ndarray
-    g_pose: np.ndarray
-
-
 def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
-                   ) -> _NormalBlocks:
-    """:class:`_NormalBlocks` from an assembled sparse ``J`` (the reference for
+                   ) -> NormalBlocks:
+    """:class:`NormalBlocks` from an assembled sparse ``J`` (the reference for
     :meth:`_ZoomProblem.normal_equations`, which sums them without forming ``J``)."""
     n_glob = prob.n_glob
     A = (J.T @ J).tocsr()
@@ -794,85 +794,15 @@ def _normal_blocks(prob: _ZoomProblem, J: scipy.sparse.csr_matrix, r: np.ndarray
     V.sort_indices()
     if len(V.data) != V.shape[0] // 6:
         raise RuntimeError("zoom-wide problem: two views are coupled (internal error)")
-    return _NormalBlocks(A[:n_glob, :n_glob].toarray(), A[:n_glob, n_glob:].toarray(), V.data,
+    return NormalBlocks(A[:n_glob, :n_glob].toarray(), A[:n_glob, n_glob:].toarray(), V.data,
                          g[:n_glob], g[n_glob:])
 
 
-def _schur_step(U, W, V, g_glob, g_pose, lam: float):
-    """Solve the damped normal equations ``(A + lam diag A) delta = -g`` by eliminating the
-    poses: ``S = U - W V^-1 W^T``. ``U`` (G, G) is the global block, ``W`` (G, 6 n_views)
-    the global-pose coupling, ``V`` (n_views, 6, 6) the pose blocks, ``g_glob`` and
-    ``g_pose`` the gradient's parts. Returns ``delta`` or None when ``S`` is not positive
-    definite."""
-    n_views, n_glob = len(V), len(U)
-    global_damped = U + np.diag((lam + 1e-14) * np.diag(U))  # scale-free: each its own
-    pose_damped = V + lam * np.einsum("vii->vi", V)[:, :, None] * np.eye(6)
-    pose_inverse = np.linalg.inv(pose_damped)
-    coupling = W.reshape(n_glob, n_views, 6)
-    # W V^-1 view by view (batched 6 x 6 products), then the sums over views as one BLAS
-    # product of the (globals, views x 6) matrices
-    coupling_vinv = np.matmul(coupling.transpose(1, 0, 2), pose_inverse
-                              ).transpose(1, 0, 2).reshape(n_glob, -1)
-    schur = global_damped - coupling_vinv @ W.T
-    schur_rhs = g_glob - coupling_vinv @ g_pose
-    try:
-        d_glob = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur), schur_rhs)
-    except np.linalg.LinAlgError:
-        return None
-    pose_rhs = g_pose.reshape(n_views, 6) + (W.T @ d_glob).reshape(n_views, 6)
-    d_pose = -np.matmul(pose_inverse, pose_rhs[:, :, None])[:, :, 0]
-    return np.concatenate([d_glob, d_pose.ravel()])
-
-
 def _levenberg_marquardt(prob: _ZoomProblem, state: _State, max_iterations: int = 50,
-                         tol: float = 1e-9) -> _Solve:
-    """Marquardt-scaled LM with the poses eliminated (:func:`_schur_step`). Stops when the
-    Gauss-Newton step from the current state is predicted to lower the cost by less than
-    ``tol`` of it (``"tolerance"``: the quadratic model says nothing is left to gain, whatever
-    the damping of the last step was), at the iteration cap (``"iteration cap"``), or when the
-    damping passes 1e12 without a decrease (``"damping limit"``); the last two are not
-    converged."""
-    r, blocks = prob.normal_equations(state)
-    cost = float(r @ r)
-    lam = 1e-4
-    for it in range(1, max_iterations + 1):
-        if _predicted_decrease(blocks, _schur_step(*blocks, _GAUSS_NEWTON)) < tol * cost:
-            return _Solve(state, cost, it - 1, True, "tolerance")
-        while True:
-            delta = _schur_step(*blocks, lam)
-            if delta is not None:
-                trial = prob.apply(state, delta)
-                r_t = prob.evaluate(trial, jacobian=False)
-                cost_t = float(r_t @ r_t)
-                if np.isfinite(cost_t) and cost_t <= cost:
-                    break
-            lam *= 10.0
-            if lam > 1e12:
-                return _Solve(state, cost, it, False, "damping limit")
-        state, cost = trial, cost_t
-        lam = max(lam / 10.0, 1e-12)
-        r, blocks = prob.normal_equations(state)
-    if _predicted_decrease(blocks, _schur_step(*blocks, _GAUSS_NEWTON)) < tol * cost:
-        return _Solve(state, cost, max_iterations, True, "tolerance")
-    return _Solve(state, cost, max_iterations, False, "iteration cap")
-
-
-#: The damping of the step the stop rule predicts from: Gauss-Newton's, with a ridge of 1e-9 of
-#: each column's own curvature so that a barely determined direction does not make it singular.
-_GAUSS_NEWTON = 1e-9
-
-
-def _predicted_decrease(blocks: _NormalBlocks, delta: np.ndarray | None) -> float:
-    """The decrease of the cost ``|r|^2`` that the quadratic model predicts for the undamped
-    step ``delta`` (``A delta = -g``): ``-2 g^T delta - delta^T A delta = delta^T A delta``,
-    from the normal blocks. ``inf`` without a step (a singular system: no prediction)."""
-    if delta is None:
-        return np.inf
-    U, W, V = blocks.U, blocks.W, blocks.V
-    d_glob, d_pose = delta[:len(U)], delta[len(U):].reshape(len(V), 6)
-    quad = (d_glob @ U @ d_glob + 2.0 * d_glob @ W @ d_pose.ravel()
-            + np.einsum("vi,vij,vj->", d_pose, V, d_pose))
-    return float(max(quad, 0.0))
+                         tol: float = 1e-9) -> Solve:
+    """The adjustment's solve: :func:`zoomcalib.calibrate.solver.levenberg_marquardt` (its
+    stop rule, on the Gauss-Newton step's predicted decrease, and its stop reasons)."""
+    return levenberg_marquardt(prob, state, max_iterations, tol)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -917,7 +847,7 @@ class PrintTest:
 PRINT_TEST_P = 1e-3
 
 
-def _print_test(prob: _ZoomProblem, solve: _Solve) -> PrintTest:
+def _print_test(prob: _ZoomProblem, solve: Solve) -> PrintTest:
     """:class:`PrintTest` of the print's modes of ``prob`` solved by ``solve`` (not kept, NaN
     and ``why`` said, when the solve did not converge or has no covariance: the print cannot
     be judged)."""
@@ -1647,7 +1577,7 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
                       init: Mapping[str, CalibrationResult], terms: dict, held: dict,
                       decentring: bool = True, workers: int = 1,
                       held_terms: tuple[str, ...] = (),
-                      solved: tuple[_Solve, int] | None = None):
+                      solved: tuple[Solve, int] | None = None):
     """The solve without the smoothness prior (``problem(free)`` builds it; ``solved``: that
     solve and its iterations, already made from ``state``, as the print's test makes it). With
     ``reselect`` the distortion terms are then chosen again on the board's estimated shape
@@ -1803,7 +1733,7 @@ def _select_on_board(observations: Mapping[str, Observations],
 
 
 def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_rounds: int
-                      ) -> tuple[_Solve, int]:
+                      ) -> tuple[Solve, int]:
     """Levenberg-Marquardt, then the board's point heights (if any) and each step's noise and
     inliers re-estimated, until they settle (at most ``max_rounds`` rounds, then one last
     solve)."""
