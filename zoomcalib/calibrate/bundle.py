@@ -81,7 +81,9 @@ same benchmark.
 
 Solver
 ------
-Levenberg–Marquardt (Nielsen's damping rule [4]) on the normal equations with an analytic
+Levenberg–Marquardt (the engine of :mod:`zoomcalib.calibrate.solver`, shared with the zoom-wide
+adjustment: Marquardt's scaling, the stop rule on the Gauss-Newton step's predicted decrease
+[4]) on the normal equations with an analytic
 Jacobian (:func:`project_jacobian`; checked against finite differences in the tests). The 6 pose
 unknowns of each view are eliminated by the Schur complement, so each iteration factors a dense
 system of ``n_cam + 3 n - 7`` unknowns only:
@@ -194,6 +196,12 @@ from zoomcalib.calibrate.scatter import (
     noise_share,
     view_groups,
     view_scatter,
+)
+from zoomcalib.calibrate.solver import (
+    STOP_ITERATION_CAP,
+    NormalBlocks,
+    Solve,
+    levenberg_marquardt,
 )
 
 __all__ = ["calibrate_bundle", "shape_precision", "CAMERA_NAMES"]
@@ -408,6 +416,7 @@ class _Problem:
         self.cell = self.vi * n + self.pi
         self.one_per_cell = len(np.unique(self.cell)) == self.N
         self._A_pt = None                        # (n, N) point-observation incidence, lazily
+        self.last_normal: tuple | None = None    # normal_equations at the last linearisation
         if nx:
             pos = np.full(3 * n, -1)
             pos[self.free_idx] = np.arange(nx)
@@ -437,12 +446,23 @@ class _Problem:
         return (uv - self.uv) * self.w[:, None]
 
     def cost(self, s: _State) -> float:
-        r = self.residuals(s)
+        """Sum of squared weighted residuals, px^2, and the shape prior's term."""
+        return self._cost_of(s, self.residuals(s))
+
+    def _cost_of(self, s: _State, r: np.ndarray) -> float:
         F = float(np.einsum("ij,ij->", r, r))
         if self.Lam is not None:
             d = self.shape_deviation(s.X)[0].ravel()
             F += self.sig2 * float(d @ self.Lam.matvec(d))
         return F
+
+    def linearise(self, s: _State) -> tuple[float, NormalBlocks]:
+        """The cost and the normal blocks at ``s`` in the engine's layout
+        (:mod:`zoomcalib.calibrate.solver`); :meth:`normal_equations`' own tuple is kept in
+        ``last_normal`` (the covariance is computed from it)."""
+        self.last_normal = self.normal_equations(s)
+        U, W, V, g, gp, r = self.last_normal
+        return self._cost_of(s, r), as_blocks(U, W, V, g, gp)
 
     def jacobians(self, s: _State):
         """Per observation, weighted: residuals ``r`` (N, 2), px, and the Jacobians of ``r``
@@ -675,7 +695,13 @@ class _Problem:
             Uxx, Ucx, gx = Ap[:, :, nc:nc + 3], Ap[:, :, :nc].transpose(0, 2, 1), Ap[:, :, -1]
         return Ucc, gc, Wc, V, gp, Uxx, Ucx, gx
 
-    def apply(self, s: _State, dy: np.ndarray, dp: np.ndarray) -> _State:
+    def apply(self, s: _State, delta: np.ndarray) -> _State:
+        """``s`` moved by the engine's step (the camera and free target unknowns, then six
+        pose unknowns per view)."""
+        ny = self.nc + self.nx
+        return self._moved(s, delta[:ny], delta[ny:].reshape(-1, 6))
+
+    def _moved(self, s: _State, dy: np.ndarray, dp: np.ndarray) -> _State:
         t = s.copy()
         t.cam = s.cam + self.cam_map @ dy[: self.nc]
         if self.nx:
@@ -716,119 +742,21 @@ def scaled_inverse(A: np.ndarray, rcond: float = 1e-13) -> tuple[np.ndarray, boo
     return inv * np.outer(scale, scale), bool(keep.all() and np.all(d > 0))
 
 
-def _schur_solve(U, W, V, g, gp, lam):
-    """Solve the damped normal equations by eliminating the poses.
-
-    Damping (Marquardt): ``diag(U) (1 + lam)``, ``diag(V) (1 + lam)``. Returns ``(dy, dp,
-    predicted cost decrease)``, or None if the reduced matrix is not positive definite.
-    """
-    m = V.shape[0]
-    dU = np.diag(U)
-    Ud = U + np.diag(lam * dU + 1e-15 * max(dU.max(initial=0.0), 1.0))
-    dV = np.einsum("vii->vi", V)
-    Vd = V + (lam * dV + 1e-15)[:, :, None] * np.eye(6)
-    try:
-        Lv = np.linalg.cholesky(Vd)
-    except np.linalg.LinAlgError:
-        return None
-    iL = np.linalg.inv(Lv)                                  # (m, 6, 6)
-    G = iL @ W.transpose(0, 2, 1)                           # (m, 6, ny) = L^-1 W^T
-    h = (iL @ gp[:, :, None])[:, :, 0]                      # L^-1 g_p
-    Gf = G.reshape(6 * m, -1)
-    S = Ud - Gf.T @ Gf
-    rhs = -g + Gf.T @ h.ravel()
-    try:
-        cf = scipy.linalg.cho_factor(S, check_finite=False)
-    except np.linalg.LinAlgError:
-        return None
-    dy = scipy.linalg.cho_solve(cf, rhs, check_finite=False)
-    # dp = -V^-1 (g_p + W^T dy) = -L^-T (h + G dy)
-    tmp = h + (G @ dy)
-    dp = -(iL.transpose(0, 2, 1) @ tmp[:, :, None])[:, :, 0]
-    # decrease of the cost predicted by the (undamped) linear model: -2 g.d - d^T N d
-    pred = -(2.0 * (g @ dy + np.einsum("vi,vi->", gp, dp))
-             + dy @ (U @ dy) + 2.0 * np.einsum("vj,vij,i->", dp, W, dy)
-             + np.einsum("vi,vij,vj->", dp, V, dp))
-    return dy, dp, float(pred)
+def as_blocks(U: np.ndarray, W: np.ndarray, V: np.ndarray, g: np.ndarray, gp: np.ndarray
+              ) -> NormalBlocks:
+    """:meth:`_Problem.normal_equations`' blocks (``W`` (m, ny, 6), ``gp`` (m, 6)) in the
+    engine's layout (:class:`~zoomcalib.calibrate.solver.NormalBlocks`: ``W`` (ny, 6 m),
+    ``g_pose`` (6 m,), view by view)."""
+    return NormalBlocks(U, W.transpose(1, 0, 2).reshape(len(U), -1), V, g, gp.ravel())
 
 
-#: why an LM stage stopped: a converged stop, and the two that are not
-STOP_TOLERANCE = "tolerance"
-STOP_ITERATION_CAP = "iteration cap"
-STOP_DAMPING_LIMIT = "damping limit"
-#: rejected trial steps (each raising the damping) after which a stage gives up
-MAX_REJECTED_STEPS = 30
-
-
-@dataclass
-class _Outcome:
-    """How one LM stage ended: iterations used, whether it converged and why it stopped."""
-
-    iterations: int
-    stop_reason: str
-    cost: float
-
-    @property
-    def converged(self) -> bool:
-        return self.stop_reason == STOP_TOLERANCE
-
-
-def _levenberg_marquardt(prob: _Problem, s: _State, max_iterations: int, tol: float,
-                         lam: float = 1e-10):
-    """Minimise ``prob.cost`` from ``s``; returns the state, the :class:`_Outcome` and, when
-    converged, the normal equations of the last linearisation (else None).
-
-    Gauss-Newton steps damped as in Nielsen's rule ([4]): after a step with gain ratio ``rho``
-    (actual over predicted decrease) ``lam *= max(1/3, 1 - (2 rho - 1)^3)``, after a rejected
-    step ``lam *= nu, nu *= 2``. Stops with ``stop_reason``:
-
-    - ``'tolerance'`` (converged): the predicted decrease, or the decrease achieved by an
-      accepted step, is below ``tol`` x cost;
-    - ``'damping limit'``: :data:`MAX_REJECTED_STEPS` trial steps in a row failed (no
-      decrease, or a non-positive-definite system) however strongly damped;
-    - ``'iteration cap'``: ``max_iterations`` linearisations without either.
-    """
-    F = prob.cost(s)
-    nu = 2.0
-    it = 0
-    ne = None
-    reason = STOP_ITERATION_CAP
-    for it in range(1, max_iterations + 1):  # noqa: B007
-        ne = prob.normal_equations(s)
-        U, W, V, g, gp, _ = ne
-        done = False
-        for _ in range(MAX_REJECTED_STEPS):
-            sol = _schur_solve(U, W, V, g, gp, lam)
-            if sol is not None:
-                dy, dp, pred = sol
-                if pred <= tol * F:
-                    done = True            # converged: the linear model promises nothing
-                    if pred > 0:
-                        t = prob.apply(s, dy, dp)
-                        Ft = prob.cost(t)
-                        if Ft <= F:
-                            s, F = t, Ft
-                    break
-                t = prob.apply(s, dy, dp)
-                Ft = prob.cost(t)
-                rho = (F - Ft) / pred
-                if np.isfinite(Ft) and rho > 0:
-                    done = F - Ft <= tol * F    # a step this small: the next would be smaller
-                    s, F = t, Ft
-                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                    nu = 2.0
-                    break
-            lam = max(lam, 1e-9) * nu
-            nu *= 2.0
-        else:
-            reason = STOP_DAMPING_LIMIT
-            break
-        if done:
-            reason = STOP_TOLERANCE
-            break
-    out = _Outcome(it, reason, float(F))
-    # the normal equations of the last linearisation, good for the covariance when converged
-    return s, out, (ne if out.converged else None)
+def _solve(prob: _Problem, s: _State, max_iterations: int, tol: float, lam: float = 1e-10
+           ) -> tuple[_State, Solve, tuple | None]:
+    """:func:`~zoomcalib.calibrate.solver.levenberg_marquardt` on ``prob`` from ``s``: the
+    state, the :class:`~zoomcalib.calibrate.solver.Solve` and, when converged, the normal
+    equations at the state (:meth:`_Problem.normal_equations`' tuple), else None."""
+    solve = levenberg_marquardt(prob, s, max_iterations, tol, lam)
+    return solve.state, solve, (prob.last_normal if solve.converged else None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1117,7 +1045,7 @@ def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covar
     return cov
 
 
-def _convergence_summary(stages: dict[str, _Outcome], initialised: bool
+def _convergence_summary(stages: dict[str, Solve], initialised: bool
                          ) -> tuple[dict, bool, str]:
     """Per-stage ``iterations``, ``converged``, ``stop_reason``, ``role``, ``cost_px2``; whether
     the result converged and why its solve stopped.
@@ -1228,8 +1156,8 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
     """Stages 2-4 of the module docstring from the starting ``state``.
 
     Returns the flat-target fit (on the final inliers), the solution, the final problem, the
-    inlier mask (N,), the per-stage :class:`_Outcome` and the normal equations of the final
-    solve's last linearisation when it converged (else None).
+    inlier mask (N,), the per-stage :class:`~zoomcalib.calibrate.solver.Solve` and the normal
+    equations at the final solve's end when it converged (else None).
     """
     vi, pi, uv, w, m, n, X0 = (data.vi, data.pi, data.uv, data.w, data.m, data.n, data.X0)
     no_pts = np.zeros((n, 3), bool)
@@ -1239,10 +1167,10 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
         return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
 
     last: dict = {}
-    stages: dict[str, _Outcome] = {}
+    stages: dict[str, Solve] = {}
 
     def lm(name: str, prob: _Problem, st: _State, lam: float = 1e-10) -> _State:
-        st, stages[name], ne = _levenberg_marquardt(prob, st, max_iterations, tol, lam)
+        st, stages[name], ne = _solve(prob, st, max_iterations, tol, lam)
         last["prob"], last["ne"] = prob, ne
         return st
 
@@ -1252,7 +1180,7 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
         # rational model has bad local minima (figueroa: benchmarks/bench_bundle.py --accuracy)
         std_map, _ = _cam_map("standard", fix_aspect, state.cam[0] / state.cam[1])
         std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
-        state, stages["flat_standard"], _ = _levenberg_marquardt(
+        state, stages["flat_standard"], _ = _solve(
             std_prob, state, min(max_iterations, WARM_START_ITERATIONS), tol, 1e-3)
     flat_prob = problem(0.0, no_pts)
     state = lm("flat", flat_prob, state, lam=FLAT_LAMBDA)
@@ -1283,10 +1211,10 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
         state = lm(f"reject{rounds}", prob, state)
     if refine_target and not inlier.all():
         # the flat-target fit (for the guard's comparison) on the same inliers
-        flat_state, stages["flat_inliers"], _ = _levenberg_marquardt(
+        flat_state, stages["flat_inliers"], _ = _solve(
             problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
 
-    # a converged LM's last linearisation is at the solution to within its final (tiny) step
+    # a converged solve's last linearisation is at its solution
     ne = last.get("ne") if last.get("prob") is prob else None
     return flat_state, state, prob, inlier, stages, ne
 
@@ -1362,8 +1290,9 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Per LM stage. A stage that reaches it stops with ``stop_reason='iteration cap'`` and the
         result is marked as not converged (module docstring, Convergence).
     tol : float
-        Stop when the linear model predicts a cost decrease below ``tol`` times the cost. That
-        last step is still taken, so the solution is off by about its square; the change from
+        Stop when the Gauss-Newton step from the current state is predicted to lower the cost
+        by less than ``tol`` times the cost (that step is not taken: the cost is within about
+        that much of its minimum; :mod:`zoomcalib.calibrate.solver`); the change from
         1e-7 to 1e-8 on the benchmark sets is printed by ``python benchmarks/bench_bundle.py
         --accuracy`` (results in ``docs/notes/calibration-checks.md``).
     return_covariance : bool

@@ -400,19 +400,21 @@ def write_exports(out: str | os.PathLike, run: CalibrateRun, camera_name: str,
     files: list[Path] = []
     ros_entries: list[dict] = []
 
-    def attempt(what: str, write: Callable[[], list[Path]]) -> None:
+    def attempt(what: str, write: Callable[[], list[Path]], head: str = "") -> None:
         try:
             files.extend(write())
         except (ValueError, OSError) as exc:
             run.not_written.append(what)
-            run.failures.append(f"{what}: not written: {' '.join(str(exc).split())}")
+            run.failures.append(f"{head or what + ': not written'}: "
+                                f"{' '.join(str(exc).split())}")
             log(run.failures[-1])
 
     for sub in ("opencv", "ros", "mrcal"):
         attempt(f"{sub}/", lambda sub=sub: (out / sub).mkdir(parents=True, exist_ok=True) or [])
     for step in run.results:
         attempt(f"step {step} exports",
-                lambda step=step: _export_step(out, run, step, camera_name, ros_entries))
+                lambda step=step: _export_step(out, run, step, camera_name, ros_entries),
+                f"step {step}: not exported")
     if ros_entries:
         attempt(f"ros/{ROS_INDEX}", lambda: [write_ros_index(out / "ros" / ROS_INDEX,
                                                              camera_name, ros_entries)])

@@ -58,8 +58,8 @@ import numpy as np
 from zoomcalib.calibrate.bundle import (
     CAMERA_NAMES,
     _Problem,
-    _schur_solve,
     _State,
+    as_blocks,
     scaled_inverse,
 )
 from zoomcalib.calibrate.result import (
@@ -69,6 +69,7 @@ from zoomcalib.calibrate.result import (
     one_opencv_thread,
 )
 from zoomcalib.calibrate.scatter import ViewScatter, view_groups, view_scatter
+from zoomcalib.calibrate.solver import predicted_decrease, schur_step
 from zoomcalib.detect.opencv import Detection
 from zoomcalib.targets import Target, parse_pattern
 
@@ -398,10 +399,19 @@ def _stationarity(obj: list[np.ndarray], img: list[np.ndarray], K: np.ndarray,
 def _step_sigma(at_solution) -> float:
     """:func:`_stationarity` from the normal equations at the solution."""
     (U, W, V, g, gp, _), s2 = at_solution.blocks, at_solution.s2
-    sol = _schur_solve(U, W, V, g, gp, 0.0)
+    sol = _gauss_newton_step(U, W, V, g, gp)
     if sol is None or not s2 > 0:
         return float("inf")
-    return float(np.sqrt(max(sol[2], 0.0) / s2))
+    return float(np.sqrt(max(sol[1], 0.0) / s2))
+
+
+def _gauss_newton_step(U, W, V, g, gp) -> tuple[np.ndarray, float] | None:
+    """The undamped step of the bundle's normal equations (:meth:`_Problem.normal_equations`'
+    blocks) over its camera and target unknowns, and the cost decrease it predicts
+    (:mod:`zoomcalib.calibrate.solver`); None when the system is singular."""
+    blocks = as_blocks(U, W, V, g, gp)
+    delta = schur_step(blocks, 0.0)
+    return None if delta is None else (delta[:len(U)], predicted_decrease(blocks, delta))
 
 
 def _camera_covariance(at_solution: _AtSolution
@@ -519,8 +529,7 @@ def displacement_response(obj: list[np.ndarray], K: np.ndarray, dist: np.ndarray
         moved = [p + np.asarray(d, np.float64).reshape(-1, 2) for p, d in zip(proj, field,
                                                                                strict=True)]
         prob, state = _problem_at_solution(obj, moved, K, dist, rvecs, tvecs, flags, n_dist)
-        U, W, V, g, gp, _ = prob.normal_equations(state)
-        sol = _schur_solve(U, W, V, g, gp, 0.0)
+        sol = _gauss_newton_step(*prob.normal_equations(state)[:5])
         if sol is None:
             return None
         out[i] = prob.cam_map @ sol[0][:prob.nc]
