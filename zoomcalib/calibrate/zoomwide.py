@@ -138,7 +138,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -1268,24 +1268,12 @@ def _update_noise(prob: _ZoomProblem, state: _State, free: np.ndarray) -> bool:
     return changed
 
 
-@one_blas_thread
-def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: bool = True,
-                        board_degree: int = 4, board_prior_mm: float = 1.0,
-                        board_points: bool = True, print_shape: bool = False,
-                        max_rounds: int = 4,
-                        chains: Mapping[str, str] | None = None, pp_model: str = "angle2",
-                        prior_strength: Mapping[str, float] | None = None,
-                        decentring: bool = True, shared_aspect: bool = True,
-                        sessions: Mapping[str, str] | None = None,
-                        fixed: tuple[str, ...] = (), model: str = "standard",
-                        workers: int = 1) -> ZoomWideResult:
-    """Calibrate every zoom step of one camera together (module docstring).
+@dataclass(frozen=True)
+class ZoomWideOptions:
+    """The zoom-wide adjustment's choices (:func:`calibrate_zoom_wide`).
 
-    Parameters
+    Attributes
     ----------
-    observations : mapping of step name to Observations
-        The same board (same ``object_points``, board frame, mm) at every step; at least 3
-        views per step (6 for the choice of distortion terms).
     select : bool
         Choose each step's distortion terms by held-out views; else all five are free.
     decentring : bool
@@ -1338,9 +1326,76 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         ``standard``: each step's terms chosen as ``select`` says (the rational model only
         where its held-out views choose it); ``rational``: OpenCV's eight terms at every step,
         no choice (``select`` is then ignored): what ``CALIB_RATIONAL_MODEL`` fits per step.
+    """
+
+    select: bool = True
+    decentring: bool = True
+    board_degree: int = 4
+    board_prior_mm: float = 1.0
+    board_points: bool = True
+    print_shape: bool = False
+    max_rounds: int = 4
+    chains: Mapping[str, str] | None = None
+    pp_model: str = "angle2"
+    prior_strength: Mapping[str, float] | None = None
+    shared_aspect: bool = True
+    sessions: Mapping[str, str] | None = None
+    fixed: tuple[str, ...] = ()
+    model: str = "standard"
+
+
+@dataclass
+class _Setup:
+    """What every solve of one adjustment shares: the steps (their names, corners, noise and
+    inliers), the board and its height modes, each step's ``u = log fx`` at the start, its
+    chain and capture session, the steps' own fits (``init``, their terms, ``held`` and the
+    ``skipped`` steps), whether the aspect ratio is shared or held and whether the print's
+    shape is fitted (``keep_print``; the print test can turn it off)."""
+
+    names: list[str]
+    steps: list[_Step]
+    board: np.ndarray
+    phi: np.ndarray
+    u: np.ndarray
+    chain_idx: np.ndarray
+    labels: list[str]
+    session_names: list[str]
+    session: np.ndarray
+    init: dict[str, CalibrationResult]
+    terms: dict
+    held: dict
+    skipped: dict[str, str]
+    sds: np.ndarray
+    shared_aspect: bool
+    aspect_held: bool
+    keep_print: bool
+    board_prior_mm: float
+
+    def problem(self, free: np.ndarray, tau=None, models=None, forms=None) -> _ZoomProblem:
+        order = {k: m.order for k, m in (models or {}).items()}
+        return _ZoomProblem(self.steps, self.board, self.phi, free, self.chain_idx, self.u,
+                            tau or {}, self.board_prior_mm, order, forms, self.shared_aspect,
+                            self.session, self.aspect_held, self.keep_print)
+
+
+@one_blas_thread
+def calibrate_zoom_wide(observations: Mapping[str, Observations],
+                        options: ZoomWideOptions | None = None, *, workers: int = 1,
+                        **fields) -> ZoomWideResult:
+    """Calibrate every zoom step of one camera together (module docstring).
+
+    Parameters
+    ----------
+    observations : mapping of step name to Observations
+        The same board (same ``object_points``, board frame, mm) at every step; at least 3
+        views per step (6 for the choice of distortion terms).
+    options : ZoomWideOptions, optional
+        The adjustment's choices (default: :class:`ZoomWideOptions`' defaults); ``fields``,
+        keywords named as its fields, replace them (``print_shape=True``).
     workers : int
         Processes for the steps' own OpenCV fits (the distortion-term choice by held-out views
         and the starts); the results do not depend on it.
+
 
     Returns
     -------
@@ -1352,116 +1407,141 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations], *, select: boo
         If the steps see different boards or have different image sizes, or fewer than 2
         steps are given.
     """
-    _check_options(pp_model, prior_strength)
-    if model not in ("standard", "rational"):
-        raise ValueError(f"model must be 'standard' or 'rational', got {model!r}")
-    held_terms = _held_terms(tuple(fixed))
-    select = select and model == "standard"
+    opts = replace(options or ZoomWideOptions(), **fields)
+    _check_options(opts.pp_model, opts.prior_strength)
+    if opts.model not in ("standard", "rational"):
+        raise ValueError(f"model must be 'standard' or 'rational', got {opts.model!r}")
+    held_terms = _held_terms(tuple(opts.fixed))
+    setup, state, free = _set_up(observations, opts, held_terms, workers)
+    print_test, solved, state = _test_the_print(setup, state, free, opts.max_rounds)
+    # first without the smoothness prior: per-step values free of the flat-board bias
+    solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
+        setup.problem, state, free, opts.max_rounds, observations,
+        bool(opts.select and opts.model == "standard" and setup.phi.shape[1]), setup.init,
+        setup.terms, setup.held, opts.decentring, workers, held_terms, solved)
+    forms = _Form.of(opts.pp_model, np.exp(setup.u),
+                     0.5 * np.hypot(*observations[setup.names[0]].image_size))
+    if joint_cov is not None:
+        state, tau_source = solve.state, "zoom-wide solve without the prior"
+        noise, selected = joint_cov, SELECTED if opts.pp_model == "select" else ()
+    else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
+        tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
+        noise, selected = setup.sds, ()
+    models, inflation = _zoom_models(state.cams, noise, free, setup.chain_idx, setup.u,
+                                     selected, forms, opts.prior_strength or {})
+    unsmoothed = (state.cams.copy(), noise, free.copy())
+    free = _tie_terms(state, free, setup.chain_idx, setup.u, models)
+    terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
+             for s, n in enumerate(setup.names)}
+    prob = setup.problem(free, {k: m.tau for k, m in models.items()}, models, forms)
+    solve, more = _solve_with_noise(prob, state, free, opts.max_rounds)
+    result = _finish(prob, solve, solve.state, setup.init, terms, setup.held, models,
+                     iterations + more, inflation, basins)
+    result.skipped, result.tau_source = setup.skipped, tau_source
+    result.board_sessions = setup.session_names
+    result.print_test = print_test
+    _describe(result, setup, prob, solve, unsmoothed, basins, forms, models, joint_cov,
+              tau_source)
+    _add_model_choice_spread(result, observations, setup.held, opts.decentring, held_terms)
+    return result
+
+
+def _set_up(observations: Mapping[str, Observations], opts: ZoomWideOptions,
+            held_terms: tuple[str, ...], workers: int) -> tuple[_Setup, _State, np.ndarray]:
+    """The steps' own fits and the adjustment's start (:class:`_Setup`, the state, the free
+    mask); ValueError when fewer than 2 steps can be started."""
+    select = opts.select and opts.model == "standard"
     board = _common_board(observations)
-    terms, held, init, skipped = _initial(observations, select, decentring, workers,
-                                          held_terms, model)
+    terms, held, init, skipped = _initial(observations, select, opts.decentring, workers,
+                                          held_terms, opts.model)
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
                          + "; ".join(skipped.values()))
     state, free, sds = _start(init, terms)
-    aspect_held = "aspect" in fixed
-    shared_aspect = shared_aspect or aspect_held
+    aspect_held = "aspect" in opts.fixed
+    shared_aspect = opts.shared_aspect or aspect_held
     if shared_aspect:  # started at the median of the steps' own ratios, or held at 1
         state.aspect = 1.0 if aspect_held else float(np.median(state.cams[:, 1]
                                                                 / state.cams[:, 0]))
         state.cams[:, 1] = state.aspect * state.cams[:, 0]
         free[:, 1] = False
-    if "principal-point" in fixed:
+    if "principal-point" in opts.fixed:
         w, h = observations[names[0]].image_size
         state.cams[:, 2:4] = (w - 1) / 2.0, (h - 1) / 2.0
         free[:, 2:4] = False
     u = np.log(state.cams[:, 0])
-    chain_idx = _chains(u, [str((chains or {}).get(n, "")) for n in names])
-    phi = (board_height_modes(board, board_degree) if board_degree >= 2
+    chain_idx = _chains(u, [str((opts.chains or {}).get(n, "")) for n in names])
+    phi = (board_height_modes(board, opts.board_degree) if opts.board_degree >= 2
            else np.zeros((len(board), 0)))
-    labels = [str((sessions or {}).get(n, "")) for n in names]
+    labels = [str((opts.sessions or {}).get(n, "")) for n in names]
     session_names = list(dict.fromkeys(labels))
     session = np.array([session_names.index(lab) for lab in labels])
-    state.modes = np.zeros(phi.shape[1] * (len(session_names) + 2 * print_shape))
-    if board_points:
+    state.modes = np.zeros(phi.shape[1] * (len(session_names) + 2 * opts.print_shape))
+    if opts.board_points:
         state.heights = np.zeros((len(session_names), len(board)))
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
              for n in names]
+    setup = _Setup(names, steps, board, phi, u, chain_idx, labels, session_names, session, init,
+                   terms, held, skipped, sds, shared_aspect, aspect_held,
+                   bool(opts.print_shape and phi.shape[1]), opts.board_prior_mm)
+    return setup, state, free
 
-    def problem(free, tau=None, models=None, forms=None) -> _ZoomProblem:
-        order = {k: m.order for k, m in (models or {}).items()}
-        return _ZoomProblem(steps, board, phi, free, chain_idx, u, tau or {}, board_prior_mm,
-                            order, forms, shared_aspect, session, aspect_held,
-                            keep_print)
 
-    keep_print = bool(print_shape and phi.shape[1])
+def _test_the_print(setup: _Setup, state: _State, free: np.ndarray, max_rounds: int
+                    ) -> tuple[PrintTest | None, tuple[Solve, int] | None, _State]:
+    """Whether the print's shape pays (:class:`PrintTest`; a solve of its own, on copies of
+    the steps): the test (None when not asked), the solve the adjustment goes on from when
+    the print is kept (else None) and the state to start from. Where it is not kept,
+    ``setup.keep_print`` is turned off and the print's modes dropped from the state."""
+    if not setup.keep_print:
+        return None, None, state
+    given_steps = setup.steps
+    setup.steps = copy.deepcopy(setup.steps)
+    # as the solve below: rounds of noise re-estimation (a first round at the steps' own
+    # noise can stop at the iteration cap where the next converges in a few iterations)
+    first, first_iterations = _solve_with_noise(setup.problem(free), copy.deepcopy(state),
+                                                free, max_rounds)
+    print_test = _print_test(setup.problem(free), first)
+    setup.keep_print = print_test.kept
+    solved = None
+    if first.converged:  # the solve below goes on from this one (its noise and inliers)
+        state = first.state
+        # kept: the test's solve is the first solve below
+        solved = (first, first_iterations) if setup.keep_print else None
+    else:  # from the start, as if the print had not been asked for
+        setup.steps = given_steps
+    if not setup.keep_print:
+        state.modes = state.modes[:setup.phi.shape[1] * len(setup.session_names)]
+    return print_test, solved, state
 
-    print_test, solved = None, None
-    if keep_print:  # does the print's shape pay? (PrintTest; a solve of its own, on copies)
-        given_steps = steps
-        steps = copy.deepcopy(steps)
-        # as the solve below: rounds of noise re-estimation (a first round at the steps' own
-        # noise can stop at the iteration cap where the next converges in a few iterations)
-        first, first_iterations = _solve_with_noise(problem(free), copy.deepcopy(state), free,
-                                                    max_rounds)
-        print_test = _print_test(problem(free), first)
-        keep_print = print_test.kept
-        if first.converged:  # the solve below goes on from this one (its noise and inliers)
-            state = first.state
-            # kept: the test's solve is the first solve below
-            solved = (first, first_iterations) if keep_print else None
-        else:  # from the start, as if the print had not been asked for
-            steps = given_steps
-        if not keep_print:
-            state.modes = state.modes[:phi.shape[1] * len(session_names)]
-    # first without the smoothness prior: per-step values free of the flat-board bias
-    solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
-        problem, state, free, max_rounds, observations, bool(select and phi.shape[1]), init,
-        terms, held, decentring, workers, held_terms, solved)
-    forms = _Form.of(pp_model, np.exp(u),
-                     0.5 * np.hypot(*observations[names[0]].image_size))
-    if joint_cov is not None:
-        state, tau_source = solve.state, "zoom-wide solve without the prior"
-        noise, selected = joint_cov, SELECTED if pp_model == "select" else ()
-    else:  # per-step OpenCV values are biased by a waving board: no choice of model from them
-        tau_source = "per-step OpenCV (the solve without the prior had no covariance)"
-        noise, selected = sds, ()
-    models, inflation = _zoom_models(state.cams, noise, free, chain_idx, u, selected, forms,
-                                     prior_strength or {})
-    unsmoothed = (state.cams.copy(), noise, free.copy())
-    free = _tie_terms(state, free, chain_idx, u, models)
-    terms = {n: tuple(p for p, f in zip(PARAMS[4:], free[s, 4:], strict=True) if f)
-             for s, n in enumerate(names)}
-    prob = problem(free, {k: m.tau for k, m in models.items()}, models, forms)
-    solve, more = _solve_with_noise(prob, state, free, max_rounds)
-    result = _finish(prob, solve, solve.state, init, terms, held, models, iterations + more,
-                     inflation, basins)
-    result.skipped, result.tau_source = skipped, tau_source
-    result.board_sessions = session_names
-    result.print_test = print_test
+
+def _describe(result: ZoomWideResult, setup: _Setup, prob: _ZoomProblem, solve: Solve,
+              unsmoothed: tuple, basins: list, forms: dict, models: dict,
+              joint_cov: np.ndarray | None, tau_source: str) -> None:
+    """Fill ``result``'s board, print, unsmoothed rows, held-out paths and each step's
+    ``info`` (session, basin check, where tau came from, zoom models, the prior's share)."""
+    names = setup.names
     if prob.n_print:
         result.print_modes = prob.print_modes(result.board_modes)
         result.print_modes_sd = prob.print_modes(result.board_modes_sd)
         result.board_modes = result.board_modes[:-prob.n_print]
         result.board_modes_sd = result.board_modes_sd[:-prob.n_print]
     result.board_heights = None if solve.state.heights is None else solve.state.heights.copy()
-    result.u = {n: float(v) for n, v in zip(names, u, strict=True)}
+    result.u = {n: float(v) for n, v in zip(names, setup.u, strict=True)}
     scaled = _with_scatter(result, names, *unsmoothed, _basin_gaps(prob.cam_col, basins))
-    held_paths = _held_out_paths(*scaled, chain_idx, u, forms, models, names)
+    held_paths = _held_out_paths(*scaled, setup.chain_idx, setup.u, forms, models, names)
     if joint_cov is not None:
         result.unsmoothed = _unsmoothed_rows(*scaled, names)
     for name, doc in result.zoom_models.items():
         doc.update(form=forms.get(name, _Form()).to_dict(), held_out=held_paths.get(name))
     for s, r in enumerate(result.results.values()):
-        r.info["board_session"] = labels[s]
+        r.info["board_session"] = setup.labels[s]
         r.info["basin"] = basins[s].to_dict()
         r.info["tau_source"] = tau_source
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
             r.info["prior_share"] = _prior_share(r, joint_cov, s)
-    _add_model_choice_spread(result, observations, held, decentring, held_terms)
-    return result
 
 
 #: Smallest probability of the model not chosen (:meth:`TermChoice.other_model_weight`) for
