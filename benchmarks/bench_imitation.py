@@ -66,9 +66,10 @@ def render(folder: Path, seed: int, steps: int, views: int, jitter: float,
     fx_range, size = (1150.0, 11250.0), (1280, 720)
     dist = sweep_distortion(LENS, np.geomspace(*fx_range, steps), size)
     capture = (CaptureEffects((0.8, 1.2), jitter, 2) if effects else CaptureEffects())
-    return render_zoom_sweep(folder, fx_range, steps, views, size, PATTERN,
-                             1.0 if effects else None, jpeg_quality=85 if effects else None,
-                             seed=seed, effects=capture, dist_centre_px=(30.0, -20.0), **dist)
+    return render_zoom_sweep(folder, fx_range=fx_range, steps=steps, views=views, size=size,
+                             pattern=PATTERN, board_surface=1.0 if effects else None,
+                             jpeg_quality=85 if effects else None, seed=seed, effects=capture,
+                             dist_centre_px=(30.0, -20.0), **dist)
 
 
 def opencv_equivalent(truth: dict, step: dict, terms: list[str]) -> dict:

@@ -65,8 +65,9 @@ def main() -> None:
     for seed in range(args.seeds):
         for variant, (sharpen, quality) in VARIANTS.items():
             folder = args.out / f"seed{seed}_{variant}"
-            truth = render_zoom_sweep(folder, (1500.0, 1500.0), 1, args.views, (1280, 720),
-                                      PATTERN, jpeg_quality=quality, seed=seed,
+            truth = render_zoom_sweep(folder, fx_range=(1500.0, 1500.0), steps=1,
+                                      views=args.views, size=(1280, 720), pattern=PATTERN,
+                                      jpeg_quality=quality, seed=seed,
                                       effects=CaptureEffects(sharpen),
                                       radiometry=Radiometry(noise_sd=args.noise_dn / 255.0))
             for view in truth["steps"][0]["views"]:

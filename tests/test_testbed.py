@@ -264,8 +264,8 @@ FX = (1150.0, 11500.0)
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep")
-    doc = render_zoom_sweep(out, FX, steps=3, views=3, size=(640, 360), board_surface=0.3,
-                            jpeg_quality=92, seed=5)
+    doc = render_zoom_sweep(out, fx_range=FX, steps=3, views=3, size=(640, 360),
+                            board_surface=0.3, jpeg_quality=92, seed=5)
     return out, doc
 
 
@@ -323,8 +323,9 @@ def test_sweep_truth_is_the_projection_of_the_waving_board(sweep):
 
 
 def test_sweep_non_gaussian_psf(tmp_path):
-    doc = render_zoom_sweep(tmp_path, FX, steps=1, views=1, size=(320, 180), psf="airy",
-                            supersample=2, optics=Optics(blur_px=0.5, airy_radius_px=2.0))
+    doc = render_zoom_sweep(tmp_path, fx_range=FX, steps=1, views=1, size=(320, 180),
+                            psf="airy", supersample=2,
+                            optics=Optics(blur_px=0.5, airy_radius_px=2.0))
     assert doc["optics"]["psf"] == "airy" and doc["supersample"] == 2
     assert (tmp_path / doc["steps"][0]["views"][0]["file"]).is_file()
 

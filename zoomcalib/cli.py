@@ -372,7 +372,7 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     pixel position of every target point (OpenCV convention). With --wave each step's board
     waves (its surface is in dataset.json and the truth lies on it).
     """
-    from .render.dataset import check_render_inputs, render_dataset
+    from .render.dataset import RenderOptions, check_render_inputs, render_dataset
     from .render.image import Radiometry
 
     lens_ = _load_lens(lens)
@@ -419,14 +419,15 @@ def render(lens, tolerances, nominal, zoom_list, steps, views, pattern, noise, b
     if jpeg_quality is not None and radiometry.bits != 8:
         raise click.BadParameter("JPEG holds 8-bit images only; use --bits 8",
                                  param_hint="--jpeg-quality")
+    options = RenderOptions(optics=optics, radiometry=radiometry, seed=seed, sensor=sensor,
+                            through=through, direction=direction, board_surface=wave or None,
+                            jpeg_quality=jpeg_quality)
     _check_out_folder(out)
     try:
         with click.progressbar(length=len(zoom) * views, label="rendering",
                                file=sys.stderr) as bar:
-            doc = render_dataset(lens_, tol, out, zoom, views, pattern, optics, radiometry, seed,
-                                 sensor=sensor, through=through, direction=direction,
-                                 progress=bar.update, board_surface=wave or None,
-                                 jpeg_quality=jpeg_quality)
+            doc = render_dataset(lens_, tol, out, zoom, views, pattern, options,
+                                 progress=bar.update)
     except ValueError as exc:  # found before any file is written
         raise click.BadParameter(f"{exc}; use a larger --size or fewer --views",
                                  param_hint="--size / --views") from None
@@ -499,7 +500,7 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
     path, poses and true points per step).
     """
     from .render.image import Radiometry
-    from .render.sweep import CaptureEffects, render_zoom_sweep
+    from .render.sweep import CaptureEffects, SweepOptions, render_zoom_sweep
 
     _parse_target(pattern)
     fx = _two_numbers(fx_range, "--fx")
@@ -526,15 +527,16 @@ def render_sweep(fx_range, steps, views, size, pattern, noise, blur, supersample
                                  zoom_jitter, retape_at, rolling_shutter)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--sharpen") from None
+    options = SweepOptions(fx_range=fx, steps=steps, views=views, size=(width, height),
+                           pattern=pattern, board_surface=wave or None,
+                           jpeg_quality=jpeg_quality, seed=seed, optics=optics,
+                           radiometry=Radiometry(noise_sd=noise / 255.0),
+                           supersample=supersample, effects=effects)
     _check_out_folder(out)
     with click.progressbar(length=steps * views, label="rendering", file=sys.stderr) as bar:
         try:
-            doc = render_zoom_sweep(out, fx, steps, views, (width, height), pattern,
-                                    wave or None, jpeg_quality=jpeg_quality, seed=seed,
-                                    optics=optics, radiometry=Radiometry(noise_sd=noise / 255.0),
-                                    supersample=supersample, progress=bar.update,
-                                    pp_path=pp_path, pp_span_px=pp_span, pp_runout=pp_runout,
-                                    effects=effects, **lens_options)
+            doc = render_zoom_sweep(out, options, progress=bar.update, pp_path=pp_path,
+                                    pp_span_px=pp_span, pp_runout=pp_runout, **lens_options)
         except RuntimeError as exc:
             raise click.ClickException(str(exc)) from None
     for st in doc["steps"]:

@@ -83,6 +83,37 @@ about that much. The model error is point-symmetric about the centre, so the fit
 unbiased either way. Valid for dots a few sigma across; the noise-free centre and axis errors
 against dot size are measured by the same benchmark.
 
+Shared blur
+-----------
+With ``sigma='shared'`` (:func:`refine_corners`) and ``sharpened``, when the sampled corners'
+Gaussian fits miss the image by more than 1.5 % of the contrast (``_SHARPEN_MIN_MISFIT``; renders
+at 2 DN noise: 1.0 %), they are also fitted with their own :class:`SharpenedPSF`, a Gaussian blur
+followed by an unsharp mask (``(1 + amount) G_sigma - amount G_wide``), the in-camera sharpening
+of video streams. When at least half of those fits converge, the median amount is above 0.05 and
+their median residual RMS is at most 0.85 times the Gaussian fits' (``_SHARPEN_GAIN``), every
+corner is fitted with the median PSF (``sharpening`` says which; each evaluation costs two
+Gaussian ones). On unsharp-masked renders it recovers the mask and brings the residual down to
+the noise (``tests/test_refine.py``); on a real stream's frames the sharpened fits do not
+converge and do not fit better (``sharpening_gain`` about 1;
+``docs/notes/performance-real-detector.md``), and the choice below applies.
+
+Otherwise, when the sampled corners' fits put the blur below 0.5 px (``_STEEP_EDGE_BLUR``) and
+their residual RMS exceeds 3 % (``_STEEP_EDGE_MISFIT``) of their contrast (median over the
+sample), the edges are steeper than any Gaussian blur with pixel integration makes: a camera
+sharpened them, and the blur the fit finds is no blur but the model's way of steepening them. The
+fit then fixes the blur at 0.5 px, where the cheap pixel model ends the fit (its bias there is a
+few hundredths of such corners' sd), and says so in ``steep_edges``; a collapsed blur would need
+a finer pixel rule, more iterations and leave more corners unconverged, for positions no closer
+to the truth on sharpened renders (``tests/test_refine.py``). A render with a genuinely small
+blur fits to its noise and keeps its blur.
+
+With ``sigma='shared'`` the blur may come out anisotropic: a Gaussian PSF of covariance ``S``
+(Image model), fixed for every corner, chosen only when up to 48 corners' own fits of ``S`` find
+an anisotropy beyond its noise (chi^2 test of the median of ``((S_xx - S_yy) / 2, S_xy)`` at
+p = 0.001) and a major over minor sd of at least 1.25; an isotropic blur keeps the isotropic
+model. With ``max_window`` the window then grows to ``ceil(3 sigma_major) + 2`` px (at most
+``max_window``), so that it holds the blurred edges.
+
 References
 ----------
 .. [1] W. F. Sheppard, "On the application of the theory of error to cases of normal distribution
@@ -103,7 +134,7 @@ References
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -118,6 +149,7 @@ from ..imaging import (  # noqa: F401 (re-exported)
 )
 
 __all__ = [
+    "RefineOptions",
     "RefineResult",
     "DotResult",
     "refine_corners",
@@ -211,6 +243,68 @@ def _apply_cov(blur: np.ndarray, v: np.ndarray) -> np.ndarray:
                             blur[:, 1] * v[:, 0] + blur[:, 2] * v[:, 1]])
 
 
+def _pixel_rule(pixel_model: PixelModel, n_sub: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Node offsets from the pixel centre (S, 2) px, their weights (S,) and the variance the
+    model adds to the PSF (px^2) of a pixel model: the ``n_sub x n_sub`` Gauss-Legendre rule,
+    or the pixel centre alone with the box's variance 1/12 (module docstring)."""
+    if pixel_model == "quadrature":
+        off, wts = pixel_nodes(n_sub)
+        return off, wts, 0.0
+    if pixel_model == "gaussian":
+        return np.zeros((1, 2)), np.ones(1), 1.0 / 12.0
+    raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+
+
+@dataclass(frozen=True)
+class _XjEdges:
+    """The two edges of K X-junctions under their PSF, each (K,) unless said: the sines and
+    cosines of the edge angles, the unit normals ``n1``, ``n2`` (K, 2), the PSF with the pixel
+    model's variance ``eff`` (sd, px, (K,); or covariance entries (K, 3), px^2), the variances
+    ``v1``, ``v2`` of ``n_i . z`` (px^2) and their sds ``sd1``, ``sd2`` (px), the correlation
+    ``rho_raw``, ``rho`` clipped to ``_RHO_MAX`` and ``srho = sqrt(1 - rho^2)``."""
+
+    sin1: np.ndarray
+    cos1: np.ndarray
+    sin2: np.ndarray
+    cos2: np.ndarray
+    n1: np.ndarray
+    n2: np.ndarray
+    eff: np.ndarray
+    v1: np.ndarray
+    v2: np.ndarray
+    sd1: np.ndarray
+    sd2: np.ndarray
+    rho_raw: np.ndarray
+    rho: np.ndarray
+    srho: np.ndarray
+
+    @classmethod
+    def of(cls, alpha1: np.ndarray, alpha2: np.ndarray, eff: np.ndarray) -> _XjEdges:
+        """The edges at direction angles ``alpha1``, ``alpha2`` (rad) under ``eff``."""
+        s1, c1, s2, c2 = np.sin(alpha1), np.cos(alpha1), np.sin(alpha2), np.cos(alpha2)
+        n1, n2 = np.column_stack([-s1, c1]), np.column_stack([-s2, c2])
+        v1, v2, c12 = _blur_variances(eff, n1, n2)
+        with np.errstate(invalid="ignore"):  # trial steps with an indefinite S are rejected later
+            sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
+        rho_raw = c12 / (sd1 * sd2)
+        rho = np.clip(rho_raw, -_RHO_MAX, _RHO_MAX)
+        return cls(s1, c1, s2, c2, n1, n2, eff, v1, v2, sd1, sd2, rho_raw, rho,
+                   np.sqrt(1.0 - rho * rho))
+
+
+@dataclass(frozen=True)
+class _XjNodes:
+    """The quadrature nodes of every pixel relative to each corner, (K, M, S): offsets ``dx``,
+    ``dy`` (px) and the edges' normalised distances ``h = u_1 / sd_1``, ``k = u_2 / sd_2``;
+    and the node ``weights`` (S,)."""
+
+    dx: np.ndarray
+    dy: np.ndarray
+    h: np.ndarray
+    k: np.ndarray
+    weights: np.ndarray
+
+
 def _xj_eval(
     p: np.ndarray,
     sigma: np.ndarray,
@@ -257,41 +351,39 @@ def _xj_eval(
     sqrt(v_1 v_2) - rho (dv_1 / v_1 + dv_2 / v_2) / 2``. The pixel value and its derivatives
     are the node sums weighted by :func:`pixel_nodes`.
     """
-    if pixel_model == "quadrature":
-        off, wts = pixel_nodes(n_sub)
-        box = 0.0
-    elif pixel_model == "gaussian":
-        off, wts = np.zeros((1, 2)), np.ones(1)
-        box = 1.0 / 12.0
-    else:
-        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
+    off, wts, box = _pixel_rule(pixel_model, n_sub)
     sigma = np.asarray(sigma, dtype=float)
     aniso = sigma.ndim == 2
     eff = sigma + np.array([box, 0.0, box]) if aniso else np.sqrt(sigma**2 + box)
     cx, cy, a1, a2, a, b = (p[:, i] for i in range(6))
-    s1, c1, s2, c2 = np.sin(a1), np.cos(a1), np.sin(a2), np.cos(a2)
-    n1, n2 = np.column_stack([-s1, c1]), np.column_stack([-s2, c2])
-    v1, v2, c12 = _blur_variances(eff, n1, n2)
-    with np.errstate(invalid="ignore"):  # trial steps with an indefinite S are rejected later
-        sd1, sd2 = np.sqrt(v1), np.sqrt(v2)
-    rho_raw = c12 / (sd1 * sd2)
-    rho = np.clip(rho_raw, -_RHO_MAX, _RHO_MAX)
-    srho = np.sqrt(1.0 - rho * rho)
+    edges = _XjEdges.of(a1, a2, eff)
     # node coordinates relative to the corner: (K, M, S)
     dx = (xy[None, :, 0, None] + off[None, None, :, 0]) - cx[:, None, None]
     dy = (xy[None, :, 1, None] + off[None, None, :, 1]) - cy[:, None, None]
     e = (slice(None), None, None)
-    u1 = -s1[e] * dx + c1[e] * dy
-    u2 = -s2[e] * dx + c2[e] * dy
-    h, k = u1 / sd1[e], u2 / sd2[e]
-    r_ = rho[e]
+    u1 = -edges.sin1[e] * dx + edges.cos1[e] * dy
+    u2 = -edges.sin2[e] * dx + edges.cos2[e] * dy
+    h, k = u1 / edges.sd1[e], u2 / edges.sd2[e]
     nh, nk = ndtr(h), ndtr(k)
-    g = nh + nk - 2.0 * (nh * nk + _sheppard_by_rho(h, k, r_))
+    g = nh + nk - 2.0 * (nh * nk + _sheppard_by_rho(h, k, edges.rho[e]))
     pix = g @ wts  # (K, M)
     f = b[:, None] + a[:, None] * pix
     if not jacobian:
         return f, None
-    sr = srho[e]
+    return f, _xj_jacobian(edges, _XjNodes(dx, dy, h, k, wts), a, pix, sigma)
+
+
+def _xj_jacobian(edges: _XjEdges, nodes: _XjNodes, a: np.ndarray, pix: np.ndarray,
+                 sigma: np.ndarray) -> np.ndarray:
+    """The Jacobian of :func:`_xj_eval` (formulas in its Notes) from its ``edges``, ``nodes``,
+    contrasts ``a`` (K,), blurred pattern ``pix`` (K, M) and PSF ``sigma`` (as given there)."""
+    s1, c1, s2, c2 = edges.sin1, edges.cos1, edges.sin2, edges.cos2
+    n1, n2, eff, v1, v2 = edges.n1, edges.n2, edges.eff, edges.v1, edges.v2
+    sd1, sd2, rho_raw = edges.sd1, edges.sd2, edges.rho_raw
+    dx, dy, h, k, wts = nodes.dx, nodes.dy, nodes.h, nodes.k, nodes.weights
+    aniso = sigma.ndim == 2
+    e = (slice(None), None, None)
+    r_, sr = edges.rho[e], edges.srho[e]
     ph, pk = _phi(h), _phi(k)
     gh = ph * (1.0 - 2.0 * ndtr((k - r_ * h) / sr))
     gk = pk * (1.0 - 2.0 * ndtr((h - r_ * k) / sr))
@@ -310,7 +402,7 @@ def _xj_eval(
     ghh, gkk = (gh * h) @ wts, (gk * k) @ wts  # (K, M)
     gr = grho @ wts
     n_blur = 3 if aniso else 1
-    jac = np.empty(f.shape + (6 + n_blur,))
+    jac = np.empty(pix.shape + (6 + n_blur,))
     av = a[:, None]
     inv1, inv2 = (1.0 / sd1)[e], (1.0 / sd2)[e]
     jac[..., 0] = av * ((gh * (s1[e] * inv1) + gk * (s2[e] * inv2)) @ wts)
@@ -324,12 +416,12 @@ def _xj_eval(
     if not aniso:
         # S = sigma^2 I (+ I/12): dv_i / dlog sigma = 2 sigma^2, rho does not depend on sigma
         jac[..., 6] = av * (-(ghh + gkk)) * (sigma**2 / eff**2)[:, None]
-        return f, jac
+        return jac
     for j, (dv1, dv2, dc) in enumerate(_cov_entry_derivatives(n1, n2)):
         drho = dc / sd12 - 0.5 * rho_raw * (dv1 / v1 + dv2 / v2)
         jac[..., 6 + j] = av * (-0.5 * ghh * (dv1 / v1)[:, None] - 0.5 * gkk * (dv2 / v2)[:, None]
                                 + gr * drho[:, None])
-    return f, jac
+    return jac
 
 
 @dataclass(frozen=True)
@@ -842,6 +934,18 @@ class RefineResult:
     sharpening: SharpenedPSF | None = None
     sharpening_gain: float = float("nan")
 
+    @classmethod
+    def unrefined(cls, points: np.ndarray) -> RefineResult:
+        """The result before any fit: ``points`` (K, 2) as given, every fitted value NaN (or
+        0 iterations) and none converged."""
+        K = points.shape[0]
+        return cls(
+            points=points.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
+            rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan),
+            contrast=np.full(K, np.nan), offset=np.full(K, np.nan), sigma=np.full(K, np.nan),
+            n_iter=np.zeros(K, int), psf_cov=np.full((K, 2, 2), np.nan),
+        )
+
 
 def _initial_angles(data: np.ndarray, window: int, local: np.ndarray) -> np.ndarray:
     """Two dominant edge directions per patch from a gradient-orientation histogram.
@@ -908,84 +1012,12 @@ def _normalise_xj(p: np.ndarray) -> np.ndarray:
     return p
 
 
-def refine_corners(
-    image: np.ndarray,
-    corners: np.ndarray,
-    window: int = 5,
-    sigma: float | Literal["shared"] | None = None,
-    *,
-    pixel_model: PixelModel = "quadrature",
-    n_sub: int | None = None,
-    max_iter: int = 30,
-    tol: float = 1e-5,
-    chunk: int = 256,
-    max_window: int | None = None,
-    anisotropic: bool = True,
-    sharpened: bool = True,
-) -> RefineResult:
-    """Model-based subpixel refinement of chessboard X-junctions.
+@dataclass(frozen=True)
+class RefineOptions:
+    """How :func:`refine_corners` fits, beside its window and blur.
 
-    For each initial corner (within ~1 px of the truth) the pixels of the ``(2 window + 1)^2``
-    window centred on the nearest pixel are fitted by least squares with the pixel-integrated
-    blurred X-junction (module docstring)::
-
-        I(x) = b + a (Phi(h) + Phi(k) - 2 Phi_2(h, k; cos(alpha_1 - alpha_2))),
-        h = n_1 . (x - c) / sigma,  k = n_2 . (x - c) / sigma,  n_i = (-sin alpha_i, cos alpha_i),
-
-    over ``theta = (c_x, c_y, alpha_1, alpha_2, a, b[, log sigma])`` with batched
-    Levenberg-Marquardt and analytic Jacobians (all corners at once, in chunks of ``chunk``).
-    Edge angles start from the gradient-orientation histogram of the patch, ``a, b`` by linear
-    least squares; the first iterations use the variance-matched Gaussian pixel model, the last
-    ones (at most 8 for a corner that model did not converge) the requested ``pixel_model``,
-    except for a fixed or shared ``sigma`` of 1 px or more, where the Gaussian pixel model is as
-    exact (module docstring) and the fit ends on it. The covariance is ``s^2 (J^T J)^-1``
-    (position block) with ``s^2 = RSS / (n - P)``.
-
-    With ``sigma='shared'`` and ``sharpened``, when the sampled corners' Gaussian fits miss
-    the image by more than 1.5 % of the contrast (``_SHARPEN_MIN_MISFIT``; renders at 2 DN
-    noise: 1.0 %), they are also fitted with their own :class:`SharpenedPSF`, a Gaussian blur
-    followed by an unsharp mask (``(1 + amount) G_sigma - amount G_wide``), the in-camera
-    sharpening of video streams. When at least half of those fits converge, the median
-    amount is above 0.05 and their median residual RMS is at most 0.85 times the Gaussian
-    fits' (``_SHARPEN_GAIN``), every corner is fitted with the median PSF (``sharpening``
-    says which; each evaluation costs two Gaussian ones). On unsharp-masked renders it
-    recovers the mask and brings the residual down to the noise (``tests/test_refine.py``);
-    on a real stream's frames the sharpened fits do not converge and do not fit better
-    (``sharpening_gain`` about 1; ``docs/notes/performance-real-detector.md``), and the choice
-    below applies.
-
-    Otherwise, when the sampled corners' fits put the blur below 0.5 px
-    (``_STEEP_EDGE_BLUR``) and their residual RMS exceeds 3 % (``_STEEP_EDGE_MISFIT``) of their
-    contrast (median over the sample), the edges are steeper than any Gaussian blur with pixel
-    integration makes: a camera sharpened them, and the blur the fit finds is no blur but the
-    model's way of steepening them. The fit then fixes the blur at 0.5 px, where the cheap
-    pixel model ends the fit (its bias there is a few hundredths of such corners' sd), and says
-    so in ``steep_edges``; a collapsed blur would need a finer pixel rule, more iterations and
-    leave more corners unconverged, for positions no closer to the truth on sharpened renders
-    (``tests/test_refine.py``). A render with a genuinely small blur fits to its noise and keeps
-    its blur.
-
-    With ``sigma='shared'`` the blur may come out anisotropic: a Gaussian PSF of covariance
-    ``S`` (module docstring), fixed for every corner, chosen only when up to 48 corners' own
-    fits of ``S`` find an anisotropy beyond its noise (chi^2 test of the median of
-    ``((S_xx - S_yy) / 2, S_xy)`` at p = 0.001) and a major over minor sd of at least 1.25; an
-    isotropic blur keeps the isotropic model. With ``max_window`` the window then grows to
-    ``ceil(3 sigma_major) + 2`` px (at most ``max_window``), so that it holds the blurred
-    edges.
-
-    Parameters
+    Attributes
     ----------
-    image : (H, W) ndarray
-        Grey-level image, uint8 / uint16 / float (processed as float64).
-    corners : (K, 2) ndarray
-        Initial corners ``(x, y)``, px, OpenCV convention.
-    window : int
-        Half-size of the fitting window, px (5 -> 11 x 11 pixels).
-    sigma : float, 'shared' or None
-        Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it on up to
-        64 corners spread over the list, takes the median over converged ones and fits every
-        corner with that value fixed (a two-stage estimate of one common blur), or with the
-        shared anisotropic covariance when the data ask for it (see above).
     pixel_model : {'quadrature', 'gaussian'}
         Pixel integration model for the final iterations.
     n_sub : int, optional
@@ -1006,6 +1038,59 @@ def refine_corners(
         With ``sigma='shared'``, allow the anisotropic PSF; False keeps the isotropic one.
     sharpened : bool
         With ``sigma='shared'``, allow the sharpened PSF; False keeps the Gaussian one.
+    """
+
+    pixel_model: PixelModel = "quadrature"
+    n_sub: int | None = None
+    max_iter: int = 30
+    tol: float = 1e-5
+    chunk: int = 256
+    max_window: int | None = None
+    anisotropic: bool = True
+    sharpened: bool = True
+
+
+def refine_corners(image: np.ndarray, corners: np.ndarray, window: int = 5,
+                   sigma: float | Literal["shared"] | None = None,
+                   options: RefineOptions | None = None, **fields) -> RefineResult:
+    """Model-based subpixel refinement of chessboard X-junctions.
+
+    For each initial corner (within ~1 px of the truth) the pixels of the ``(2 window + 1)^2``
+    window centred on the nearest pixel are fitted by least squares with the pixel-integrated
+    blurred X-junction (module docstring)::
+
+        I(x) = b + a (Phi(h) + Phi(k) - 2 Phi_2(h, k; cos(alpha_1 - alpha_2))),
+        h = n_1 . (x - c) / sigma,  k = n_2 . (x - c) / sigma,  n_i = (-sin alpha_i, cos alpha_i),
+
+    over ``theta = (c_x, c_y, alpha_1, alpha_2, a, b[, log sigma])`` with batched
+    Levenberg-Marquardt and analytic Jacobians (all corners at once, in chunks of
+    ``options.chunk``). Edge angles start from the gradient-orientation histogram of the patch,
+    ``a, b`` by linear least squares; the first iterations use the variance-matched Gaussian
+    pixel model, the last ones (at most 8 for a corner that model did not converge) the
+    requested ``options.pixel_model``, except for a fixed or shared ``sigma`` of 1 px or more,
+    where the Gaussian pixel model is as exact (module docstring) and the fit ends on it. The
+    covariance is ``s^2 (J^T J)^-1`` (position block) with ``s^2 = RSS / (n - P)``.
+
+    With ``sigma='shared'`` the blur every corner is fitted with is chosen from a sample of
+    corners' own fits: a Gaussian, a sharpened PSF, a steep-edge blur or an anisotropic
+    Gaussian (module docstring, section Shared blur).
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        Grey-level image, uint8 / uint16 / float (processed as float64).
+    corners : (K, 2) ndarray
+        Initial corners ``(x, y)``, px, OpenCV convention.
+    window : int
+        Half-size of the fitting window, px (5 -> 11 x 11 pixels).
+    sigma : float, 'shared' or None
+        Gaussian PSF sd, px. A float fixes it; None fits it per corner; 'shared' fits it on up to
+        64 corners spread over the list, takes the median over converged ones and fits every
+        corner with that value fixed (a two-stage estimate of one common blur), or with the
+        shared anisotropic covariance when the data ask for it (see above).
+    options : RefineOptions, optional
+        Pixel model, iterations, batches and the window's growth (default: its defaults);
+        ``fields``, keywords named as its fields, replace them (``max_window=12``).
 
     Returns
     -------
@@ -1030,37 +1115,38 @@ def refine_corners(
     >>> np.round(res.points, 4).tolist(), bool(res.converged[0])
     ([[20.3, 19.6]], True)
     """
+    opts = replace(options or RefineOptions(), **fields)
     img = _as_image(image)
     pts = _as_points(corners, "corners")
-    if window < 2:
-        raise ValueError(f"window must be >= 2, got {window}")
-    if isinstance(sigma, str) and sigma != "shared":
-        raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
-    if pixel_model not in ("quadrature", "gaussian"):
-        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
-    max_window = window if max_window is None else max(int(max_window), window)
-    K = pts.shape[0]
-    out = RefineResult(
-        points=pts.copy(), cov=np.full((K, 2, 2), np.nan), converged=np.zeros(K, bool),
-        rms=np.full(K, np.nan), angles=np.full((K, 2), np.nan), contrast=np.full(K, np.nan),
-        offset=np.full(K, np.nan), sigma=np.full(K, np.nan), n_iter=np.zeros(K, int),
-        psf_cov=np.full((K, 2, 2), np.nan),
-    )
+    _check_refine_arguments(window, sigma, opts.pixel_model)
+    max_window = window if opts.max_window is None else max(int(opts.max_window), window)
+    K, chunk = pts.shape[0], opts.chunk
+    out = RefineResult.unrefined(pts)
     chunks = [_CornerChunk.start(img, pts[s:s + chunk], window, slice(s, min(s + chunk, K)))
               for s in range(0, K, chunk)]
     blur: Blur | None = sigma
     if sigma == "shared":
-        blur = _choose_shared_blur(img, chunks, out, window, max_window, max_iter,
-                                   tol if pixel_model == "gaussian" else 1e-3, anisotropic,
-                                   sharpened)
+        blur = _choose_shared_blur(img, chunks, out, window, max_window, opts.max_iter,
+                                   opts.tol if opts.pixel_model == "gaussian" else 1e-3,
+                                   opts.anisotropic, opts.sharpened)
     if blur is not None:
         grown = _blur_window(blur, window, max_window)
         for c in chunks:
             c.regrow(img, grown)
             c.fix_blur(blur)
     for whole in chunks:
-        _fit_chunk(whole, blur, out, pixel_model, n_sub, max_iter, tol)
+        _fit_chunk(whole, blur, out, opts.pixel_model, opts.n_sub, opts.max_iter, opts.tol)
     return out
+
+
+def _check_refine_arguments(window: int, sigma, pixel_model: str) -> None:
+    """ValueError for a window below 2 px, an unknown ``sigma`` string or pixel model."""
+    if window < 2:
+        raise ValueError(f"window must be >= 2, got {window}")
+    if isinstance(sigma, str) and sigma != "shared":
+        raise ValueError(f"sigma must be a float, 'shared' or None, got {sigma!r}")
+    if pixel_model not in ("quadrature", "gaussian"):
+        raise ValueError(f"pixel_model must be 'quadrature' or 'gaussian', got {pixel_model!r}")
 
 
 def _choose_shared_blur(img: np.ndarray, chunks: list[_CornerChunk], out: RefineResult,

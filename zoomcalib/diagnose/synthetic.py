@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.polynomial import legendre
@@ -53,8 +53,9 @@ from .model import (
 )
 from .table import ZoomTable
 
-__all__ = ["synthetic_zoom_table", "independent_zoom_table", "unlisted_capture", "cause_terms",
-           "HIDDEN_CAUSES", "PLAY_DISTRIBUTIONS"]
+__all__ = ["TableOptions", "IndependentTableOptions", "synthetic_zoom_table",
+           "independent_zoom_table", "unlisted_capture", "cause_terms", "HIDDEN_CAUSES",
+           "PLAY_DISTRIBUTIONS"]
 
 HIDDEN_CAUSES = ("axis_tilt", "backlash", "thermal_drift", "cam_harmonic", "static_decenter",
                  "focus_shift")
@@ -263,13 +264,52 @@ def _draw(value: float | tuple[float, float], rng: np.random.Generator,
     return float(rng.uniform(*value))
 
 
-def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.Generator, *,
-                         n_zoom: int = 9, passes: int = 2, pitch_mm: float = 0.00645,
-                         tolerances: Tolerances | None = None,
+@dataclass(frozen=True)
+class TableOptions:
+    """The zoom schedule, lens and measurement of a synthetic table
+    (:func:`synthetic_zoom_table`; the base of :class:`IndependentTableOptions`).
+
+    Attributes
+    ----------
+    n_zoom : int
+        Zoom settings per sweep.
+    passes : int
+        Repetitions of (in sweep, out sweep).
+    pitch_mm : float
+        Pixel pitch, mm.
+    tolerances : Tolerances, optional
+        Locked-error amplitudes and play (default: the built-in tolerances).
+    sd_wide_px : float
+        Measurement 1-sigma of cx and cy at the shortest focal length, px.
+    sd_growth : float or (float, float)
+        Exponent of its growth with focal length, ``(f / f_min) ** sd_growth``; a range (drawn
+        uniformly) for :func:`independent_zoom_table` only.
+    with_focus, with_temperature : bool
+        Add a ``focus`` / ``temperature`` column (focus forced on for ``focus_shift``).
+    """
+
+    n_zoom: int = 9
+    passes: int = 2
+    pitch_mm: float = 0.00645
+    tolerances: Tolerances | None = None
+    sd_wide_px: float = 0.05
+    sd_growth: float | tuple[float, float] = 1.0
+    with_focus: bool = False
+    with_temperature: bool = False
+
+    def bench(self, lens: Prescription) -> _Bench:
+        """The table's zoom schedule and the lens state of each row."""
+        return _Bench.of(lens, self.n_zoom, self.passes, self.pitch_mm)
+
+    def tolerances_or_default(self) -> Tolerances:
+        """``tolerances``, or the built-in ones."""
+        return self.tolerances if self.tolerances is not None else load_tolerances()
+
+
+def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.Generator,
+                         options: TableOptions | None = None, *,
                          magnitude: float | tuple[float, float] = (3.0, 8.0),
-                         sd_wide_px: float = 0.05, sd_growth: float = 1.0,
-                         with_focus: bool = False, with_temperature: bool = False
-                         ) -> tuple[list[dict], dict]:
+                         **fields) -> tuple[list[dict], dict]:
     """A measured ``zoom_calibration.csv`` table with one hidden cause.
 
     Parameters
@@ -278,18 +318,12 @@ def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.G
     cause : str or None
         One of :data:`HIDDEN_CAUSES`, or None for the simulation's model alone.
     rng : numpy.random.Generator
-    n_zoom, passes : int
-        Zoom settings per sweep; repetitions of (in sweep, out sweep).
-    pitch_mm : float
-    tolerances : Tolerances, optional
-        Locked-error amplitudes and play (default: the built-in tolerances).
+    options : TableOptions, optional
+        Zoom schedule, tolerances and measurement noise (default: its defaults); ``fields``,
+        keywords named as its fields, replace them (``n_zoom=13, with_focus=True``).
     magnitude : float or (float, float)
         RMS over the rows of the hidden effect less its mean (a constant shift cannot be told
         from the sensor offset), in units of the RMS noise; a range draws it uniformly.
-    sd_wide_px, sd_growth : float
-        Measurement 1-sigma of cx and cy at the shortest focal length and its growth exponent.
-    with_focus, with_temperature : bool
-        Add a ``focus`` / ``temperature`` column (forced on for ``focus_shift``).
 
     Returns
     -------
@@ -299,20 +333,21 @@ def synthetic_zoom_table(lens: Prescription, cause: str | None, rng: np.random.G
         ``cause``, ``group`` (for mechanical causes), ``params`` named as the diagnosis names
         them, ``magnitude`` (noise units), ``z`` (lens state per row) and ``noise_rms_px``.
     """
+    opts = replace(options or TableOptions(), **fields)
     if cause is not None and cause not in HIDDEN_CAUSES:
         raise ValueError(f"cause must be one of {HIDDEN_CAUSES} or None, got {cause!r}")
-    tolerances = tolerances if tolerances is not None else load_tolerances()
-    with_focus = with_focus or cause == "focus_shift"
-    b = _Bench.of(lens, n_zoom, passes, pitch_mm)
+    tolerances = opts.tolerances_or_default()
+    with_focus = opts.with_focus or cause == "focus_shift"
+    b = opts.bench(lens)
     dec, tilt, play_dec, play_tilt = _mechanical_errors(b, tolerances, rng, _gaussian, 1.0)
     state = _State(dec + play_dec, tilt + play_tilt,
                    b.sensor.centre_px + rng.normal(0.0, 15.0, 2), np.zeros((b.n, 2)))
     state.pp = b.principal_points(state.decenter, state.tilt, state.offset)
-    sd_meas = sd_wide_px * (b.efl / b.efl.min()) ** sd_growth
+    sd_meas = opts.sd_wide_px * (b.efl / b.efl.min()) ** opts.sd_growth
     # the noise the diagnosis is told about: measurement and play scatter (reported in truth)
-    play = play_sd_px(lens, b.z, tolerances, pitch_mm)
+    play = play_sd_px(lens, b.z, tolerances, opts.pitch_mm)
     noise_rms = float(np.sqrt(np.mean(sd_meas ** 2 + play ** 2)))
-    focus, temperature = _covariates(b, rng, with_focus, with_temperature)
+    focus, temperature = _covariates(b, rng, with_focus, opts.with_temperature)
     truth: dict = {"cause": cause or "none", "params": {}, "z": b.z, "noise_rms_px": noise_rms}
     if cause is not None:
         m = _draw(magnitude, rng)
@@ -420,40 +455,24 @@ def _unlisted_effect(b: _Bench, ctx: Context, sigma_px: np.ndarray, m: float, no
                        f"below {max_captured_pair})")
 
 
-def independent_zoom_table(
-        lens: Prescription, rng: np.random.Generator, *,
-        causes: Sequence[tuple[str, float | tuple[float, float]]] = (),
-        n_zoom: int = 9, passes: int = 2, pitch_mm: float = 0.00645,
-        tolerances: Tolerances | None = None,
-        play_scale: float | tuple[float, float] = 1.0, play_distribution: str = "gaussian",
-        sd_wide_px: float = 0.05, sd_growth: float | tuple[float, float] = 1.0,
-        sd_factor: float | tuple[float, float] = 1.0,
-        unlisted: float | tuple[float, float] = 0.0, unlisted_degree: int = 3,
-        max_captured: float = 0.5, max_captured_pair: float | None = None,
-        with_focus: bool = False, with_temperature: bool = False
-        ) -> tuple[list[dict], dict]:
-    """A measured table that departs from the diagnosis's assumptions, and its truth.
+@dataclass(frozen=True)
+class IndependentTableOptions(TableOptions):
+    """How the table of :func:`independent_zoom_table` departs from the diagnosis's
+    assumptions, beside the fields of :class:`TableOptions` (whose ``sd_growth`` may here be
+    a range, drawn uniformly).
 
-    Parameters
+    Attributes
     ----------
-    lens : Prescription
-    rng : numpy.random.Generator
     causes : sequence of (cause, magnitude)
         Zero, one or more distinct :data:`HIDDEN_CAUSES`, each with its magnitude: the RMS over
         the rows of its effect less its mean, in units of the true RMS noise (measurement and
         play); a range draws it uniformly. Each cause has its own random direction (and group).
-    n_zoom, passes, pitch_mm, tolerances
-        As for :func:`synthetic_zoom_table`.
     play_scale : float or (float, float)
         True play 1-sigma over the tolerance file's (the diagnosis assumes 1); a range draws it
         log-uniformly.
     play_distribution : str
         ``"gaussian"``, ``"uniform"`` or ``"laplace"`` (:data:`PLAY_DISTRIBUTIONS`), each of the
         same 1-sigma.
-    sd_wide_px : float
-        True measurement 1-sigma of cx and cy at the shortest focal length, px.
-    sd_growth : float or (float, float)
-        Exponent of its growth with focal length, ``(f / f_min) ** sd_growth`` (uniform draw).
     sd_factor : float or (float, float)
         The table's ``sd_cx`` and ``sd_cy`` are the true 1-sigma times this (log-uniform draw).
     unlisted : float or (float, float)
@@ -463,8 +482,98 @@ def independent_zoom_table(
         redrawn until no cause captures more than ``max_captured`` of its chi2
         (:func:`unlisted_capture`, weights from the true noise) and, when
         ``max_captured_pair`` is given, no two causes together more than that.
-    with_focus, with_temperature : bool
-        Add a ``focus`` / ``temperature`` column (focus forced on for ``focus_shift``).
+    unlisted_degree : int
+        Degree of the unlisted curve's Legendre polynomial per axis.
+    max_captured : float
+        Largest fraction of the unlisted effect's chi2 any one cause may capture.
+    max_captured_pair : float, optional
+        Largest fraction any two causes together may capture; None: no limit.
+    """
+
+    causes: Sequence[tuple[str, float | tuple[float, float]]] = ()
+    play_scale: float | tuple[float, float] = 1.0
+    play_distribution: str = "gaussian"
+    sd_factor: float | tuple[float, float] = 1.0
+    unlisted: float | tuple[float, float] = 0.0
+    unlisted_degree: int = 3
+    max_captured: float = 0.5
+    max_captured_pair: float | None = None
+
+    def check(self) -> list[str]:
+        """The causes' names; ValueError for an unknown or repeated cause or an unknown play
+        distribution."""
+        names = [c for c, _ in self.causes]
+        bad = [c for c in names if c not in HIDDEN_CAUSES]
+        if bad or len(set(names)) != len(names):
+            raise ValueError(f"causes must be distinct names from {HIDDEN_CAUSES}, got {names}")
+        if self.play_distribution not in PLAY_DISTRIBUTIONS:
+            raise ValueError(f"play_distribution must be one of {tuple(PLAY_DISTRIBUTIONS)}, "
+                             f"got {self.play_distribution!r}")
+        return names
+
+
+@dataclass(frozen=True)
+class _TrueNoise:
+    """The noise of an independent table: the play's linearised 1-sigma per axis ``play_px``
+    (N,), the measurement's true 1-sigma ``sd_px`` (N,), both together ``sigma_px`` (N,), its
+    RMS ``rms_px`` and the RMS the diagnosis assumes from the reported sigmas and the tolerance
+    file's play ``assumed_rms_px`` (all px)."""
+
+    play_px: np.ndarray
+    sd_px: np.ndarray
+    sigma_px: np.ndarray
+    rms_px: float
+    assumed_rms_px: float
+
+    @classmethod
+    def of(cls, b: _Bench, tolerances: Tolerances, play_scale: float, sd_wide_px: float,
+           growth: float, factor: float) -> _TrueNoise:
+        """The noise of play ``play_scale`` times the tolerance file's and of a measurement
+        1-sigma ``sd_wide_px`` growing with exponent ``growth``, reported times ``factor``."""
+        moving = Tolerances({g: tolerances.for_group(g) for g in b.groups})  # the play applied
+        play_true = play_scale * play_sd_px(b.lens, b.z, moving, b.pitch_mm)
+        sd_true = sd_wide_px * (b.efl / b.efl.min()) ** growth
+        sigma_true = np.sqrt(sd_true ** 2 + play_true ** 2)
+        assumed = np.sqrt((factor * sd_true) ** 2
+                          + play_sd_px(b.lens, b.z, tolerances, b.pitch_mm) ** 2)
+        return cls(play_true, sd_true, sigma_true, float(np.sqrt(np.mean(sigma_true ** 2))),
+                   float(np.sqrt(np.mean(assumed ** 2))))
+
+
+def _cause_record(b: _Bench, state: _State, cause: str, m: float, noise_rms: float,
+                  rng: np.random.Generator, focus: np.ndarray | None,
+                  temperature: np.ndarray | None) -> dict:
+    """Add one cause to ``state`` (:func:`_add_cause`); its entry in the truth's ``causes``."""
+    before = state.pp
+    after, params, group = _add_cause(b, state, cause, m, noise_rms, rng, focus, temperature)
+    return {"cause": cause, "magnitude": m, "params": params, "group": group,
+            "effect_px": after - before}
+
+
+def _unlisted_context(b: _Bench, pp: np.ndarray, sd_px: np.ndarray, focus: np.ndarray | None,
+                      temperature: np.ndarray | None) -> Context:
+    """The rows an unlisted effect's capture is measured at: the table of principal points
+    ``pp`` (px) with the true sigmas ``sd_px``, and the lens's sensitivities."""
+    table = ZoomTable(zoom=b.z, fx=b.fx, fy=b.fx, cx=pp[:, 0], cy=pp[:, 1],
+                      sd_cx=sd_px, sd_cy=sd_px, direction=b.direction, sequence=b.seq,
+                      focus=focus, temperature=temperature)
+    response = LensResponse(b.lens, b.pitch_mm, b.z, b.efl, b.groups)  # sensitivities only
+    return Context.build(table, b.z, response)
+
+
+def independent_zoom_table(lens: Prescription, rng: np.random.Generator,
+                           options: IndependentTableOptions | None = None,
+                           **fields) -> tuple[list[dict], dict]:
+    """A measured table that departs from the diagnosis's assumptions, and its truth.
+
+    Parameters
+    ----------
+    lens : Prescription
+    rng : numpy.random.Generator
+    options : IndependentTableOptions, optional
+        Causes, play, misreported sigmas and the unlisted effect (default: none of them, the
+        defaults of :class:`TableOptions`); ``fields``, keywords named as its fields, replace
+        them (``causes=[("backlash", 8.0)], unlisted=3.0``).
 
     Returns
     -------
@@ -484,63 +593,44 @@ def independent_zoom_table(
         causes' effect_px + unlisted.effect_px + measurement_noise_px``; each cause's effect is
         its change of the traced principal points given the causes before it.
     """
-    names = [c for c, _ in causes]
-    bad = [c for c in names if c not in HIDDEN_CAUSES]
-    if bad or len(set(names)) != len(names):
-        raise ValueError(f"causes must be distinct names from {HIDDEN_CAUSES}, got {names}")
-    if play_distribution not in PLAY_DISTRIBUTIONS:
-        raise ValueError(f"play_distribution must be one of {tuple(PLAY_DISTRIBUTIONS)}, "
-                         f"got {play_distribution!r}")
-    tolerances = tolerances if tolerances is not None else load_tolerances()
-    with_focus = with_focus or "focus_shift" in names
-    b = _Bench.of(lens, n_zoom, passes, pitch_mm)
-    p_scale = _draw(play_scale, rng, log=True)
-    factor = _draw(sd_factor, rng, log=True)
-    growth = _draw(sd_growth, rng)
+    opts = replace(options or IndependentTableOptions(), **fields)
+    names = opts.check()
+    tolerances = opts.tolerances_or_default()
+    with_focus = opts.with_focus or "focus_shift" in names
+    b = opts.bench(lens)
+    p_scale = _draw(opts.play_scale, rng, log=True)
+    factor = _draw(opts.sd_factor, rng, log=True)
+    growth = _draw(opts.sd_growth, rng)
     dec, tilt, play_dec, play_tilt = _mechanical_errors(
-        b, tolerances, rng, PLAY_DISTRIBUTIONS[play_distribution], p_scale)
+        b, tolerances, rng, PLAY_DISTRIBUTIONS[opts.play_distribution], p_scale)
     offset = b.sensor.centre_px + rng.normal(0.0, 15.0, 2)
     locked = b.principal_points(dec, tilt, offset)
     state = _State(dec + play_dec, tilt + play_tilt, offset, np.zeros((b.n, 2)))
     state.pp = b.principal_points(state.decenter, state.tilt, offset)
     play_effect = state.pp - locked
-
-    moving = Tolerances({g: tolerances.for_group(g) for g in b.groups})  # the play applied
-    play_true = p_scale * play_sd_px(lens, b.z, moving, pitch_mm)
-    sd_true = sd_wide_px * (b.efl / b.efl.min()) ** growth
-    sigma_true = np.sqrt(sd_true ** 2 + play_true ** 2)
-    noise_rms = float(np.sqrt(np.mean(sigma_true ** 2)))
-    assumed = np.sqrt((factor * sd_true) ** 2 + play_sd_px(lens, b.z, tolerances, pitch_mm) ** 2)
-    focus, temperature = _covariates(b, rng, with_focus, with_temperature)
-
-    truth_causes = []
-    for cause, magnitude in causes:
-        m = _draw(magnitude, rng)
-        before = state.pp
-        after, params, group = _add_cause(b, state, cause, m, noise_rms, rng, focus,
-                                          temperature)
-        truth_causes.append({"cause": cause, "magnitude": m, "params": params, "group": group,
-                             "effect_px": after - before})
+    noise = _TrueNoise.of(b, tolerances, p_scale, opts.sd_wide_px, growth, factor)
+    focus, temperature = _covariates(b, rng, with_focus, opts.with_temperature)
+    truth_causes = [_cause_record(b, state, cause, _draw(magnitude, rng), noise.rms_px, rng,
+                                  focus, temperature)
+                    for cause, magnitude in opts.causes]
     pp = state.pp
-    m_unlisted = _draw(unlisted, rng)
+    m_unlisted = _draw(opts.unlisted, rng)
     extra = None
     if m_unlisted > 0:
-        table = ZoomTable(zoom=b.z, fx=b.fx, fy=b.fx, cx=pp[:, 0], cy=pp[:, 1],
-                          sd_cx=sd_true, sd_cy=sd_true, direction=b.direction, sequence=b.seq,
-                          focus=focus, temperature=temperature)
-        response = LensResponse(lens, pitch_mm, b.z, b.efl, b.groups)  # sensitivities only
-        ctx = Context.build(table, b.z, response)
-        extra = _unlisted_effect(b, ctx, sigma_true, m_unlisted, noise_rms, unlisted_degree,
-                                 max_captured, max_captured_pair, rng)
+        ctx = _unlisted_context(b, pp, noise.sd_px, focus, temperature)
+        extra = _unlisted_effect(b, ctx, noise.sigma_px, m_unlisted, noise.rms_px,
+                                 opts.unlisted_degree, opts.max_captured,
+                                 opts.max_captured_pair, rng)
         pp = pp + extra["effect_px"]
-    rows, noise = _rows(b, rng, pp, sd_true, factor * sd_true, focus, temperature)
+    rows, measurement = _rows(b, rng, pp, noise.sd_px, factor * noise.sd_px, focus, temperature)
     truth = {
         "causes": truth_causes, "unlisted": extra,
-        "play": {"scale": p_scale, "distribution": play_distribution, "sd_px": play_true,
-                 "effect_px": play_effect, "decenter_mm": play_dec, "tilt_rad": play_tilt},
-        "sd": {"factor": factor, "growth": growth, "true_px": sd_true,
-               "reported_px": factor * sd_true},
-        "locked_px": locked, "measurement_noise_px": noise, "noise_rms_px": noise_rms,
-        "assumed_noise_rms_px": float(np.sqrt(np.mean(assumed ** 2))), "z": b.z,
+        "play": {"scale": p_scale, "distribution": opts.play_distribution,
+                 "sd_px": noise.play_px, "effect_px": play_effect, "decenter_mm": play_dec,
+                 "tilt_rad": play_tilt},
+        "sd": {"factor": factor, "growth": growth, "true_px": noise.sd_px,
+               "reported_px": factor * noise.sd_px},
+        "locked_px": locked, "measurement_noise_px": measurement,
+        "noise_rms_px": noise.rms_px, "assumed_noise_rms_px": noise.assumed_rms_px, "z": b.z,
     }
     return rows, truth

@@ -24,9 +24,8 @@ the surface under ``board_surface``). JPEG compression changes the images only, 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -49,9 +48,9 @@ from .image import (
     render_image,
 )
 
-__all__ = ["check_render_inputs", "clear_previous_render", "generate_poses", "render_dataset",
-           "scaled_target_for_view", "psf_limit_px", "write_image", "MAX_PSF_FRACTION",
-           "MIN_PSF_LIMIT_PX"]
+__all__ = ["RenderOptions", "check_render_inputs", "clear_previous_render", "generate_poses",
+           "render_dataset", "scaled_target_for_view", "psf_limit_px", "write_image",
+           "MAX_PSF_FRACTION", "MIN_PSF_LIMIT_PX"]
 
 
 def write_image(path: str | Path, image: np.ndarray, jpeg_quality: int | None = None) -> Path:
@@ -230,80 +229,28 @@ def _axis_tilted(em, lens, zoom, axis_tilt_mrad, keystone: bool):
     return tilted_sensor(em, lens, zoom, 1e-3 * np.asarray(axis_tilt_mrad, float), keystone)
 
 
-class _StepPlan(NamedTuple):
-    """One step's generator, misalignment, exact mapping, the mapping rendered through, the
-    target scaled for it and its poses."""
+@dataclass(frozen=True)
+class RenderOptions:
+    """How :func:`render_dataset` renders a data set.
 
-    rng: np.random.Generator
-    misalignment: Misalignment
-    exact: object
-    mapping: object
-    target: Target
-    poses: list
-
-
-def _plan_step(lens: Prescription, z: float, mis: Misalignment, rng: np.random.Generator,
-               base: Target, sensor: Sensor, n_views: int, distance_mm: float, fill: float,
-               through: str, axis_tilt_mrad, axis_tilt_keystone: bool) -> _StepPlan:
-    """The step's mapping and poses; ValueError naming the zoom when no ``n_views`` poses keep
-    the target in view."""
-    em = _axis_tilted(exact_mapping(lens, z, mis, sensor), lens, z, axis_tilt_mrad,
-                      axis_tilt_keystone)
-    mapping = em if through == "exact" else camera_mapping(em.camera)
-    target = scaled_target_for_view(base, em.camera.fy, sensor, distance_mm, fill)
-    try:
-        poses = generate_poses(target, mapping, sensor, n_views, distance_mm, rng)
-    except RuntimeError as exc:
-        raise ValueError(f"zoom {z:g}: {exc}") from None
-    return _StepPlan(rng, mis, em, mapping, target, poses)
-
-
-def _render_step(out: Path, name: str, z: float, plan: _StepPlan, lens: Prescription,
-                 surface: BoardSurface | None, sensor: Sensor, optics: Optics,
-                 radiometry: Radiometry, supersample: int, jpeg_quality: int | None,
-                 progress: Callable[[int], None] | None) -> dict:
-    """Render and write one step's views; its ``dataset.json`` entry."""
-    (out / name).mkdir(exist_ok=True)
-    views, view = [], None
-    for j, (R, t) in enumerate(plan.poses):
-        view = render_image(plan.target, plan.mapping, R, t, sensor, optics, radiometry,
-                            plan.rng, supersample, surface=surface)
-        fname = write_image(out / name / f"view_{j:02d}", view.image, jpeg_quality).name
-        views.append({"file": f"{name}/{fname}", **view.truth_dict()})
-        if progress is not None:
-            progress(1)
-    em, mis = plan.exact, plan.misalignment
-    return {
-        "step": name, "zoom": float(z), "efl_mm": em.lens_camera.efl_mm,
-        "camera": em.camera.to_dict(), "principal_point_px": em.lens_camera.principal_point_px,
-        "model_fit_rms_px": em.lens_camera.fit_rms_px,
-        "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
-        "target": plan.target.spec, "psf_sigma_px": views and float(view.sigma_px),
-        "board_surface": None if surface is None else surface.to_dict(),
-        "views": views,
-    }
-
-
-def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
-                   zoom: list[float], n_views: int, pattern: str, optics: Optics | None = None,
-                   radiometry: Radiometry | None = None, seed: int = 0,
-                   sensor: Sensor = DEFAULT_SENSOR, distance_mm: float = 2000.0,
-                   fill: float = 0.55, through: str = "exact", supersample: int = 4,
-                   direction: str | Sequence[str] = "random",
-                   progress: Callable[[int], None] | None = None,
-                   board_surface: BoardSurface | float | None = None,
-                   jpeg_quality: int | None = None,
-                   axis_tilt_mrad: tuple[float, float] | None = None,
-                   axis_tilt_keystone: bool = True) -> dict:
-    """Render a multi-zoom calibration data set (layout in the module docstring).
-
-    Parameters
+    Attributes
     ----------
-    tolerances : Tolerances or None
-        Mechanical errors; each zoom step gets one draw (locked errors, backlash for a random
-        approach direction, play). None renders the nominal lens.
+    optics : Optics, optional
+        What sets the blur (default ``Optics()``).
+    radiometry : Radiometry, optional
+        Signal, noise and quantisation (default ``Radiometry()``).
+    seed : int
+        Seed of every draw: mechanical errors, poses, board waves and noise.
+    sensor : Sensor
+        Image size (px) and pixel pitch (mm).
+    distance_mm : float
+        Working distance of the views, mm (each view's is 0.9-1.15 times it).
+    fill : float
+        Fraction of the image height the scaled target's point grid spans at ``distance_mm``.
     through : {'exact', 'model'}
         Render through the exact ray-traced mapping, or through the fitted OpenCV model only.
+    supersample : int
+        Sub-samples per pixel side where the supersampled renderer is used.
     direction : {'random', 'in', 'out'} or sequence of 'in' / 'out', one per step
         Direction of the last zoom move before each step (sets the backlash side); a sequence
         is written to ``steps.csv``.
@@ -321,6 +268,155 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         distance (:class:`~zoomcalib.optics.lens_camera.TiltedSensorMapping`).
     axis_tilt_keystone : bool
         False renders the axis tilt as the image shift alone, without the keystone.
+    """
+
+    optics: Optics | None = None
+    radiometry: Radiometry | None = None
+    seed: int = 0
+    sensor: Sensor = DEFAULT_SENSOR
+    distance_mm: float = 2000.0
+    fill: float = 0.55
+    through: str = "exact"
+    supersample: int = 4
+    direction: str | Sequence[str] = "random"
+    board_surface: BoardSurface | float | None = None
+    jpeg_quality: int | None = None
+    axis_tilt_mrad: tuple[float, float] | None = None
+    axis_tilt_keystone: bool = True
+
+    def direction_of(self, step: int) -> str:
+        """The direction column of step ``step`` in ``steps.csv`` (empty when random)."""
+        if self.direction == "random":
+            return ""
+        return self.direction if isinstance(self.direction, str) else self.direction[step]
+
+
+@dataclass(frozen=True)
+class _StepPlan:
+    """One step's generator, misalignment, exact mapping, the mapping rendered through, the
+    target scaled for it and its poses."""
+
+    rng: np.random.Generator
+    misalignment: Misalignment
+    exact: object
+    mapping: object
+    target: Target
+    poses: list
+
+
+def _plan_step(lens: Prescription, z: float, mis: Misalignment, rng: np.random.Generator,
+               base: Target, n_views: int, opts: RenderOptions) -> _StepPlan:
+    """The step's mapping and poses; ValueError naming the zoom when no ``n_views`` poses keep
+    the target in view."""
+    sensor = opts.sensor
+    em = _axis_tilted(exact_mapping(lens, z, mis, sensor), lens, z, opts.axis_tilt_mrad,
+                      opts.axis_tilt_keystone)
+    mapping = em if opts.through == "exact" else camera_mapping(em.camera)
+    target = scaled_target_for_view(base, em.camera.fy, sensor, opts.distance_mm, opts.fill)
+    try:
+        poses = generate_poses(target, mapping, sensor, n_views, opts.distance_mm, rng)
+    except RuntimeError as exc:
+        raise ValueError(f"zoom {z:g}: {exc}") from None
+    return _StepPlan(rng, mis, em, mapping, target, poses)
+
+
+def _step_surface(board_surface: BoardSurface | float | None, plan: _StepPlan,
+                  seed: np.random.SeedSequence) -> BoardSurface | None:
+    """The step's board: the surface given, or one drawn at the given amplitude (mm) over the
+    step's scaled target."""
+    if isinstance(board_surface, int | float):
+        return BoardSurface.random(plan.target.extent_mm, float(board_surface),
+                                   np.random.default_rng(seed))
+    return board_surface
+
+
+def _render_step(out: Path, name: str, z: float, plan: _StepPlan, lens: Prescription,
+                 surface: BoardSurface | None, opts: RenderOptions,
+                 progress: Callable[[int], None] | None) -> dict:
+    """Render and write one step's views; its ``dataset.json`` entry. ``opts`` carries the
+    optics and radiometry resolved."""
+    (out / name).mkdir(exist_ok=True)
+    views, view = [], None
+    for j, (R, t) in enumerate(plan.poses):
+        view = render_image(plan.target, plan.mapping, R, t, opts.sensor, opts.optics,
+                            opts.radiometry, plan.rng, opts.supersample, surface=surface)
+        fname = write_image(out / name / f"view_{j:02d}", view.image, opts.jpeg_quality).name
+        views.append({"file": f"{name}/{fname}", **view.truth_dict()})
+        if progress is not None:
+            progress(1)
+    em, mis = plan.exact, plan.misalignment
+    return {
+        "step": name, "zoom": float(z), "efl_mm": em.lens_camera.efl_mm,
+        "camera": em.camera.to_dict(), "principal_point_px": em.lens_camera.principal_point_px,
+        "model_fit_rms_px": em.lens_camera.fit_rms_px,
+        "decenter_mm": mis.decenter, "tilt_rad": mis.tilt, "groups": list(lens.group_names),
+        "target": plan.target.spec, "psf_sigma_px": views and float(view.sigma_px),
+        "board_surface": None if surface is None else surface.to_dict(),
+        "views": views,
+    }
+
+
+def _step_misalignments(lens: Prescription, tolerances: Tolerances | None, zoom: list[float],
+                        seed: np.random.SeedSequence, direction) -> list[Misalignment]:
+    """Each step's draw of the mechanical errors (one per step); all zero without
+    ``tolerances``."""
+    n_groups = len(lens.groups)
+    if tolerances is not None:
+        draws = draw_misalignment(lens, tolerances, zoom, 1, seed, direction)
+    else:
+        draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
+                             np.zeros((len(zoom), 1, n_groups, 2)))
+    return [Misalignment(draws.decenter[i, 0], draws.tilt[i, 0]) for i in range(len(zoom))]
+
+
+def _dataset_doc(lens: Prescription, tolerances: Tolerances | None, pattern: str,
+                 opts: RenderOptions, steps: list[dict]) -> dict:
+    """What ``dataset.json`` holds (module docstring)."""
+    board_surface, tilt = opts.board_surface, opts.axis_tilt_mrad
+    return {
+        "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
+        "sensor": asdict(opts.sensor), "seed": opts.seed, "through": opts.through,
+        "axis_tilt_mrad": None if tilt is None else [float(v) for v in tilt],
+        "axis_tilt_keystone": bool(opts.axis_tilt_keystone) if tilt is not None else None,
+        "tolerances": None if tolerances is None else tolerances.to_dict(),
+        "optics": asdict(opts.optics), "radiometry": asdict(opts.radiometry),
+        "distance_mm": opts.distance_mm, "fill": opts.fill, "supersample": opts.supersample,
+        "board_surface": (board_surface.to_dict() if isinstance(board_surface, BoardSurface)
+                          else None if board_surface is None
+                          else {"random_amplitude_mm": float(board_surface)}),
+        "jpeg_quality": opts.jpeg_quality,
+        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); rvec/tvec: board -> "
+                      "camera, mm; points_px: true image position of every target object point",
+        "steps": steps,
+    }
+
+
+def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str | Path,
+                   zoom: list[float], n_views: int, pattern: str,
+                   options: RenderOptions | None = None, *,
+                   progress: Callable[[int], None] | None = None, **fields) -> dict:
+    """Render a multi-zoom calibration data set (layout in the module docstring).
+
+    Parameters
+    ----------
+    lens : Prescription
+    tolerances : Tolerances or None
+        Mechanical errors; each zoom step gets one draw (locked errors, backlash for a random
+        approach direction, play). None renders the nominal lens.
+    out : path
+        Output folder; what an earlier render wrote there is removed first
+        (:func:`clear_previous_render`).
+    zoom : list of float
+        Zoom state of each step, in [0, 1].
+    n_views : int
+        Views per step.
+    pattern : str
+        Target spec, e.g. ``chessboard:9x6:25`` (scaled per step to fill the view).
+    options : RenderOptions, optional
+        How to render (default: its defaults); ``fields``, keywords named as its fields,
+        replace them (``seed=3, jpeg_quality=90``).
+    progress : callable, optional
+        Called with 1 after each written view.
 
     Returns
     -------
@@ -333,60 +429,33 @@ def render_dataset(lens: Prescription, tolerances: Tolerances | None, out: str |
         Before any file is written: inputs refused by :func:`check_render_inputs`, or a step
         for which ``n_views`` poses keeping the target in view cannot be found.
     """
-    optics = optics or Optics()
-    radiometry = radiometry or Radiometry()
-    check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
-    check_render_inputs(optics, sensor, n_views)
+    opts = replace(options or RenderOptions(), **fields)
+    opts = replace(opts, optics=opts.optics or Optics(),
+                   radiometry=opts.radiometry or Radiometry())
+    check_jpeg_quality(opts.jpeg_quality, np.uint8 if opts.radiometry.bits <= 8 else np.uint16)
+    check_render_inputs(opts.optics, opts.sensor, n_views)
     out = Path(out)
     base = parse_pattern(pattern)
-    ss = np.random.SeedSequence(seed)
+    ss = np.random.SeedSequence(opts.seed)
     mech_seed, *step_seeds = ss.spawn(len(zoom) + 1)
     surface_seeds = ss.spawn(len(zoom))
-    n_groups = len(lens.groups)
-    if tolerances is not None:
-        draws = draw_misalignment(lens, tolerances, zoom, 1, mech_seed, direction)
-    else:
-        draws = Misalignment(np.zeros((len(zoom), 1, n_groups, 2)),
-                             np.zeros((len(zoom), 1, n_groups, 2)))
+    misalignments = _step_misalignments(lens, tolerances, zoom, mech_seed, opts.direction)
     # Every step's mapping and poses first: a step whose poses cannot be found stops the run
     # before any file is written. Each step keeps its own generator, so the images do not
     # depend on this order.
-    plans = [_plan_step(lens, z, Misalignment(draws.decenter[i, 0], draws.tilt[i, 0]),
-                        np.random.default_rng(step_seeds[i]), base, sensor, n_views,
-                        distance_mm, fill, through, axis_tilt_mrad, axis_tilt_keystone)
+    plans = [_plan_step(lens, z, misalignments[i], np.random.default_rng(step_seeds[i]), base,
+                        n_views, opts)
              for i, z in enumerate(zoom)]
     clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
     steps, rows = [], []
     for i, (z, plan) in enumerate(zip(zoom, plans, strict=True)):
         name = f"zoom_{i:02d}"
-        surface = board_surface
-        if isinstance(board_surface, int | float):
-            surface = BoardSurface.random(plan.target.extent_mm, float(board_surface),
-                                          np.random.default_rng(surface_seeds[i]))
-        steps.append(_render_step(out, name, z, plan, lens, surface, sensor, optics,
-                                  radiometry, supersample, jpeg_quality, progress))
-        rows.append({"step": name, "zoom": float(z),
-                     "direction": ("" if direction == "random" else direction
-                                   if isinstance(direction, str) else direction[i]),
-                     "sequence": i,
-                     "efl_mm": plan.exact.lens_camera.efl_mm})
+        surface = _step_surface(opts.board_surface, plan, surface_seeds[i])
+        steps.append(_render_step(out, name, z, plan, lens, surface, opts, progress))
+        rows.append({"step": name, "zoom": float(z), "direction": opts.direction_of(i),
+                     "sequence": i, "efl_mm": plan.exact.lens_camera.efl_mm})
     write_csv(out / "steps.csv", rows, ["step", "zoom", "direction", "sequence", "efl_mm"])
-    doc = {
-        "zoomcalib_version": __version__, "lens": lens.name, "pattern": pattern,
-        "sensor": asdict(sensor), "seed": seed, "through": through,
-        "axis_tilt_mrad": None if axis_tilt_mrad is None else [float(v) for v in axis_tilt_mrad],
-        "axis_tilt_keystone": bool(axis_tilt_keystone) if axis_tilt_mrad is not None else None,
-        "tolerances": None if tolerances is None else tolerances.to_dict(),
-        "optics": asdict(optics), "radiometry": asdict(radiometry),
-        "distance_mm": distance_mm, "fill": fill, "supersample": supersample,
-        "board_surface": (board_surface.to_dict() if isinstance(board_surface, BoardSurface)
-                          else None if board_surface is None
-                          else {"random_amplitude_mm": float(board_surface)}),
-        "jpeg_quality": jpeg_quality,
-        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); rvec/tvec: board -> "
-                      "camera, mm; points_px: true image position of every target object point",
-        "steps": steps,
-    }
+    doc = _dataset_doc(lens, tolerances, pattern, opts, steps)
     write_json(out / "dataset.json", doc)
     return doc

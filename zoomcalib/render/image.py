@@ -485,9 +485,13 @@ def _coverage_near(d: np.ndarray, nu: np.ndarray, nv: np.ndarray, S: int) -> np.
     return w
 
 
+SUPERSAMPLED_BAND_ROWS = 96  # image rows the supersampled renderer paints at once (memory)
+ANALYTIC_BAND_ROWS = 160  # image rows the analytic renderer paints at once (memory)
+
+
 def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
-                    sigma_px: float, supersample: int = 4, band_rows: int = 96,
-                    method: str = "auto", surface: BoardSurface | None = None,
+                    sigma_px: float, supersample: int = 4, method: str = "auto",
+                    surface: BoardSurface | None = None,
                     optics: Optics | None = None) -> np.ndarray:
     """Relative reflectance seen by each pixel: painted, blurred, then pixel-integrated.
 
@@ -535,15 +539,15 @@ def render_coverage(target: Target, mapping, R: np.ndarray, t: np.ndarray, senso
             raise ValueError("the analytic renderer needs a blur >= 0.3 px (along every axis), "
                              "grid lines more than the blur's reach apart and, for an "
                              "elliptical PSF, no dots; use method='supersample'")
-    return _render_supersampled(target, bxs, bys, sensor, sigma_px, supersample, band_rows,
-                                kernel)
+    return _render_supersampled(target, bxs, bys, sensor, sigma_px, supersample,
+                                SUPERSAMPLED_BAND_ROWS, kernel)
 
 
 ANALYTIC_MIN_SIGMA = 0.3  # px; below this the 6-node pixel rule is not accurate enough
 
 
 def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
-                     band_rows: int = 160, psf_cov: np.ndarray | None = None
+                     band_rows: int = ANALYTIC_BAND_ROWS, psf_cov: np.ndarray | None = None
                      ) -> np.ndarray | None:
     """Closed-form blur of locally straight edges, integrated over each pixel by quadrature.
 
@@ -576,51 +580,114 @@ def _render_analytic(target: Target, bxs, bys, sensor: Sensor, sigma: float,
     if s_minor < ANALYTIC_MIN_SIGMA:
         return None
     xs, ys, value = _cell_grid(target)
-    reach = 6.0 * s_major + 0.75  # beyond this an edge changes a pixel by < 1e-9
-    # A second line of the same family is ignored; beyond 4 sigma it would change a pixel by
-    # < 3e-5 of the contrast.
-    second_reach = 4.0 * s_major + 0.75
     nodes, weights = pixel_nodes(auto_n_sub(s_minor))
+    # Beyond ``reach`` an edge changes a pixel by < 1e-9. A second line of the same family is
+    # ignored; beyond 4 sigma it would change a pixel by < 3e-5 of the contrast.
+    psf = _AnalyticPsf(sigma, psf_cov, reach=6.0 * s_major + 0.75,
+                       second_reach=4.0 * s_major + 0.75, nodes=nodes, weights=weights)
     W, H = sensor.width_px, sensor.height_px
     u = np.arange(W, dtype=float)
     out = np.empty((H, W))
     discs = target.discs
     tree = cKDTree(discs[:, :2]) if len(discs) else None
     for r0 in range(0, H, band_rows):
-        v = np.arange(r0, min(H, r0 + band_rows), dtype=float)
-        bx, by = bxs(v, u), bys(v, u)  # shape (V, W)
-        bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
-        by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
-        terms = [_nearest_line(spl, coord, gu, gv, lines, v, u, sigma, psf_cov, reach,
-                               second_reach)
-                 for spl, coord, gu, gv, lines in ((bxs, bx, bx_u, bx_v, xs),
-                                                   (bys, by, by_u, by_v, ys))]
-        if terms[0] is None or terms[1] is None:
+        band = _Band.of(bxs, bys, np.arange(r0, min(H, r0 + band_rows), dtype=float), u)
+        line_x, line_y = (_nearest_line(band, axis, lines, psf)
+                          for axis, lines in ((0, xs), (1, ys)))
+        if line_x is None or line_y is None:
             return None  # two lines of one family within reach: not locally one edge
-        pix = _blend_cells(value, *terms, nodes, weights, reach, psf_cov)
+        pix = _blend_cells(value, line_x, line_y, psf)
         if tree is not None:
-            _dot_rims(pix, discs, tree, bx, by, (bx_u, bx_v, by_u, by_v), bxs, bys, v, u,
-                      reach, sigma, nodes, weights)
-        out[r0:r0 + len(v)] = pix
+            _dot_rims(pix, discs, tree, band, psf)
+        out[r0:r0 + len(band.v)] = pix
     return out
 
 
-def _nearest_line(spl, coord: np.ndarray, gu: np.ndarray, gv: np.ndarray, lines: np.ndarray,
-                  v: np.ndarray, u: np.ndarray, sigma: float, psf_cov: np.ndarray | None,
-                  reach: float, second_reach: float):
-    """The nearest board line of one family (``lines``, board coordinate ``coord`` with
-    gradient ``(gu, gv)`` per px, spline ``spl``) at each pixel of a band (V, W): the index
-    of the cell boundary ``i``, the side of the neighbouring cell ``step`` (+-1), the signed
+@dataclass(frozen=True)
+class _AnalyticPsf:
+    """The PSF and pixel rule of :func:`_render_analytic`: the isotropic sd ``sigma`` (px) or
+    the covariance ``cov`` ((2, 2), px^2, (u, v) order) of an anisotropic Gaussian, the
+    ``reach`` (px) beyond which an edge leaves a pixel unchanged, the ``second_reach`` (px)
+    within which a second line of one family is not locally one edge, and the pixel's
+    quadrature ``nodes`` (px) and ``weights``."""
+
+    sigma: float
+    cov: np.ndarray | None
+    reach: float
+    second_reach: float
+    nodes: np.ndarray
+    weights: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Band:
+    """A band of pixels: rows ``v`` and columns ``u`` (px), the board-coordinate splines
+    ``bxs``, ``bys`` and, at each pixel (V, W), the board coordinates ``bx``, ``by`` (board
+    units) and their derivatives by u and by v (board units per px)."""
+
+    v: np.ndarray
+    u: np.ndarray
+    bxs: object
+    bys: object
+    bx: np.ndarray
+    by: np.ndarray
+    bx_u: np.ndarray
+    bx_v: np.ndarray
+    by_u: np.ndarray
+    by_v: np.ndarray
+
+    @classmethod
+    def of(cls, bxs, bys, v: np.ndarray, u: np.ndarray) -> _Band:
+        """The splines evaluated on the grid of rows ``v`` and columns ``u``."""
+        bx, by = bxs(v, u), bys(v, u)  # shape (V, W)
+        bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
+        by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
+        return cls(v, u, bxs, bys, bx, by, bx_u, bx_v, by_u, by_v)
+
+    def family(self, axis: int) -> tuple:
+        """Spline, coordinate and its derivatives by u and v of the board's x (``axis`` 0)
+        or y (1)."""
+        if axis == 0:
+            return self.bxs, self.bx, self.bx_u, self.bx_v
+        return self.bys, self.by, self.by_u, self.by_v
+
+    def normal_curvature(self, spl, nu: np.ndarray, nv: np.ndarray) -> np.ndarray:
+        """``n^T (d^2 b / d uv^2) n`` of the board coordinate of spline ``spl`` along the unit
+        image direction ``n = (nu, nv)`` (board units per px^2)."""
+        v, u = self.v, self.u
+        return (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
+                + spl(v, u, dx=2) * nv * nv)
+
+
+@dataclass(frozen=True)
+class _NearestLine:
+    """The nearest board line of one family at each pixel of a band (V, W): the index of the
+    cell boundary ``index``, the side of the neighbouring cell ``step`` (+-1), the signed
     distance ``t_c`` (px) from the pixel centre into it (second order along the normal), the
-    unit normal ``m`` (V, W, 2) into it and the PSF's sd across the line ``s_n`` (px). None
-    when a second line of the family lies within ``second_reach``: not locally one edge."""
+    unit ``normal`` (V, W, 2) into it and the PSF's sd across the line ``sd`` (px; a scalar
+    for an isotropic PSF)."""
+
+    index: np.ndarray
+    step: np.ndarray
+    t_c: np.ndarray
+    normal: np.ndarray
+    sd: float | np.ndarray
+
+
+def _nearest_line(band: _Band, axis: int, lines: np.ndarray,
+                  psf: _AnalyticPsf) -> _NearestLine | None:
+    """The nearest line of the board's x (``axis`` 0) or y (1) family (board coordinates
+    ``lines``) at each pixel of ``band``; None when a second line of the family lies within
+    ``psf.second_reach``: not locally one edge."""
+    spl, coord, gu, gv = band.family(axis)
+    psf_cov = psf.cov
     i = np.searchsorted(lines, coord)
     left = lines[np.clip(i - 1, 0, len(lines) - 1)]
     right = lines[np.clip(i, 0, len(lines) - 1)]
     d_left = np.where(i > 0, coord - left, np.inf)
     d_right = np.where(i < len(lines), right - coord, np.inf)
     g = np.maximum(np.hypot(gu, gv), 1e-300)  # board units per px across the line
-    if np.any(np.maximum(d_left, d_right) / g < second_reach):
+    if np.any(np.maximum(d_left, d_right) / g < psf.second_reach):
         return None
     step = np.where(d_right < d_left, 1, -1)
     t_c = -np.minimum(d_left, d_right) / g  # px, < 0: the centre is in its own cell
@@ -631,22 +698,23 @@ def _nearest_line(spl, coord: np.ndarray, gu: np.ndarray, gv: np.ndarray, lines:
     # (h / 2) (sigma^2 + 1/12) px along n (1/12 from the pixel box);
     # benchmarks/render_accuracy.py measures what is left.
     nu, nv = gu / g, gv / g
-    h = (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
-         + spl(v, u, dx=2) * nv * nv) / g
-    t_c += np.where(t_c > -reach, 0.5 * step * h * t_c**2, 0.0)
+    h = band.normal_curvature(spl, nu, nv) / g
+    t_c += np.where(t_c > -psf.reach, 0.5 * step * h * t_c**2, 0.0)
     m = np.stack([step * gu / g, step * gv / g], -1)  # unit normal into the neighbour
-    s_n = (sigma if psf_cov is None else np.sqrt(
+    s_n = (psf.sigma if psf_cov is None else np.sqrt(
         psf_cov[0, 0] * m[..., 0] ** 2 + 2 * psf_cov[0, 1] * m[..., 0] * m[..., 1]
         + psf_cov[1, 1] * m[..., 1] ** 2))
-    return i, step, t_c, m, s_n
+    return _NearestLine(i, step, t_c, m, s_n)
 
 
-def _blend_cells(value: np.ndarray, line_x: tuple, line_y: tuple, nodes: np.ndarray,
-                 weights: np.ndarray, reach: float, psf_cov: np.ndarray | None) -> np.ndarray:
+def _blend_cells(value: np.ndarray, line_x: _NearestLine, line_y: _NearestLine,
+                 psf: _AnalyticPsf) -> np.ndarray:
     """Each pixel of a band from the four cells around its nearest lines of the two families
     (:func:`_nearest_line`), by the closed form of :func:`_render_analytic`, averaged over the
-    pixel with ``nodes`` and ``weights``."""
-    (ix, sx, t1c, m1, s1), (iy, sy, t2c, m2, s2) = line_x, line_y
+    pixel with the PSF's nodes and weights."""
+    ix, sx, t1c, m1, s1 = line_x.index, line_x.step, line_x.t_c, line_x.normal, line_x.sd
+    iy, sy, t2c, m2, s2 = line_y.index, line_y.step, line_y.t_c, line_y.normal, line_y.sd
+    nodes, weights, reach, psf_cov = psf.nodes, psf.weights, psf.reach, psf.cov
     nx, ny = value.shape
     ix2, iy2 = np.clip(ix + sx, 0, nx - 1), np.clip(iy + sy, 0, ny - 1)
     v00, v10 = value[ix, iy], value[ix2, iy]
@@ -674,13 +742,13 @@ def _blend_cells(value: np.ndarray, line_x: tuple, line_y: tuple, nodes: np.ndar
     return pix
 
 
-def _dot_rims(pix: np.ndarray, discs: np.ndarray, tree: cKDTree, bx: np.ndarray,
-              by: np.ndarray, gradients: tuple, bxs, bys, v: np.ndarray, u: np.ndarray,
-              reach: float, sigma: float, nodes: np.ndarray, weights: np.ndarray) -> None:
-    """Multiply each pixel of a band (``pix``, in place) by the blurred inside of the nearest
-    dark disc (``discs`` (n, 3): centre and radius on the board), ``1 - Phi(d/s - s kappa/2)``
-    (:func:`_render_analytic`); ``gradients`` are ``bx_u, bx_v, by_u, by_v``."""
-    bx_u, bx_v, by_u, by_v = gradients
+def _dot_rims(pix: np.ndarray, discs: np.ndarray, tree: cKDTree, band: _Band,
+              psf: _AnalyticPsf) -> None:
+    """Multiply each pixel of ``band`` (``pix``, in place) by the blurred inside of the nearest
+    dark disc (``discs`` (n, 3): centre and radius on the board; ``tree`` of their centres),
+    ``1 - Phi(d/s - s kappa/2)`` (:func:`_render_analytic`; an isotropic PSF)."""
+    bx, by, bx_u, bx_v, by_u, by_v = band.bx, band.by, band.bx_u, band.bx_v, band.by_u, band.by_v
+    reach, sigma, nodes, weights = psf.reach, psf.sigma, psf.nodes, psf.weights
     dist, kk = tree.query(np.stack([bx.ravel(), by.ravel()], -1))
     dist, kk = dist.reshape(bx.shape), kk.reshape(bx.shape)
     ex = (bx - discs[kk, 0]) / np.maximum(dist, 1e-12)
@@ -693,8 +761,8 @@ def _dot_rims(pix: np.ndarray, discs: np.ndarray, tree: cKDTree, bx: np.ndarray,
     # + (|J n|^2 - g^2) / |b - c| (px^-2 times mm), and the distance inside the rim is
     # d_in - (h / 2) d_in^2 with h = n^T H n / g (px^-1).
     nu, nv = gu / g, gv / g
-    h = sum(e_k * (spl(v, u, dy=2) * nu * nu + 2 * spl(v, u, dx=1, dy=1) * nu * nv
-                   + spl(v, u, dx=2) * nv * nv) for e_k, spl in ((ex, bxs), (ey, bys)))
+    h = sum(e_k * band.normal_curvature(spl, nu, nv) for e_k, spl in ((ex, band.bxs),
+                                                                       (ey, band.bys)))
     jn_sq = (bx_u * nu + bx_v * nv) ** 2 + (by_u * nu + by_v * nv) ** 2
     h = (h + (jn_sq - g * g) / np.maximum(dist, 1e-12)) / g
     d_in -= np.where(np.abs(d_in) < reach, 0.5 * h * d_in**2, 0.0)
@@ -739,9 +807,9 @@ def _render_supersampled(target: Target, bxs, bys, sensor: Sensor, sigma_px: flo
         r1 = min(H, r0 + band_rows)
         a0, a1 = r0 - halo, r1 + halo
         v = (np.arange(a0, a1)[:, None] + sub).ravel()  # shape ((a1 - a0) S,)
-        bx, by = bxs(v, u), bys(v, u)  # shape (V, U)
-        bx_v, bx_u = bxs(v, u, dx=1), bxs(v, u, dy=1)
-        by_v, by_u = bys(v, u, dx=1), bys(v, u, dy=1)
+        band = _Band.of(bxs, bys, v, u)  # shape (V, U)
+        bx, by, bx_u, bx_v, by_u, by_v = (band.bx, band.by, band.bx_u, band.bx_v, band.by_u,
+                                          band.by_v)
         ix, sx, wx = _edge_weight(bx, bx_u, bx_v, xs, S)
         iy, sy, wy = _edge_weight(by, by_u, by_v, ys, S)
         nx, ny = value.shape

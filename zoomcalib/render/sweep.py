@@ -60,7 +60,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 import cv2
@@ -83,8 +84,8 @@ from .image import (
 )
 from .pp_path import PP_PATHS, bowed_path, traced_path
 
-__all__ = ["SWEEP_SENSOR", "CaptureEffects", "sweep_cameras", "principal_point_path",
-           "sweep_poses", "render_zoom_sweep"]
+__all__ = ["SWEEP_SENSOR", "CaptureEffects", "SweepCameraOptions", "SweepOptions",
+           "sweep_cameras", "principal_point_path", "sweep_poses", "render_zoom_sweep"]
 
 SWEEP_SENSOR = Sensor(1280, 720, 0.003)  # a video camera's frame, 3 um pixels
 MARGIN_PX = 10.0
@@ -95,35 +96,84 @@ def _zoom_position(fx: np.ndarray, fx_range: tuple[float, float]) -> np.ndarray:
     return np.log(np.asarray(fx) / fx_range[0]) / np.log(fx_range[1] / fx_range[0])
 
 
+@dataclass(frozen=True)
+class SweepCameraOptions:
+    """The principal-point path and the distortion of a sweep's cameras (module docstring,
+    section Camera per step).
+
+    Attributes
+    ----------
+    pp_offset_px : (float, float)
+        The principal point's offset from the image centre at the short end, px (before the
+        path).
+    pp_drift_px : (float, float)
+        'bow' path: its drift from the short to the long end, px.
+    k1_short : float
+        The fading barrel's ``k1`` at the short end (``k1 = k1_short * fx_0 / fx``).
+    pp_path : {'bow', 'traced'}
+        The path's kind (:data:`zoomcalib.render.pp_path.PP_PATHS`).
+    pp_span_px : float
+        'traced' path: its largest distance from its short-end point, px.
+    pp_runout : float
+        'traced' path: cam-track run-out, times the default tolerance file's.
+    pp_seed : int or numpy.random.SeedSequence, optional
+        'traced' path: seed of its mechanical errors
+        (:func:`zoomcalib.render.pp_path.traced_path`); None: 0 in :func:`sweep_cameras`,
+        drawn from the sweep's seed in :func:`render_zoom_sweep`.
+    dist : (steps, 5) ndarray, optional
+        OpenCV terms per step instead of the fading barrel of ``k1_short`` (e.g. a real
+        lens's, :meth:`zoomcalib.study.lensfun.ZoomLensDistortion.opencv_distortion`).
+    dist_centre_px : (float, float)
+        The distortion's centre relative to the principal point at every step, px
+        (:class:`~zoomcalib.camera.CameraModel`; OpenCV's model, which the calibration fits,
+        has 0).
+    """
+
+    pp_offset_px: tuple[float, float] = (6.0, -4.0)
+    pp_drift_px: tuple[float, float] = (30.0, -18.0)
+    k1_short: float = -0.12
+    pp_path: str = "bow"
+    pp_span_px: float = 40.0
+    pp_runout: float = 1.0
+    pp_seed: int | np.random.SeedSequence | None = None
+    dist: np.ndarray | None = None
+    dist_centre_px: tuple[float, float] = (0.0, 0.0)
+
+    def path(self, fx_range: tuple[float, float], steps: int
+             ) -> tuple[np.ndarray, np.ndarray, dict]:
+        """:func:`principal_point_path` of these options."""
+        return principal_point_path(fx_range, steps, self.pp_path, self.pp_drift_px,
+                                    self.pp_span_px, self.pp_runout,
+                                    0 if self.pp_seed is None else self.pp_seed)
+
+    def distortion_record(self, source: dict | None = None) -> dict:
+        """The ``distortion`` of ``truth.json``: ``source`` (where ``dist`` comes from) or the
+        kind of distortion, and its centre."""
+        kind = source or ({"kind": "fading", "k1_short": self.k1_short} if self.dist is None
+                          else {"kind": "given"})
+        return {**kind, "centre_px": [float(v) for v in self.dist_centre_px]}
+
+
 def sweep_cameras(fx_range: tuple[float, float] = (2300.0, 23000.0), steps: int = 7,
-                  sensor: Sensor = SWEEP_SENSOR,
-                  pp_offset_px: tuple[float, float] = (6.0, -4.0),
-                  pp_drift_px: tuple[float, float] = (30.0, -18.0),
-                  k1_short: float = -0.12, pp_path: str = "bow", pp_span_px: float = 40.0,
-                  pp_runout: float = 1.0, pp_seed: int | np.random.SeedSequence = 0,
-                  dist: np.ndarray | None = None,
-                  dist_centre_px: tuple[float, float] = (0.0, 0.0)) -> list[CameraModel]:
+                  sensor: Sensor = SWEEP_SENSOR, options: SweepCameraOptions | None = None,
+                  **fields) -> list[CameraModel]:
     """The cameras of the sweep, short end first (module docstring, section Camera per step).
 
-    ``pp_path`` 'bow' uses ``pp_drift_px``; 'traced' uses ``pp_span_px``, ``pp_runout`` and
-    ``pp_seed`` (:func:`zoomcalib.render.pp_path.traced_path`). ``dist`` (steps, 5): OpenCV
-    terms per step instead of the fading barrel of ``k1_short`` (e.g. a real lens's,
-    :meth:`zoomcalib.study.lensfun.ZoomLensDistortion.opencv_distortion`).
-    ``dist_centre_px``: the distortion's centre relative to the principal point at every step
-    (:class:`~zoomcalib.camera.CameraModel`; OpenCV's model, which the calibration fits, has 0).
+    ``options`` (default: its defaults) sets the principal-point path and the distortion;
+    ``fields``, keywords named as its fields, replace them (``pp_path="traced"``).
     """
-    if dist is not None and np.shape(dist) != (steps, 5):
-        raise ValueError(f"dist must be (steps, 5) = ({steps}, 5), got {np.shape(dist)}")
-    fx, path, _ = principal_point_path(fx_range, steps, pp_path, pp_drift_px, pp_span_px,
-                                       pp_runout, pp_seed)
+    opts = replace(options or SweepCameraOptions(), **fields)
+    if opts.dist is not None and np.shape(opts.dist) != (steps, 5):
+        raise ValueError(f"dist must be (steps, 5) = ({steps}, 5), got {np.shape(opts.dist)}")
+    fx, path, _ = opts.path(fx_range, steps)
     centre = np.array([(sensor.width_px - 1) / 2, (sensor.height_px - 1) / 2])
     cams = []
     for i, (f, p) in enumerate(zip(fx, path, strict=True)):
-        cx, cy = centre + np.asarray(pp_offset_px) + p
-        terms = (np.array([k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0]) if dist is None
-                 else np.asarray(dist[i], float))
+        cx, cy = centre + np.asarray(opts.pp_offset_px) + p
+        terms = (np.array([opts.k1_short * fx_range[0] / f, 0.0, 0.0, 0.0, 0.0])
+                 if opts.dist is None else np.asarray(opts.dist[i], float))
         cams.append(CameraModel(float(f), float(f), float(cx), float(cy), terms, sensor,
-                                np.asarray(dist_centre_px, float)))
+                                np.asarray(opts.dist_centre_px, float)))
     return cams
 
 
@@ -234,25 +284,22 @@ def _board_surfaces(board_surface: BoardSurface | float | None, extent_mm,
                                          np.random.default_rng(retape_seed))]
 
 
-def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 23000.0),
-                      steps: int = 7, views: int = 10, size: tuple[int, int] = (1280, 720),
-                      pattern: str = "chessboard:22x15:20",
-                      board_surface: BoardSurface | float | None = None,
-                      psf: str | None = None, jpeg_quality: int | None = None, seed: int = 0,
-                      optics: Optics | None = None, radiometry: Radiometry | None = None,
-                      fill: float = 0.7, tilt_deg: tuple[float, float] = (40.0, 3.0),
-                      supersample: int = 3, pixel_pitch_mm: float = 0.003,
-                      progress: Callable[[int], None] | None = None,
-                      distortion_source: dict | None = None,
-                      effects: CaptureEffects | None = None, **camera_options) -> dict:
-    """Render a zoom sweep (layout and conventions in the module docstring).
+@dataclass(frozen=True)
+class SweepOptions:
+    """What :func:`render_zoom_sweep` renders (layout and conventions in the module docstring).
 
-    Parameters
+    Attributes
     ----------
     fx_range : (float, float)
         Focal length at the short and long end, px.
+    steps : int
+        Zoom steps, ``fx`` log-spaced over ``fx_range``.
+    views : int
+        Views per step.
     size : (int, int)
         Image width, height, px.
+    pattern : str
+        The board's spec (one physical size for every step).
     board_surface : BoardSurface or float, optional
         The board's waves (board mm), or an amplitude (mm) for :meth:`BoardSurface.random`
         drawn from ``seed`` over the board; the same board serves every step. None: flat.
@@ -262,19 +309,183 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         ``supersample`` times per pixel side.
     jpeg_quality : int, optional
         JPEG files of this quality (1-100) instead of PNG; the truth is unchanged.
+    seed : int
+        Seed of every draw: board, poses, noise, a traced path and the capture effects.
     optics, radiometry
         Default: ``Optics(blur_px=0.8, f_number=2.8)`` and ``Radiometry()`` (2 DN read noise).
+    fill : float
+        Fraction of the image height the board's point grid spans (module docstring, Poses).
     tilt_deg : (float, float)
         Largest tilt at the short and at the long end, degrees.
+    supersample : int
+        Sub-samples per pixel side where the supersampled renderer is used.
+    pixel_pitch_mm : float
+        Pixel pitch, mm.
     distortion_source : dict, optional
-        Where a ``dist`` given in ``camera_options`` comes from (e.g. a lensfun lens), written
-        to ``truth.json`` as ``distortion``.
+        Where a ``dist`` given in ``camera`` comes from (e.g. a lensfun lens), written to
+        ``truth.json`` as ``distortion``.
     effects : CaptureEffects, optional
-        Sharpening, zoom jitter per view and a re-taped board (module docstring).
-    **camera_options
-        ``pp_offset_px``, ``pp_drift_px``, ``k1_short``, ``pp_path``, ``pp_span_px``,
-        ``pp_runout``, ``dist``, ``dist_centre_px`` of :func:`sweep_cameras`; a traced path is
-        drawn from ``seed``.
+        Sharpening, zoom jitter per view, a re-taped board and a rolling shutter (module
+        docstring).
+    camera : SweepCameraOptions
+        The principal-point path and the distortion of :func:`sweep_cameras`; a traced path
+        without ``pp_seed`` is drawn from ``seed``.
+    """
+
+    fx_range: tuple[float, float] = (2300.0, 23000.0)
+    steps: int = 7
+    views: int = 10
+    size: tuple[int, int] = (1280, 720)
+    pattern: str = "chessboard:22x15:20"
+    board_surface: BoardSurface | float | None = None
+    psf: str | None = None
+    jpeg_quality: int | None = None
+    seed: int = 0
+    optics: Optics | None = None
+    radiometry: Radiometry | None = None
+    fill: float = 0.7
+    tilt_deg: tuple[float, float] = (40.0, 3.0)
+    supersample: int = 3
+    pixel_pitch_mm: float = 0.003
+    distortion_source: dict | None = None
+    effects: CaptureEffects | None = None
+    camera: SweepCameraOptions = field(default_factory=SweepCameraOptions)
+
+
+_CAMERA_FIELDS = frozenset(f.name for f in dataclass_fields(SweepCameraOptions))
+
+
+def _sweep_options(options: SweepOptions | None, overrides: dict) -> SweepOptions:
+    """``options`` with ``overrides`` (fields of :class:`SweepOptions` or of its ``camera``)
+    and its optics, radiometry and effects resolved (``psf`` applied)."""
+    opts = options or SweepOptions()
+    camera = {k: v for k, v in overrides.items() if k in _CAMERA_FIELDS}
+    rest = {k: v for k, v in overrides.items() if k not in _CAMERA_FIELDS}
+    opts = replace(opts, **rest)
+    opts = replace(opts, camera=replace(opts.camera, **camera))
+    optics = opts.optics or Optics(blur_px=0.8, f_number=2.8)
+    if opts.psf is not None:
+        optics = replace(optics, psf=opts.psf)
+    return replace(opts, optics=optics, radiometry=opts.radiometry or Radiometry(),
+                   effects=opts.effects or CaptureEffects())
+
+
+@dataclass(frozen=True)
+class _SweepSeeds:
+    """The sweep's seeds: board, each step's poses and noise, the traced path, the re-taped
+    board, the zoom jitter and the rolling shutter. The path's seed is one child more than
+    the board's and the steps' and the effects' come after it, so that a render without them
+    is the same as before they existed."""
+
+    surface: np.random.SeedSequence
+    steps: list[np.random.SeedSequence]
+    path: np.random.SeedSequence
+    retape: np.random.SeedSequence
+    jitter: np.random.SeedSequence
+    shutter: np.random.SeedSequence
+
+    @classmethod
+    def of(cls, seed: int, steps: int) -> _SweepSeeds:
+        children = np.random.SeedSequence(seed).spawn(steps + 5)
+        surface, *step_seeds, path = children[:steps + 2]
+        retape, jitter, shutter = children[steps + 2:]
+        return cls(surface, step_seeds, path, retape, jitter, shutter)
+
+
+@dataclass(frozen=True)
+class _SweepJob:
+    """What every step of a sweep renders with: the resolved options, the output folder, the
+    board, the sensor, the generators of the zoom jitter and the rolling shutter shared by all
+    views, and the progress callback."""
+
+    opts: SweepOptions
+    out: Path
+    target: Target
+    sensor: Sensor
+    jitter: np.random.Generator
+    shutter: np.random.Generator
+    progress: Callable[[int], None] | None
+
+
+def _render_sweep_view(job: _SweepJob, name: str, j: int, cam: CameraModel, pose: tuple,
+                       rng: np.random.Generator, surface: BoardSurface | None
+                       ) -> tuple[dict, float]:
+    """Render and write one view of a step; its ``truth.json`` entry and its PSF sigma (px)."""
+    effects, (R, t) = job.opts.effects, pose
+    scale = float(np.exp(job.jitter.normal(0.0, effects.zoom_jitter)))
+    seen = cam if scale == 1.0 else replace(cam, fx=cam.fx * scale, fy=cam.fy * scale)
+    mapping, turn = camera_mapping(seen), np.zeros(3)
+    if effects.rolling_shutter:
+        turn[:2] = job.shutter.normal(0.0, effects.rolling_shutter, 2)
+        mapping = RollingShutterMapping(mapping, turn, job.sensor.height_px)
+    view = render_image(job.target, mapping, R, t, job.sensor, job.opts.optics,
+                        job.opts.radiometry, rng, job.opts.supersample, surface=surface)
+    image = view.image if effects.sharpen is None else sharpen_image(view.image,
+                                                                     *effects.sharpen)
+    file = write_image(job.out / name / f"view_{j:02d}", image, job.opts.jpeg_quality)
+    if job.progress is not None:
+        job.progress(1)
+    return ({"file": f"{name}/{file.name}", **view.truth_dict(), "focal_scale": scale,
+             "readout_turn": turn.tolist()}, float(view.sigma_px))
+
+
+def _render_sweep_step(job: _SweepJob, i: int, cam: CameraModel, max_tilt: float,
+                       surfaces: list[BoardSurface | None], seed: np.random.SeedSequence
+                       ) -> dict:
+    """Render and write step ``i``'s views; its ``truth.json`` entry."""
+    rng = np.random.default_rng(seed)
+    name = f"fx_{round(cam.fx):05d}"
+    (job.out / name).mkdir(exist_ok=True)
+    retape_at = job.opts.effects.retape_at
+    session = int(retape_at is not None and i >= retape_at)
+    view_docs = []
+    poses = sweep_poses(job.target, cam, job.opts.views, max_tilt, rng, job.opts.fill)
+    for j, pose in enumerate(poses):
+        view_doc, sigma_px = _render_sweep_view(job, name, j, cam, pose, rng, surfaces[session])
+        view_docs.append(view_doc)
+    return {"step": name, "zoom": cam.fx, "K": cam.K.tolist(), "dist": cam.dist.tolist(),
+            "camera": cam.to_dict(), "max_tilt_deg": float(max_tilt),
+            "board_session": session, "psf_sigma_px": sigma_px, "views": view_docs}
+
+
+def _sweep_truth(opts: SweepOptions, sensor: Sensor, surfaces: list[BoardSurface | None],
+                 path_record: dict, steps: list[dict]) -> dict:
+    """What ``truth.json`` holds but the timings (module docstring)."""
+    surface = surfaces[0]
+    return {
+        "format": "zoomcalib-sweep-truth", "zoomcalib_version": __version__,
+        "pattern": opts.pattern, "sensor": asdict(sensor), "seed": opts.seed,
+        "fx_range": [float(v) for v in opts.fx_range], "fill": opts.fill,
+        "tilt_deg": list(opts.tilt_deg),
+        "optics": asdict(opts.optics), "radiometry": asdict(opts.radiometry),
+        "supersample": opts.supersample, "jpeg_quality": opts.jpeg_quality,
+        "board_surface": None if surface is None else surface.to_dict(),
+        "board_surfaces": [None if b is None else b.to_dict() for b in surfaces],
+        "effects": asdict(opts.effects),
+        "pp_path": path_record,
+        "distortion": opts.camera.distortion_record(opts.distortion_source),
+        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
+                      "rvec/tvec: board -> camera, mm; points_px: true image position of every "
+                      "object point on the (waving) board",
+        "steps": steps,
+    }
+
+
+def render_zoom_sweep(out: str | Path, options: SweepOptions | None = None, *,
+                      progress: Callable[[int], None] | None = None, **fields) -> dict:
+    """Render a zoom sweep (layout and conventions in the module docstring).
+
+    Parameters
+    ----------
+    out : path
+        Output folder; what an earlier render wrote there is removed first
+        (:func:`~zoomcalib.render.dataset.clear_previous_render`).
+    options : SweepOptions, optional
+        What to render (default: its defaults); ``fields``, keywords named as its fields or as
+        those of its ``camera`` (:class:`SweepCameraOptions`), replace them
+        (``steps=3, pp_path="traced"``).
+    progress : callable, optional
+        Called with 1 after each written view.
 
     Returns
     -------
@@ -282,86 +493,37 @@ def render_zoom_sweep(out: str | Path, fx_range: tuple[float, float] = (2300.0, 
         What was written to ``truth.json``.
     """
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    sensor = Sensor(int(size[0]), int(size[1]), pixel_pitch_mm)
-    optics = optics or Optics(blur_px=0.8, f_number=2.8)
-    if psf is not None:
-        optics = replace(optics, psf=psf)
-    radiometry = radiometry or Radiometry()
-    check_jpeg_quality(jpeg_quality, np.uint8 if radiometry.bits <= 8 else np.uint16)
-    target = parse_pattern(pattern)
-    # the path's seed is one child more than the board's and the steps': earlier renders stay
-    children = np.random.SeedSequence(seed).spawn(steps + 5)
-    surface_seed, *step_seeds, path_seed = children[:steps + 2]
-    retape_seed, jitter_seed, shutter_seed = children[steps + 2:]
-    effects = effects or CaptureEffects()
-    if effects.retape_at is not None and effects.retape_at >= steps:
-        raise ValueError(f"retape_at {effects.retape_at}: the sweep has {steps} steps")
-    jitter = np.random.default_rng(jitter_seed)
-    shutter = np.random.default_rng(shutter_seed)
-    camera_options.setdefault("pp_seed", path_seed)
-    cameras = sweep_cameras(fx_range, steps, sensor, **camera_options)
-    path_options = {k[3:]: camera_options[k] for k in ("pp_drift_px", "pp_span_px", "pp_runout",
-                                                       "pp_seed") if k in camera_options}
-    *_, path_record = principal_point_path(fx_range, steps, camera_options.get("pp_path", "bow"),
-                                           **path_options)
-    surfaces = _board_surfaces(board_surface, target.extent_mm, effects.retape_at is not None,
-                               surface_seed, retape_seed)
-    surface = surfaces[0]
+    opts = _sweep_options(options, fields)
+    sensor = Sensor(int(opts.size[0]), int(opts.size[1]), opts.pixel_pitch_mm)
+    check_jpeg_quality(opts.jpeg_quality, np.uint8 if opts.radiometry.bits <= 8 else np.uint16)
+    target = parse_pattern(opts.pattern)
+    seeds = _SweepSeeds.of(opts.seed, opts.steps)
+    retape_at = opts.effects.retape_at
+    if retape_at is not None and retape_at >= opts.steps:
+        raise ValueError(f"retape_at {retape_at}: the sweep has {opts.steps} steps")
+    jitter = np.random.default_rng(seeds.jitter)
+    shutter = np.random.default_rng(seeds.shutter)
+    if opts.camera.pp_seed is None:
+        opts = replace(opts, camera=replace(opts.camera, pp_seed=seeds.path))
+    cameras = sweep_cameras(opts.fx_range, opts.steps, sensor, opts.camera)
+    *_, path_record = opts.camera.path(opts.fx_range, opts.steps)
+    surfaces = _board_surfaces(opts.board_surface, target.extent_mm, retape_at is not None,
+                               seeds.surface, seeds.retape)
     out = Path(out)
     clear_previous_render(out)
     out.mkdir(parents=True, exist_ok=True)
-    max_tilt = np.geomspace(tilt_deg[0], tilt_deg[1], steps)
-    doc_steps, rows = [], []
-    for i, cam in enumerate(cameras):
-        rng = np.random.default_rng(step_seeds[i])
-        name = f"fx_{round(cam.fx):05d}"
-        (out / name).mkdir(exist_ok=True)
-        session = int(effects.retape_at is not None and i >= effects.retape_at)
-        view_docs = []
-        for j, (R, t) in enumerate(sweep_poses(target, cam, views, max_tilt[i], rng, fill)):
-            scale = float(np.exp(jitter.normal(0.0, effects.zoom_jitter)))
-            seen = cam if scale == 1.0 else replace(cam, fx=cam.fx * scale, fy=cam.fy * scale)
-            mapping, turn = camera_mapping(seen), np.zeros(3)
-            if effects.rolling_shutter:
-                turn[:2] = shutter.normal(0.0, effects.rolling_shutter, 2)
-                mapping = RollingShutterMapping(mapping, turn, sensor.height_px)
-            view = render_image(target, mapping, R, t, sensor, optics, radiometry,
-                                rng, supersample, surface=surfaces[session])
-            image = view.image if effects.sharpen is None else sharpen_image(view.image,
-                                                                             *effects.sharpen)
-            file = write_image(out / name / f"view_{j:02d}", image, jpeg_quality)
-            view_docs.append({"file": f"{name}/{file.name}", **view.truth_dict(),
-                              "focal_scale": scale, "readout_turn": turn.tolist()})
-            if progress is not None:
-                progress(1)
-        doc_steps.append({"step": name, "zoom": cam.fx, "K": cam.K.tolist(),
-                          "dist": cam.dist.tolist(), "camera": cam.to_dict(),
-                          "max_tilt_deg": float(max_tilt[i]), "board_session": session,
-                          "psf_sigma_px": float(view.sigma_px), "views": view_docs})
-        rows.append({"step": name, "zoom": cam.fx, "sequence": i}
-                    | ({"session": f"board{session + 1}"} if len(surfaces) > 1 else {}))
+    job = _SweepJob(opts, out, target, sensor, jitter, shutter, progress)
+    max_tilt = np.geomspace(opts.tilt_deg[0], opts.tilt_deg[1], opts.steps)
+    doc_steps = [_render_sweep_step(job, i, cam, max_tilt[i], surfaces, seeds.steps[i])
+                 for i, cam in enumerate(cameras)]
+    session_column = len(surfaces) > 1
+    rows = [{"step": st["step"], "zoom": st["zoom"], "sequence": i}
+            | ({"session": f"board{st['board_session'] + 1}"} if session_column else {})
+            for i, st in enumerate(doc_steps)]
     write_csv(out / "steps.csv", rows, ["step", "zoom", "sequence"]
-              + (["session"] if len(surfaces) > 1 else []))
-    doc = {
-        "format": "zoomcalib-sweep-truth", "zoomcalib_version": __version__,
-        "pattern": pattern, "sensor": asdict(sensor), "seed": seed,
-        "fx_range": [float(v) for v in fx_range], "fill": fill, "tilt_deg": list(tilt_deg),
-        "optics": asdict(optics), "radiometry": asdict(radiometry),
-        "supersample": supersample, "jpeg_quality": jpeg_quality,
-        "board_surface": None if surface is None else surface.to_dict(),
-        "board_surfaces": [None if b is None else b.to_dict() for b in surfaces],
-        "effects": asdict(effects),
-        "pp_path": path_record,
-        "distortion": {**(distortion_source or (
-            {"kind": "fading", "k1_short": camera_options.get("k1_short", -0.12)}
-            if camera_options.get("dist") is None else {"kind": "given"})),
-            "centre_px": [float(v) for v in camera_options.get("dist_centre_px", (0.0, 0.0))]},
-        "convention": "pixels: OpenCV (centre of top-left pixel = (0, 0)); zoom = fx, px; "
-                      "rvec/tvec: board -> camera, mm; points_px: true image position of every "
-                      "object point on the (waving) board",
-        "steps": doc_steps,
-        "render_s": time.perf_counter() - t_start,
-        "render_cpu_s": time.process_time() - cpu_start,
-    }
+              + (["session"] if session_column else []))
+    doc = _sweep_truth(opts, sensor, surfaces, path_record, doc_steps)
+    doc["render_s"] = time.perf_counter() - t_start
+    doc["render_cpu_s"] = time.process_time() - cpu_start
     write_json(out / "truth.json", doc)
     return doc

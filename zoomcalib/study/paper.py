@@ -24,13 +24,13 @@ Every number in the report is read from the CSV tables written beside it.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy import stats
 
-__all__ = ["StudyConfig", "detection_task", "mechanics_table", "aggregate_detection",
-           "compare", "check_claims"]
+__all__ = ["StudyConfig", "DetectionSetting", "detection_task", "mechanics_table",
+           "aggregate_detection", "compare", "check_claims"]
 
 
 @dataclass
@@ -85,14 +85,54 @@ class StudyConfig:
         return d
 
 
-def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern: str,
-                   blur_px: float, detectors: list[str], backends: list[str],
-                   seed, keep_errors: bool = False, psf: str = "gaussian") -> dict:
+@dataclass(frozen=True)
+class DetectionSetting:
+    """One calibration set of the study's detection part (:func:`detection_task`).
+
+    Attributes
+    ----------
+    lens : str
+        Name of the lens prescription, rendered aligned.
+    zoom : float
+        Lens state in [0, 1].
+    noise_dn : float
+        Read noise, 1-sigma in 8-bit digital numbers (of 255).
+    views : int
+        Views of the set.
+    pattern : str
+        Target spec (scaled to the focal length).
+    blur_px : float
+        The renderer's extra Gaussian blur, px (1-sigma).
+    detectors : list of str
+        Detection methods, each run on every view.
+    backends : list of str
+        ``'opencv'`` or ``'bundle'``: each calibrates every detector's points.
+    keep_errors : bool
+        Keep the detection errors of the first view (for the paper's Fig. 6).
+    psf : str
+        The renderer's PSF shape (:class:`~zoomcalib.render.image.Optics`; shape parameters at
+        their defaults): the ``model`` detector assumes a Gaussian, so any other shape is a PSF
+        it does not model.
+    """
+
+    lens: str
+    zoom: float
+    noise_dn: float
+    views: int
+    pattern: str
+    blur_px: float
+    detectors: list[str]
+    backends: list[str]
+    keep_errors: bool = False
+    psf: str = "gaussian"
+
+
+def detection_task(seed: int, setting: DetectionSetting | None = None, **fields) -> dict:
     """Render one calibration set through the aligned lens, detect, calibrate.
 
-    ``blur_px`` (px, 1-sigma) is the renderer's extra Gaussian blur and ``psf`` its PSF shape
-    (:class:`~zoomcalib.render.image.Optics`; shape parameters at their defaults): the
-    ``model`` detector assumes a Gaussian, so any other shape is a PSF it does not model.
+    A task of :mod:`zoomcalib.study.engine`: ``seed`` seeds the poses and the noise; the set is
+    ``setting`` with ``fields`` (keywords named as its fields) replacing its own, or made of
+    ``fields`` alone.
 
     Returns
     -------
@@ -106,29 +146,17 @@ def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern:
     from ..calibrate.result import Observations
     from ..camera import DEFAULT_SENSOR
     from ..detect import detect_image
-    from ..optics.lens_camera import exact_mapping
-    from ..optics.prescription import load_prescription
-    from ..render.dataset import generate_poses, scaled_target_for_view
-    from ..render.image import Optics, Radiometry, render_image
-    from ..targets import parse_pattern
 
+    spec = DetectionSetting(**fields) if setting is None else replace(setting, **fields)
     rng = np.random.default_rng(seed)
     sensor = DEFAULT_SENSOR
     t0 = time.perf_counter()
-    lens_ = load_prescription(lens)
-    mapping = exact_mapping(lens_, float(zoom), None, sensor)
-    distance = 2000.0
-    target = scaled_target_for_view(parse_pattern(pattern), mapping.camera.fy, sensor, distance)
-    poses = generate_poses(target, mapping, sensor, views, distance, rng)
-    optics = Optics(blur_px=blur_px, f_number=lens_.f_number, psf=psf)
-    radiometry = Radiometry(noise_sd=noise_dn / 255.0)
-    rendered = [render_image(target, mapping, R, t, sensor, optics, radiometry, rng)
-                for R, t in poses]
+    mapping, target, rendered = _render_set(spec, sensor, rng)
     t1 = time.perf_counter()
     out = {"truth": {"cx": mapping.camera.cx, "cy": mapping.camera.cy, "fx": mapping.camera.fx},
            "results": {}, "detection_rms_px": {}, "render_s": t1 - t0, "detect_s": 0.0,
            "calibrate_s": 0.0}
-    for det_name in detectors:
+    for det_name in spec.detectors:
         t2 = time.perf_counter()
         dets = [detect_image(v.image, target, det_name, name=f"view_{i:02d}")
                 for i, v in enumerate(rendered)]
@@ -138,31 +166,57 @@ def detection_task(lens: str, zoom: float, noise_dn: float, views: int, pattern:
         errs = [d.points - v.points_px[d.ids] for d, v in ok]
         out["detection_rms_px"][det_name] = (float(np.sqrt(np.mean(np.sum(
             np.concatenate(errs) ** 2, axis=1)))) if errs else None)
-        if keep_errors and ok:
+        if spec.keep_errors and ok:
             out.setdefault("fig6", {})[det_name] = {
                 "points": ok[0][1].points_px[ok[0][0].ids].tolist(),
                 "errors": errs[0].tolist()}
         obs = Observations(target.object_points, [(d.ids, d.points) for d, _ in ok],
                            (sensor.width_px, sensor.height_px), [d.file for d, _ in ok])
-        res_det = {}
-        for backend in backends:
-            try:
-                if backend == "opencv":
-                    from ..calibrate.opencv_backend import calibrate_opencv
-
-                    r = calibrate_opencv(obs)
-                else:
-                    from ..calibrate.bundle import calibrate_bundle
-
-                    r = calibrate_bundle(obs)
-                res_det[backend] = {"fx": r.fx, "fy": r.fy, "cx": r.cx, "cy": r.cy,
-                                    "sd_fx": r.sd.get("fx"), "sd_cx": r.sd.get("cx"),
-                                    "sd_cy": r.sd.get("cy"), "rms_px": r.rms_px}
-            except Exception as exc:  # noqa: BLE001 (one failed fit must not lose the others)
-                res_det[backend] = {"error": " ".join(str(exc).split())[:300]}
+        out["results"][det_name] = {backend: _calibrate_set(obs, backend)
+                                    for backend in spec.backends}
         out["calibrate_s"] += time.perf_counter() - t3
-        out["results"][det_name] = res_det
     return out
+
+
+def _render_set(task: DetectionSetting, sensor, rng: np.random.Generator
+                ) -> tuple[object, object, list]:
+    """The set's exact mapping of the aligned lens, its target scaled to the focal length and
+    its rendered views (:class:`~zoomcalib.render.image.RenderedView`), at 2 m."""
+    from ..optics.lens_camera import exact_mapping
+    from ..optics.prescription import load_prescription
+    from ..render.dataset import generate_poses, scaled_target_for_view
+    from ..render.image import Optics, Radiometry, render_image
+    from ..targets import parse_pattern
+
+    lens_ = load_prescription(task.lens)
+    mapping = exact_mapping(lens_, float(task.zoom), None, sensor)
+    distance = 2000.0
+    target = scaled_target_for_view(parse_pattern(task.pattern), mapping.camera.fy, sensor,
+                                    distance)
+    poses = generate_poses(target, mapping, sensor, task.views, distance, rng)
+    optics = Optics(blur_px=task.blur_px, f_number=lens_.f_number, psf=task.psf)
+    radiometry = Radiometry(noise_sd=task.noise_dn / 255.0)
+    rendered = [render_image(target, mapping, R, t, sensor, optics, radiometry, rng)
+                for R, t in poses]
+    return mapping, target, rendered
+
+
+def _calibrate_set(obs, backend: str) -> dict:
+    """One backend's calibration of a set's detections: its fx, fy, cx, cy, their sds and
+    the residual RMS (px), or the one-line error that stopped it."""
+    try:
+        if backend == "opencv":
+            from ..calibrate.opencv_backend import calibrate_opencv
+
+            r = calibrate_opencv(obs)
+        else:
+            from ..calibrate.bundle import calibrate_bundle
+
+            r = calibrate_bundle(obs)
+        return {"fx": r.fx, "fy": r.fy, "cx": r.cx, "cy": r.cy, "sd_fx": r.sd.get("fx"),
+                "sd_cx": r.sd.get("cx"), "sd_cy": r.sd.get("cy"), "rms_px": r.rms_px}
+    except Exception as exc:  # noqa: BLE001 (one failed fit must not lose the others)
+        return {"error": " ".join(str(exc).split())[:300]}
 
 
 def mechanics_table(lens, tolerances, zoom: np.ndarray, samples: int, seed: int) -> list[dict]:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import html
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["study_figures", "write_report", "markdown_to_html"]
+__all__ = ["StudyTables", "study_figures", "write_report", "markdown_to_html"]
 
 
 def _fmt(v, digits: int = 3) -> str:
@@ -192,23 +193,40 @@ def study_figures(out: Path, mech_dense: list[dict], mech: list[dict], scatter: 
     return files
 
 
-def write_report(out: Path, config: dict, command: str, versions: dict, mech: list[dict],
-                 scatter: list[dict], comparison: list[dict], claims: list[dict],
-                 timing: dict, figures: dict[str, Path], lensfun: dict | None) -> list[Path]:
-    """Write ``report.md`` and ``report.html``."""
+@dataclass(frozen=True)
+class StudyTables:
+    """The study's results the report reads, rows as in the CSV files written beside it.
+
+    Attributes
+    ----------
+    mech : list of dict
+        The mechanics per zoom step (``mechanics.csv``).
+    scatter : list of dict
+        The detection-induced scatter (``detection_scatter.csv``).
+    comparison : list of dict
+        Mechanics against detection per case (``comparison.csv``).
+    claims : list of dict
+        The paper's side claims (``claims.csv``).
+    timing : dict
+        Seconds per stage (``timing.csv``).
+    lensfun : dict, optional
+        Distortion of real zoom lenses (``lensfun.csv``); None or empty: not reported.
+    """
+
+    mech: list[dict]
+    scatter: list[dict]
+    comparison: list[dict]
+    claims: list[dict]
+    timing: dict
+    lensfun: dict | None = None
+
+
+def _verdict_lines(comparison: list[dict]) -> list[str]:
+    """The report's verdict: per detector and backend at the middle noise level, then the
+    count of each verdict over all cases."""
     noise_levels = sorted({c["noise_dn"] for c in comparison})
     ref = noise_levels[len(noise_levels) // 2] if noise_levels else None
-    lines = ["# Detection error against mechanical error across the zoom range", ""]
-    lines += [f"Command: `{command}`", "",
-              f"Seed {config['seed']}; lens {config['lens']}; tolerances "
-              f"{config['tolerances'] or 'built-in'} x {config['tolerance_scale']:g}; "
-              f"{config['steps']} zoom steps; noise "
-              f"{', '.join(f'{n:g}' for n in config['noise_dn'])} DN; {config['seeds']} "
-              f"calibration sets of {config['views']} views per step and noise; "
-              f"{config['mc_samples']} mechanical draws per step; rendered with a "
-              f"{config.get('psf', 'gaussian')} PSF and {config['blur_px']:g} px of blur.", "",
-              "Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items()), ""]
-    lines += ["## Verdict", ""]
+    lines = ["## Verdict", ""]
     for det in sorted({c["detector"] for c in comparison}):
         for backend in sorted({c["backend"] for c in comparison}):
             sel = [c for c in comparison if c["detector"] == det and c["backend"] == backend
@@ -228,6 +246,26 @@ def write_report(out: Path, config: dict, command: str, versions: dict, mech: li
               "so mechanics can be neglected) holds where the verdict says \"detection "
               "dominates\" and fails where it says \"mechanics dominate\". Source: "
               "`comparison.csv`.", ""]
+    return lines
+
+
+def write_report(out: Path, config: dict, command: str, versions: dict, tables: StudyTables,
+                 figures: dict[str, Path]) -> list[Path]:
+    """Write ``report.md`` and ``report.html`` in ``out``: the study's ``config``
+    (:meth:`~zoomcalib.study.paper.StudyConfig.to_dict`), the ``command`` that ran it, the
+    package ``versions``, its ``tables`` and its ``figures`` (:func:`study_figures`)."""
+    mech, scatter, comparison = tables.mech, tables.scatter, tables.comparison
+    lines = ["# Detection error against mechanical error across the zoom range", ""]
+    lines += [f"Command: `{command}`", "",
+              f"Seed {config['seed']}; lens {config['lens']}; tolerances "
+              f"{config['tolerances'] or 'built-in'} x {config['tolerance_scale']:g}; "
+              f"{config['steps']} zoom steps; noise "
+              f"{', '.join(f'{n:g}' for n in config['noise_dn'])} DN; {config['seeds']} "
+              f"calibration sets of {config['views']} views per step and noise; "
+              f"{config['mc_samples']} mechanical draws per step; rendered with a "
+              f"{config.get('psf', 'gaussian')} PSF and {config['blur_px']:g} px of blur.", "",
+              "Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items()), ""]
+    lines += _verdict_lines(comparison)
     lines += ["## Mechanics (Fig. 5)", "", f"![spiral]({figures['spiral'].name})", "",
               "The spiral and the trends are drawn from `mechanics_dense.csv` (41 zoom states); "
               "the table gives the study's zoom steps.", "",
@@ -249,14 +287,14 @@ def write_report(out: Path, config: dict, command: str, versions: dict, mech: li
               "Source: `comparison.csv`. `ratio = s_mech / s_det`, 95 % interval from the F "
               "law of the two variance estimates.", ""]
     lines += ["## The paper's side claims", "",
-              _table(claims, ["claim", "measure", "value", "holds"]), "Source: `claims.csv`.",
-              ""]
-    if lensfun:
+              _table(tables.claims, ["claim", "measure", "value", "holds"]),
+              "Source: `claims.csv`.", ""]
+    if tables.lensfun:
         lines += ["Distortion of real zoom lenses (lensfun database): "
-                  + ", ".join(f"{k} {_fmt(v)}" for k, v in lensfun.items()
+                  + ", ".join(f"{k} {_fmt(v)}" for k, v in tables.lensfun.items()
                               if not isinstance(v, list | dict)) + ". Source: `lensfun.csv`.",
                   ""]
-    lines += ["## Time", "", ", ".join(f"{k} {v:.1f} s" for k, v in timing.items()), ""]
+    lines += ["## Time", "", ", ".join(f"{k} {v:.1f} s" for k, v in tables.timing.items()), ""]
     md = "\n".join(lines)
     md_path = out / "report.md"
     md_path.write_text(md)

@@ -27,7 +27,7 @@ from .paper import (
     detection_task,
     mechanics_table,
 )
-from .report import study_figures, write_report
+from .report import StudyTables, study_figures, write_report
 
 __all__ = ["run_study", "detection_tasks", "DENSE_STEPS"]
 
@@ -134,8 +134,8 @@ def run_study(config: StudyConfig, out: str | Path, workers: int | None = None,
     timing["wall_s"] = time.perf_counter() - t_start
     files.append(write_csv(out / "timing.csv", [timing]))
     versions = _versions()
-    files += write_report(out, config.to_dict(), command, versions, mech, scatter, comparison,
-                          claims, timing, figures, lensfun_summary)
+    tables = StudyTables(mech, scatter, comparison, claims, timing, lensfun_summary)
+    files += write_report(out, config.to_dict(), command, versions, tables, figures)
     (out / "study.json").write_text(json.dumps(
         {"config": config.to_dict(), "command": command, "versions": versions,
          "failures": failures, "workers": workers, "scheduler": str(scheduler)}, indent=1))
