@@ -363,7 +363,7 @@ def _train_board(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int,
     rational = bool(flags & cv2.CALIB_RATIONAL_MODEL)
     with warnings.catch_warnings():  # its guard's advice is for its own users; here the
         warnings.simplefilter("ignore", RuntimeWarning)  # held-out views judge the board
-        res = calibrate_bundle(obs, "rational" if rational else "standard", K0=K,
+        res = calibrate_bundle(obs, model="rational" if rational else "standard", K0=K,
                                dist0=np.ravel(dist)[:8 if rational else 5],
                                refine_target=True, robust=False, fix_aspect=True,
                                target_sigma_mm=point_sigma_mm, scatter_check=False)

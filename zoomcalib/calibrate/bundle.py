@@ -102,7 +102,9 @@ taken with respect to a small rotation of the camera frame, ``-B [R X_j]_x``, an
 Rodrigues vector by the view's left Jacobian of SO(3) (:func:`left_jacobian`), which equals
 Gallego & Yezzi's derivative [3] (:func:`rodrigues`).
 
-Stages: (1) initial camera and poses from ``cv2.calibrateCamera`` (standard model); (2) LM with
+Stages: (1) initial camera and poses from ``cv2.calibrateCamera`` (standard model: the
+rational model started from scratch falls into poor local minima on wide lenses, as on mrcal's
+figueroa set, ``python benchmarks/bench_bundle.py --accuracy``); (2) LM with
 the target held at its nominal shape (for ``'rational'``: up to 10 iterations of the 5-term model
 first, then all 8 terms); (3) LM with the target released; (4) if ``robust``, observations whose
 residual norm exceeds ``reject_sigma`` robust sigmas are rejected and (3) is re-solved, while the
@@ -148,6 +150,31 @@ and the rational model's 5-term warm start) converged; ``info['stop_reason']`` i
 failing stage's reason, else ``'tolerance'``. A result that did not converge also raises a
 ``RuntimeWarning`` naming the stages.
 
+With ``threadpoolctl`` installed the BLAS runs single-threaded inside :func:`calibrate_bundle`
+(``_single_threaded_blas``): the result does not depend on it, the wall time does.
+
+Result
+------
+``CalibrationResult.info`` of :func:`calibrate_bundle`:
+
+- ``converged`` (bool; also ``CalibrationResult.converged``), ``stop_reason``,
+  ``stages`` (per LM stage: ``iterations``, ``converged``, ``stop_reason``, ``role``,
+  ``cost_px2``), ``iterations`` (LM iterations per stage);
+- ``gauge`` (text), ``gauge_points``, ``n_unknowns`` (free parameters after the
+  gauge), ``n_observations`` (inliers), ``residual_dof`` (the denominator of ``s^2``,
+  module docstring), ``sigma_px`` (``s``, weighted px),
+  ``prior_sigma_px`` (the prior's pixel sigma in the final solve; None without a
+  prior), ``model``, ``max_tilt_deg``;
+- ``sd_kind`` (``'repeatability'``), ``sd_posterior`` (by name),
+  ``rvecs_sd_posterior``, ``tvecs_sd_posterior`` (m, 3);
+- ``flatness_mm``, ``flatness_sd_mm``: RMS distance of the refined points from their
+  best-fit plane, and its linearised 1-sigma;
+- ``guard``: the flat-target fit (``flat_fx`` ...), the shifts from it
+  (``shift_fx_px``, ``shift_fx_sigma`` ...), ``warp_amplitude_mm`` (the 3 warp
+  modes' amplitudes), ``irregular_rms_mm`` and ``irregular_noise_rms_mm``;
+- ``rvecs_sd``, ``tvecs_sd`` (m, 3); ``points_held`` (points seen in fewer than 2
+  views, kept at their nominal position); ``target_sigma_mm``, ``warp_sigma_mm``.
+
 References
 ----------
 .. [1] J.-M. Lavest, M. Viala, M. Dhome, "Do we really need an accurate calibration pattern to
@@ -168,7 +195,7 @@ import contextlib
 import functools
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import cv2
@@ -204,7 +231,7 @@ from zoomcalib.calibrate.solver import (
     levenberg_marquardt,
 )
 
-__all__ = ["calibrate_bundle", "shape_precision", "CAMERA_NAMES"]
+__all__ = ["BundleOptions", "calibrate_bundle", "shape_precision", "CAMERA_NAMES"]
 
 #: Names of the 12 camera parameters in the internal (full rational) order.
 CAMERA_NAMES = ("fx", "fy", "cx", "cy") + DIST_NAMES
@@ -1151,14 +1178,16 @@ class _Data:
 
 
 def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
-                  Lam: _ShapePrior | None, model: str, fix_aspect: bool, refine_target: bool,
-                  robust: bool, reject_sigma: float, max_iterations: int, tol: float):
+                  Lam: _ShapePrior | None, opts: BundleOptions):
     """Stages 2-4 of the module docstring from the starting ``state``.
 
     Returns the flat-target fit (on the final inliers), the solution, the final problem, the
     inlier mask (N,), the per-stage :class:`~zoomcalib.calibrate.solver.Solve` and the normal
     equations at the final solve's end when it converged (else None).
     """
+    model, fix_aspect, refine_target = opts.model, opts.fix_aspect, opts.refine_target
+    robust, reject_sigma = opts.robust, opts.reject_sigma
+    max_iterations, tol = opts.max_iterations, opts.tol
     vi, pi, uv, w, m, n, X0 = (data.vi, data.pi, data.uv, data.w, data.m, data.n, data.X0)
     no_pts = np.zeros((n, 3), bool)
 
@@ -1219,41 +1248,14 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
     return flat_state, state, prob, inlier, stages, ne
 
 
-@_single_threaded_blas
-def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray | None = None,
-                     dist0: np.ndarray | None = None, rvecs0: np.ndarray | None = None,
-                     tvecs0: np.ndarray | None = None, refine_target: bool = True,
-                     robust: bool = True, fix_aspect: bool = False,
-                     target_sigma_mm: float | None = 0.01, warp_sigma_mm: float | None = 2.0,
-                     weights: list[np.ndarray] | None = None,
-                     gauge_points: tuple[int, int, int] | None = None,
-                     reject_sigma: float = 5.0, min_tilt_deg: float = 3.0,
-                     guard_warn_ratio: float = 3.0, max_iterations: int = 100,
-                     tol: float = 1e-7, return_covariance: bool = False,
-                     scatter_check: bool = True) -> CalibrationResult:
-    r"""Calibrate a camera by bundle adjustment, refining the 3D target points too.
+@dataclass(frozen=True)
+class BundleOptions:
+    """The bundle adjustment's choices (:func:`calibrate_bundle`).
 
-    See the module docstring for the model, the gauge, the shape prior and the solver.
-
-    Parameters
+    Attributes
     ----------
-    obs : Observations
-        Nominal target (``object_points`` (n, 3), mm unless stated) and per-view ``(ids (k,),
-        points (k, 2))`` detections, px, OpenCV convention. Each view needs at least 4 points
-        and no point twice.
     model : {'standard', 'rational'}
         OpenCV's 5-term (``k1, k2, p1, p2, k3``) or 8-term rational model (adds ``k4..k6``).
-    K0 : (3, 3) ndarray, optional
-        Initial camera matrix. If None, the initial camera and poses come from
-        ``cv2.calibrateCamera`` (:data:`INIT_ITERATIONS` iterations) on the nominal flat target with
-        OpenCV's standard model: the rational model started from scratch falls into poor local
-        minima on wide lenses (as on mrcal's figueroa set: ``python benchmarks/bench_bundle.py
-        --accuracy``). Our adjustment then takes
-        up to 10 more iterations of the standard model and only then frees ``k4..k6``.
-    dist0 : (5,) or (8,) ndarray, optional
-        Initial distortion (zeros if None and ``K0`` is given).
-    rvecs0, tvecs0 : (m, 3) ndarray, optional
-        Initial ``Rt_cam_board`` poses; from ``cv2.solvePnP`` if None and ``K0`` is given.
     refine_target : bool
         Release the target points (else only the camera and poses are adjusted).
     robust : bool
@@ -1273,9 +1275,6 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
     warp_sigma_mm : float or None
         Prior 1-sigma of the amplitude of each smooth warp mode (bow, cylinder, twist). None:
         the warp modes get ``target_sigma_mm`` like every other deformation.
-    weights : list of (k,) ndarray, optional
-        Per-observation weights (noise ``sigma / w``, mrcal's convention); weights <= 0 are
-        dropped as outliers.
     gauge_points : (int, int, int), optional
         ``(i0, ia, ib)`` for the gauge (module docstring); chosen automatically if None.
     reject_sigma : float
@@ -1299,9 +1298,7 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         Also put the full covariances of all free parameters, both kinds, in
         ``info['covariance_repeatability']`` and ``info['covariance_posterior']`` (module
         docstring, Covariance), with their names in ``info['parameter_names']``. Covariances
-        use the normal equations of the last linearisation, at most one converged step (see
-        ``tol``) from the solution: relative differences of about 1e-5 from a fresh
-        linearisation at ``tol=1e-7``.
+        use the normal equations at the solution (the solver's last linearisation).
     scatter_check : bool
         Check the camera's sigmas against the scatter between views
         (:mod:`zoomcalib.calibrate.scatter`) and report the larger of the noise model's and
@@ -1309,6 +1306,54 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         ``info['sd_noise_model']``, the check in ``info['view_scatter']``, which flags views
         that disagree beyond what the corner noise explains). False reports the noise model's
         sigmas, still checked.
+
+    """
+
+    model: str = "standard"
+    refine_target: bool = True
+    robust: bool = True
+    fix_aspect: bool = False
+    target_sigma_mm: float | None = 0.01
+    warp_sigma_mm: float | None = 2.0
+    gauge_points: tuple[int, int, int] | None = None
+    reject_sigma: float = 5.0
+    min_tilt_deg: float = 3.0
+    guard_warn_ratio: float = 3.0
+    max_iterations: int = 100
+    tol: float = 1e-7
+    return_covariance: bool = False
+    scatter_check: bool = True
+
+
+@_single_threaded_blas
+def calibrate_bundle(obs: Observations, options: BundleOptions | None = None, *,
+                     K0: np.ndarray | None = None, dist0: np.ndarray | None = None,
+                     rvecs0: np.ndarray | None = None, tvecs0: np.ndarray | None = None,
+                     weights: list[np.ndarray] | None = None, **fields) -> CalibrationResult:
+    r"""Calibrate a camera by bundle adjustment, refining the 3D target points too.
+
+    See the module docstring for the model, the gauge, the shape prior and the solver.
+
+    Parameters
+    ----------
+    obs : Observations
+        Nominal target (``object_points`` (n, 3), mm unless stated) and per-view ``(ids (k,),
+        points (k, 2))`` detections, px, OpenCV convention. Each view needs at least 4 points
+        and no point twice.
+    options : BundleOptions, optional
+        The adjustment's choices (default: :class:`BundleOptions`' defaults); ``fields``,
+        keywords named as its fields, replace them (``model="rational", robust=False``).
+    K0 : (3, 3) ndarray, optional
+        Initial camera matrix. If None, the initial camera and poses come from
+        ``cv2.calibrateCamera`` (:data:`INIT_ITERATIONS` iterations, standard model, the
+        nominal flat target; module docstring, Stages).
+    dist0 : (5,) or (8,) ndarray, optional
+        Initial distortion (zeros if None and ``K0`` is given).
+    rvecs0, tvecs0 : (m, 3) ndarray, optional
+        Initial ``Rt_cam_board`` poses; from ``cv2.solvePnP`` if None and ``K0`` is given.
+    weights : list of (k,) ndarray, optional
+        Per-observation weights (noise ``sigma / w``, mrcal's convention); weights <= 0 are
+        dropped as outliers.
 
     Returns
     -------
@@ -1318,25 +1363,8 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         ``per_view_rms_px`` over inliers (unweighted px), ``rvecs``, ``tvecs``
         (``Rt_cam_board``, target in the gauge frame), ``rejected`` (view, id),
         ``object_points`` (refined, gauge frame; None if ``refine_target`` is False) and
-        ``object_points_sd`` (0 for gauge-fixed coordinates). ``info``:
-
-        - ``converged`` (bool; also ``CalibrationResult.converged``), ``stop_reason``,
-          ``stages`` (per LM stage: ``iterations``, ``converged``, ``stop_reason``, ``role``,
-          ``cost_px2``), ``iterations`` (LM iterations per stage);
-        - ``gauge`` (text), ``gauge_points``, ``n_unknowns`` (free parameters after the
-          gauge), ``n_observations`` (inliers), ``residual_dof`` (the denominator of ``s^2``,
-          module docstring), ``sigma_px`` (``s``, weighted px),
-          ``prior_sigma_px`` (the prior's pixel sigma in the final solve; None without a
-          prior), ``model``, ``max_tilt_deg``;
-        - ``sd_kind`` (``'repeatability'``), ``sd_posterior`` (by name),
-          ``rvecs_sd_posterior``, ``tvecs_sd_posterior`` (m, 3);
-        - ``flatness_mm``, ``flatness_sd_mm``: RMS distance of the refined points from their
-          best-fit plane, and its linearised 1-sigma;
-        - ``guard``: the flat-target fit (``flat_fx`` ...), the shifts from it
-          (``shift_fx_px``, ``shift_fx_sigma`` ...), ``warp_amplitude_mm`` (the 3 warp
-          modes' amplitudes), ``irregular_rms_mm`` and ``irregular_noise_rms_mm``;
-        - ``rvecs_sd``, ``tvecs_sd`` (m, 3); ``points_held`` (points seen in fewer than 2
-          views, kept at their nominal position); ``target_sigma_mm``, ``warp_sigma_mm``.
+        ``object_points_sd`` (0 for gauge-fixed coordinates). ``info``: module docstring,
+        Result.
 
     Raises
     ------
@@ -1346,94 +1374,122 @@ def calibrate_bundle(obs: Observations, model: str = "standard", K0: np.ndarray 
         unknown model; normal equations singular at the solution; a negative variance
         (naming the parameter).
 
-    Notes
-    -----
-    If ``threadpoolctl`` is installed, the BLAS runs single-threaded inside the call (see
-    ``_single_threaded_blas``); the result does not depend on it, the wall time does.
-
     Examples
     --------
     >>> from zoomcalib.calibrate.bundle import calibrate_bundle  # doctest: +SKIP
     >>> res = calibrate_bundle(obs, model="rational")             # doctest: +SKIP
     >>> res.fx, res.sd["fx"], res.info["flatness_mm"], res.rejected   # doctest: +SKIP
     """
-    if model not in ("standard", "rational"):
-        raise ValueError(f"model must be 'standard' or 'rational', not {model!r}")
+    opts = replace(options or BundleOptions(), **fields)
+    if opts.model not in ("standard", "rational"):
+        raise ValueError(f"model must be 'standard' or 'rational', not {opts.model!r}")
     X0 = np.asarray(obs.object_points, dtype=float).reshape(-1, 3)
     n, m = len(X0), obs.n_views
     if m < 3:
         raise ValueError(f"bundle adjustment needs at least 3 views, got {m}: with fewer the "
                          "intrinsics, poses and target points are not determined")
     vi, pi, uv, w, ids_list, pts_list = _flatten(obs, weights)
-
-    # ---- unknowns, gauge and the count refusal -----------------------------------------
-    seen = np.bincount(pi, minlength=n) >= 2
-    held = np.flatnonzero(~seen) if refine_target else []
-    fixed, gauge_text, gauge_pts = _gauge(X0, gauge_points, seen)
-    fixed[held] = True
-    free_pts = ~fixed if refine_target else np.zeros((n, 3), bool)
-    aspect = 1.0 if K0 is None else float(K0[0][0] / K0[1][1])
-    cam_map, cam_names = _cam_map(model, fix_aspect, aspect)
-    _refuse_underdetermined(len(vi), cam_map.shape[1], m, int(free_pts.sum()))
-
-    # ---- stage 1: initial values and the fronto-parallel refusal ------------------------
-    cam, rv0, tv0 = _initial_values(obs.image_size, X0, ids_list, pts_list, model, K0, dist0,
-                                    rvecs0, tvecs0, fix_aspect)
-    if K0 is None and fix_aspect:
-        cam_map, cam_names = _cam_map(model, fix_aspect, cam[0] / cam[1])
-    tilts = _board_tilts_deg(rv0, min_tilt_deg)
-
-    # ---- stages 2-4: the flat fit, the free target, outlier rounds ----------------------
-    modes = _shape_modes(X0) if refine_target else None
-    shape_prior = (_ShapePrior.from_modes(modes, target_sigma_mm, warp_sigma_mm)
-                   if refine_target and target_sigma_mm is not None else None)
+    unknowns = _unknowns(X0, pi, opts, 1.0 if K0 is None else float(K0[0][0] / K0[1][1]))
+    _refuse_underdetermined(len(vi), unknowns.cam_map.shape[1], m,
+                            int(unknowns.free_pts.sum()))
+    # stage 1: initial values and the fronto-parallel refusal
+    cam, rv0, tv0 = _initial_values(obs.image_size, X0, ids_list, pts_list, opts.model, K0,
+                                    dist0, rvecs0, tvecs0, opts.fix_aspect)
+    if K0 is None and opts.fix_aspect:
+        unknowns.cam_map, unknowns.cam_names = _cam_map(opts.model, opts.fix_aspect,
+                                                        cam[0] / cam[1])
+    tilts = _board_tilts_deg(rv0, opts.min_tilt_deg)
+    # stages 2-4: the flat fit, the free target, outlier rounds
+    modes = _shape_modes(X0) if opts.refine_target else None
+    shape_prior = (_ShapePrior.from_modes(modes, opts.target_sigma_mm, opts.warp_sigma_mm)
+                   if opts.refine_target and opts.target_sigma_mm is not None else None)
     flat_state, state, prob, inlier, stages, normal = _solve_stages(
-        _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), cam_map, free_pts,
-        shape_prior, model, fix_aspect, refine_target, robust, reject_sigma, max_iterations,
-        tol)
-
-    # ---- stage 5: covariance and the view-scatter check ---------------------------------
+        _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), unknowns.cam_map,
+        unknowns.free_pts, shape_prior, opts)
+    # stage 5: covariance, the view-scatter check and the result
     if normal is None:
         normal = prob.normal_equations(state)
-    cov = _covariances(prob, state, normal, cam_names, m)
-    sigmas = _camera_sigmas(prob, state, normal, cov, cam_map, model, obs, scatter_check)
-    pose_sd, pose_sd_post = cov.pose_sd("repeatability"), cov.pose_sd("posterior")
+    cov = _covariances(prob, state, normal, unknowns.cam_names, m)
+    sigmas = _camera_sigmas(prob, state, normal, cov, unknowns.cam_map, opts.model, obs,
+                            opts.scatter_check)
     stage_info, converged, stop_reason = _convergence_summary(stages, K0 is None)
     if not converged:
         _warn_not_converged(stage_info)
+    info: dict = {"gauge": unknowns.gauge_text, "gauge_points": list(unknowns.gauge_pts),
+                  "converged": converged, "stop_reason": stop_reason, "stages": stage_info,
+                  "iterations": {k: v.iterations for k, v in stages.items()},
+                  "max_tilt_deg": float(tilts.max()),
+                  "points_held": [int(i) for i in unknowns.held]}
+    obj = None
+    if opts.refine_target:
+        obj = _refined_target(prob, state, cov, modes, X0, flat_state.cam,
+                              sigmas.noise_model, opts.guard_warn_ratio, info)
+    return _bundle_result(prob, state, cov, sigmas, inlier, (vi, pi, uv), opts, info, obj)
 
+
+@dataclass
+class _Unknowns:
+    """The bundle's unknowns: which target coordinates are free (``free_pts`` (n, 3)), the
+    points held for being seen in fewer than 2 views, the gauge and its points, the camera
+    parameters' map and names (:func:`_cam_map`)."""
+
+    free_pts: np.ndarray
+    held: np.ndarray
+    gauge_text: str
+    gauge_pts: tuple[int, int, int]
+    cam_map: np.ndarray
+    cam_names: list[str]
+
+
+def _unknowns(X0: np.ndarray, pi: np.ndarray, opts: BundleOptions, aspect: float
+              ) -> _Unknowns:
+    """The target coordinates left free by the gauge and by the points seen in fewer than
+    2 views, and the camera parameters of ``opts.model``."""
+    n = len(X0)
+    seen = np.bincount(pi, minlength=n) >= 2
+    held = np.flatnonzero(~seen) if opts.refine_target else np.zeros(0, int)
+    fixed, gauge_text, gauge_pts = _gauge(X0, opts.gauge_points, seen)
+    fixed[held] = True
+    free_pts = ~fixed if opts.refine_target else np.zeros((n, 3), bool)
+    cam_map, cam_names = _cam_map(opts.model, opts.fix_aspect, aspect)
+    return _Unknowns(free_pts, held, gauge_text, gauge_pts, cam_map, cam_names)
+
+
+def _bundle_result(prob: _Problem, state: _State, cov: _Covariances, sigmas: _CameraSigmas,
+                   inlier: np.ndarray, data: tuple, opts: BundleOptions, info: dict,
+                   obj: tuple | None) -> CalibrationResult:
+    """The :class:`CalibrationResult` of a finished adjustment: ``info`` completed with the
+    counts, the noise, the sigmas of both kinds and the poses'; ``obj`` the refined target
+    and its sigmas (None when the target was held)."""
+    vi, pi, uv = data
+    m = len(state.rvecs)
+    pose_sd, pose_sd_post = cov.pose_sd("repeatability"), cov.pose_sd("posterior")
     cam = state.cam
     residual_sq = np.sum((project_jacobian(cam, state.rvecs, state.tvecs, state.X, vi, pi,
                                            jacobian=False) - uv) ** 2, axis=1)  # unweighted
     per_view = np.sqrt(np.bincount(vi[inlier], residual_sq[inlier], m)
                        / np.maximum(np.bincount(vi[inlier], minlength=m), 1))
-    info: dict = {"gauge": gauge_text, "gauge_points": list(gauge_pts),
-                  "n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
-                  "converged": converged, "stop_reason": stop_reason, "stages": stage_info,
-                  "iterations": {k: v.iterations for k, v in stages.items()},
-                  "residual_dof": cov.dof,
-                  "sigma_px": float(np.sqrt(cov.s2)), "model": model,
-                  "prior_sigma_px": (float(np.sqrt(prob.sig2)) if prob.Lam is not None
-                                     else None),
-                  "max_tilt_deg": float(tilts.max()), "sd_kind": "repeatability",
-                  "rvecs_sd": pose_sd[:, :3], "tvecs_sd": pose_sd[:, 3:],
-                  "points_held": [int(i) for i in held],
-                  "target_sigma_mm": target_sigma_mm, "warp_sigma_mm": warp_sigma_mm,
-                  "sd_posterior": sigmas.posterior, "rvecs_sd_posterior": pose_sd_post[:, :3],
-                  "tvecs_sd_posterior": pose_sd_post[:, 3:],
-                  "view_scatter": sigmas.scatter.to_dict() | {"applied": scatter_check},
-                  "sd_noise_model": sigmas.noise_model}
-    obj_pts = obj_sd = None
-    if refine_target:
-        obj_pts, obj_sd = _refined_target(prob, state, cov, modes, X0, flat_state.cam,
-                                          sigmas.noise_model, guard_warn_ratio, info)
-    if return_covariance:
+    info.update({"n_unknowns": int(prob.n_unknowns), "n_observations": int(prob.N),
+                 "residual_dof": cov.dof, "sigma_px": float(np.sqrt(cov.s2)),
+                 "model": opts.model,
+                 "prior_sigma_px": (float(np.sqrt(prob.sig2)) if prob.Lam is not None
+                                    else None),
+                 "sd_kind": "repeatability",
+                 "rvecs_sd": pose_sd[:, :3], "tvecs_sd": pose_sd[:, 3:],
+                 "target_sigma_mm": opts.target_sigma_mm, "warp_sigma_mm": opts.warp_sigma_mm,
+                 "sd_posterior": sigmas.posterior, "rvecs_sd_posterior": pose_sd_post[:, :3],
+                 "tvecs_sd_posterior": pose_sd_post[:, 3:],
+                 "view_scatter": sigmas.scatter.to_dict() | {"applied": opts.scatter_check},
+                 "sd_noise_model": sigmas.noise_model})
+    if opts.return_covariance:
         info["parameter_names"] = cov.names
         info["covariance_repeatability"] = cov.full("repeatability")
         info["covariance_posterior"] = cov.full("posterior")
-    n_dist = 5 if model == "standard" else 8
-    return CalibrationResult(backend="bundle", K=_camera_matrix(cam), dist=cam[4:4 + n_dist].copy(),
-                             sd=sigmas.reported, rms_px=float(np.sqrt(residual_sq[inlier].mean())),
+    obj_pts, obj_sd = obj if obj is not None else (None, None)
+    n_dist = 5 if opts.model == "standard" else 8
+    return CalibrationResult(backend="bundle", K=_camera_matrix(cam),
+                             dist=cam[4:4 + n_dist].copy(), sd=sigmas.reported,
+                             rms_px=float(np.sqrt(residual_sq[inlier].mean())),
                              per_view_rms_px=per_view, rvecs=state.rvecs.copy(),
                              tvecs=state.tvecs.copy(),
                              rejected=[(int(vi[i]), int(pi[i])) for i in np.flatnonzero(~inlier)],
