@@ -50,6 +50,7 @@ from __future__ import annotations
 import contextlib
 import warnings
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
@@ -645,14 +646,48 @@ def _check_sd(res: CalibrationResult, invalid: list[str], n_camera: int) -> None
                   RuntimeWarning, stacklevel=3)
 
 
-def _finish(backend: str, out_K, out_dist, rvecs, tvecs, sdi, sde, obj, img, flags: int,
-            n_dist: int, model: str, names: list[str], opencv_rms: float,
-            opencv_per_view, criteria, groups: np.ndarray | None = None,
+@dataclass(frozen=True)
+class _Fit:
+    """One OpenCV calibration call: the backend's name, its inputs (``obj``, ``img`` per view,
+    OpenCV's arrays), flags, the number of distortion terms, the lens model, the views'
+    names and the termination criteria."""
+
+    backend: str
+    obj: list
+    img: list
+    flags: int
+    n_dist: int
+    model: str
+    names: list[str]
+    criteria: tuple
+
+
+@dataclass(frozen=True)
+class _Output:
+    """What OpenCV returned: its RMS, camera matrix, distortion, poses, the intrinsics' and
+    poses' 1-sigmas (``sdi``, ``sde``) and its per-view RMS."""
+
+    rms: float
+    K: np.ndarray
+    dist: np.ndarray
+    rvecs: object
+    tvecs: object
+    sdi: np.ndarray
+    sde: np.ndarray
+    per_view: np.ndarray
+
+
+def _finish(fit: _Fit, out: _Output, groups: np.ndarray | None = None,
             point_ids: np.ndarray | None = None, camera_only: bool = False
             ) -> tuple[CalibrationResult, list[str]]:
     """The result of one OpenCV calibration, and the names of its invalid 1-sigmas;
     ``groups`` and ``point_ids`` as in :func:`_view_scatter`; ``camera_only`` as in
     :func:`calibrate_opencv`."""
+    backend, obj, img, flags, n_dist = fit.backend, fit.obj, fit.img, fit.flags, fit.n_dist
+    model, names, criteria = fit.model, fit.names, fit.criteria
+    out_K, out_dist, rvecs, tvecs, sdi, sde = (out.K, out.dist, out.rvecs, out.tvecs,
+                                                out.sdi, out.sde)
+    opencv_rms, opencv_per_view = out.rms, out.per_view
     K = np.asarray(out_K, np.float64).reshape(3, 3)
     dist_all = np.asarray(out_dist, np.float64).ravel()
     dist = dist_all[:n_dist].copy()
@@ -777,9 +812,8 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
     out = _run(cv2.calibrateCameraExtended, "calibrate_opencv", obj, img,
                tuple(int(v) for v in obs.image_size), K0, d0, flags=flags,
                criteria=_criteria(criteria))
-    rms, K, dist, rvecs, tvecs, sdi, sde, per_view = out
-    res, invalid = _finish("opencv", K, dist, rvecs, tvecs, sdi, sde, obj, img, flags, n_dist,
-                           model, names, rms, per_view, _criteria(criteria),
+    res, invalid = _finish(_Fit("opencv", obj, img, flags, n_dist, model, names,
+                                _criteria(criteria)), _Output(*out),
                            None if camera_only else view_groups(obs.views, obs.image_size),
                            np.concatenate([np.asarray(ids) for ids, _ in obs.views]),
                            camera_only)
@@ -1003,9 +1037,9 @@ def calibrate_opencv_ro(obs: Observations, model: str = "standard", flags: int =
     refined = np.asarray(new_obj, np.float64).reshape(n, 3)
     if not np.all(np.isfinite(refined)):
         raise RuntimeError("calibrate_opencv_ro: refined target points are not finite")
-    res, invalid = _finish("opencv-ro", K, dist, rvecs, tvecs, sdi, sde,
-                           [refined] * full.n_views, img, flags, n_dist, model, full.names, rms,
-                           per_view, _criteria(criteria))
+    res, invalid = _finish(_Fit("opencv-ro", [refined] * full.n_views, img, flags, n_dist,
+                                model, full.names, _criteria(criteria)),
+                           _Output(rms, K, dist, rvecs, tvecs, sdi, sde, per_view))
     res.object_points = refined
     res.object_points_sd = np.asarray(sdo, np.float64).reshape(n, 3)
     invalid += _invalid_sd(res.object_points_sd, [f"point{j}.{a}" for j in range(n)
