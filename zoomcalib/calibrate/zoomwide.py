@@ -558,20 +558,21 @@ class _ZoomProblem:
     (scaled by ``1/sigma_s``), then the smoothness rows ``D q / tau_q``, then ``a / board_prior``.
     """
 
-    def __init__(self, steps: list[_Step], board: np.ndarray, modes_basis: np.ndarray,
-                 free: np.ndarray, chains: list[np.ndarray], u: np.ndarray,
-                 tau: dict[str, float],
-                 board_prior_mm: float, order: dict[str, int] | None = None,
-                 forms: dict[str, _Form] | None = None, shared_aspect: bool = False,
-                 session: np.ndarray | None = None, aspect_held: bool = False,
-                 print_shape: bool = False):
-        self.steps, self.board, self.phi = steps, board, modes_basis
+    def __init__(self, setup: _Setup, free: np.ndarray, tau: dict[str, float],
+                 order: dict[str, int] | None = None, forms: dict[str, _Form] | None = None):
+        """The problem of ``setup``'s steps (:class:`_Setup`: the steps, board, height modes,
+        chains, ``u``, sessions, the aspect's and the print's choices) with the camera
+        unknowns ``free`` (steps, 12) and the smoothness prior's ``tau``, ``order`` and
+        ``forms`` per parameter (empty: no prior)."""
+        steps, modes_basis = setup.steps, setup.phi
+        shared_aspect, aspect_held = setup.shared_aspect, setup.aspect_held
+        print_shape = setup.keep_print
+        self.steps, self.board, self.phi = steps, setup.board, modes_basis
         # each step's board session: its own height amplitudes (``n_basis`` per session)
-        self.session = (np.zeros(len(steps), int) if session is None
-                        else np.asarray(session, int))
-        self.free, self.chains, self.u, self.tau = free, chains, u, tau
+        self.session = np.asarray(setup.session, int)
+        self.free, self.chains, self.u, self.tau = free, setup.chain_idx, setup.u, tau
         self.order, self.forms = order or {}, forms or {}
-        self.board_prior = board_prior_mm
+        self.board_prior = setup.board_prior_mm
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
         self.n_cam = int(free.sum())
@@ -1373,9 +1374,7 @@ class _Setup:
 
     def problem(self, free: np.ndarray, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
-        return _ZoomProblem(self.steps, self.board, self.phi, free, self.chain_idx, self.u,
-                            tau or {}, self.board_prior_mm, order, forms, self.shared_aspect,
-                            self.session, self.aspect_held, self.keep_print)
+        return _ZoomProblem(self, free, tau or {}, order, forms)
 
 
 @one_blas_thread
@@ -1416,9 +1415,7 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations],
     print_test, solved, state = _test_the_print(setup, state, free, opts.max_rounds)
     # first without the smoothness prior: per-step values free of the flat-board bias
     solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
-        setup.problem, state, free, opts.max_rounds, observations,
-        bool(opts.select and opts.model == "standard" and setup.phi.shape[1]), setup.init,
-        setup.terms, setup.held, opts.decentring, workers, held_terms, solved)
+        setup, state, free, observations, opts, held_terms, workers, solved)
     forms = _Form.of(opts.pp_model, np.exp(setup.u),
                      0.5 * np.hypot(*observations[setup.names[0]].image_size))
     if joint_cov is not None:
@@ -1652,22 +1649,24 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
     return board
 
 
-def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
-                      observations: Mapping[str, Observations], reselect: bool,
-                      init: Mapping[str, CalibrationResult], terms: dict, held: dict,
-                      decentring: bool = True, workers: int = 1,
-                      held_terms: tuple[str, ...] = (),
+def _solve_unsmoothed(setup: _Setup, state: _State, free: np.ndarray,
+                      observations: Mapping[str, Observations], opts: ZoomWideOptions,
+                      held_terms: tuple[str, ...], workers: int,
                       solved: tuple[Solve, int] | None = None):
-    """The solve without the smoothness prior (``problem(free)`` builds it; ``solved``: that
-    solve and its iterations, already made from ``state``, as the print's test makes it). With
-    ``reselect`` the distortion terms are then chosen again on the board's estimated shape
-    (:func:`_select_on_board`; ``terms`` and ``held`` updated in place), and the solve is
+    """The solve without the smoothness prior (``setup.problem(free)`` builds it; ``solved``:
+    that solve and its iterations, already made from ``state``, as the print's test makes it).
+    Where the terms are chosen (``opts.select``, the standard model) and the board has height
+    modes, the distortion terms are then chosen again on the board's estimated shape
+    (:func:`_select_on_board`; ``setup.terms`` and ``setup.held`` updated in place), and the
+    solve is
     repeated when a step's terms changed, from the first solve's state. Then every step's
     principal point is checked for a basin of lower cost (:func:`_move_to_best_basins`), and
     the solve repeated when one moved. Returns the solve, the state it started from, the free
     mask, the joint covariance of its per-step values (None when it did not converge or has
     none), the iterations and the basin checks (one :class:`~zoomcalib.calibrate.basins.
     BasinCheck` per step)."""
+    problem, max_rounds, init = setup.problem, opts.max_rounds, setup.init
+    reselect = bool(opts.select and opts.model == "standard" and setup.phi.shape[1])
     unsmoothed = problem(free)
     if solved is None:
         solve, iterations = _solve_with_noise(unsmoothed, state, free, max_rounds)
@@ -1675,9 +1674,9 @@ def _solve_unsmoothed(problem, state: _State, free: np.ndarray, max_rounds: int,
         solve, iterations = solved
     if reselect and _select_on_board(
             observations, init, [unsmoothed.points(solve.state, s)
-                                 for s in range(len(init))], terms, held, decentring,
-            workers, held_terms):
-        free = _free_mask(list(init), terms)
+                                 for s in range(len(init))], setup.terms, setup.held,
+            opts.decentring, workers, held_terms):
+        free = _free_mask(list(init), setup.terms)
         free[:, 1:4] = unsmoothed.free[:, 1:4]  # fy, cx, cy as they were (shared or held)
         state = solve.state
         state.cams[:, 4:][~free[:, 4:]] = 0.0
