@@ -387,8 +387,8 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     _report_ignored(folder, run, log)
     settings = detection_settings(target, opts.method)
     provenance: dict[str, dict] = {}
-    extras_of = _each_step(run, steps, step_files, out, target, settings, backends, opts,
-                           workers, progress, provenance, log)
+    how = _Detecting(out, target, settings, workers, progress, log, provenance)
+    extras_of = _each_step(run, steps, step_files, how, backends, opts)
     _pool_view_scatter(run, backends)
     _log_sittings(run, log)
     # the capture sessions go to the table's session column either way; the zoom-wide
@@ -426,21 +426,21 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     return run
 
 
-def _each_step(run: CalibrateRun, steps: list, step_files: dict[str, list[Path]], out: Path,
-               target: Target, settings: dict, backends: tuple[str, ...],
-               opts: CalibrateOptions, workers: int, progress: Callable[[int], None] | None,
-               provenance: dict[str, dict], log: Callable[[str], None]) -> dict[str, dict]:
+def _each_step(run: CalibrateRun, steps: list, step_files: dict[str, list[Path]],
+               how: _Detecting, backends: tuple[str, ...], opts: CalibrateOptions
+               ) -> dict[str, dict]:
     """Detect (or reuse the detections of) each step's images and calibrate the step on its
     own, filling ``run``; returns each kept step's extras (``zoom_steps``). A step without
     observations is skipped; one no backend calibrated is dropped unless the zoom-wide
     adjustment is to calibrate it. One pool of detection workers serves every step (started
     at the first image to detect), stopped at once on any exception (Ctrl-C)."""
     extras_of: dict[str, dict] = {}
+    target, log, workers = how.target, how.log, how.workers
     pool = detection_pool(workers) if workers > 1 and len(steps) > 1 else None
+    how.pool = pool
     try:
         for step, _, zoom, extras in steps:
-            dets = _step_detections(out, step, step_files[step], target, settings, workers,
-                                    progress, run, provenance, log, pool)
+            dets = _step_detections(how, step, step_files[step], run)
             obs = _step_observations(step, dets, target, run, log, step_files[step],
                                      opts.method)
             if obs is None:
@@ -713,16 +713,31 @@ def _without_copies(step: str, files: list[Path], run: CalibrateRun,
     return [f for f in files if f not in copies]
 
 
-def _step_detections(out: Path, step: str, files: list[Path], target: Target, settings: dict,
-                     workers: int, progress, run: CalibrateRun, provenance: dict,
-                     log: Callable[[str], None], pool=None):
+@dataclass
+class _Detecting:
+    """How a run detects: its output folder (``out/detections`` caches them), the target and
+    its detection settings, the processes (``pool``, else ``workers`` new ones), the progress
+    callback, the log, and per step where its detections came from (``provenance``)."""
+
+    out: Path
+    target: Target
+    settings: dict
+    workers: int
+    progress: Callable[[int], None] | None
+    log: Callable[[str], None]
+    provenance: dict = field(default_factory=dict)
+    pool: object | None = None
+
+
+def _step_detections(how: _Detecting, step: str, files: list[Path], run: CalibrateRun):
     """The step's detections, from the cache for unchanged images (the others detected by
-    ``pool``, else ``workers`` new processes); records and logs reuse."""
+    ``how.pool``, else ``how.workers`` new processes); records and logs reuse."""
+    out, log = how.out, how.log
     cache = out / "detections" / f"{run.stems[step]}.json"
-    dets, reused, prints = detect_with_cache(cache, files, target, settings, workers, progress,
-                                             pool)
-    provenance[step] = {"file": cache.relative_to(out).as_posix(), "reused": reused,
-                        "detected": len(files) - reused, "images": prints}
+    dets, reused, prints = detect_with_cache(cache, files, how.target, how.settings,
+                                             how.workers, how.progress, how.pool)
+    how.provenance[step] = {"file": cache.relative_to(out).as_posix(), "reused": reused,
+                            "detected": len(files) - reused, "images": prints}
     if reused:
         run.reused[step] = reused
         fresh = len(files) - reused
