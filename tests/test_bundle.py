@@ -20,6 +20,7 @@ import pytest
 from zoomcalib.calibrate import bundle, solver
 from zoomcalib.calibrate.bundle import (
     _cam_map,
+    _Data,
     _Problem,
     _State,
     calibrate_bundle,
@@ -184,7 +185,7 @@ def _partial_problem(seed: int, model: str, seen_twice: bool = False) -> tuple[_
     state = _State(np.r_[1400, 1402, 652, 472, -0.2, 0.1, 0, 0, 0.01, 0.01, 0, 0.0],
                    np.array([cv2.Rodrigues(R)[0].ravel() for R, _ in poses]),
                    np.array([t for _, t in poses]), X0 + rng.normal(0, 0.1, X0.shape))
-    prob = _Problem(vi, pi, uv, rng.uniform(0.5, 1, len(vi)), m, n, cam_map, free, X0,
+    prob = _Problem(_Data(vi, pi, uv, rng.uniform(0.5, 1, len(vi)), m, n, X0), cam_map, free,
                     shape_precision(X0, 0.01, 2.0), 0.01)
     return prob, state
 

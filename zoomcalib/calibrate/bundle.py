@@ -409,6 +409,20 @@ class _State:
         return _State(self.cam.copy(), self.rvecs.copy(), self.tvecs.copy(), self.X.copy())
 
 
+@dataclass
+class _Data:
+    """The flattened observations: view and point index, uv (px) and weight of each, the
+    numbers of views and points, and the nominal target (n, 3)."""
+
+    vi: np.ndarray
+    pi: np.ndarray
+    uv: np.ndarray
+    w: np.ndarray
+    m: int
+    n: int
+    X0: np.ndarray
+
+
 class _Problem:
     """Observations (sorted by view), parameter maps and the normal equations.
 
@@ -418,7 +432,9 @@ class _Problem:
     gradients ``g_y = J_y^T r``, ``g_p = J_p^T r``.
     """
 
-    def __init__(self, vi, pi, uv, w, m, n, cam_map, free_pts, X0, Lam, sig2):
+    def __init__(self, data: _Data, cam_map: np.ndarray, free_pts: np.ndarray,
+                 Lam: _ShapePrior | None, sig2: float):
+        vi, pi, uv, w, m, n, X0 = (data.vi, data.pi, data.uv, data.w, data.m, data.n, data.X0)
         order = np.argsort(vi, kind="stable")
         self.vi, self.pi = vi[order], pi[order]
         self.uv, self.w = uv[order], w[order]
@@ -1163,20 +1179,6 @@ def _warn_guard(g: dict, guard_warn_ratio: float, target_sigma_mm: float | None)
                       RuntimeWarning, stacklevel=4)
 
 
-@dataclass
-class _Data:
-    """The flattened observations: view and point index, uv (px) and weight of each, the
-    numbers of views and points, and the nominal target (n, 3)."""
-
-    vi: np.ndarray
-    pi: np.ndarray
-    uv: np.ndarray
-    w: np.ndarray
-    m: int
-    n: int
-    X0: np.ndarray
-
-
 def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
                   Lam: _ShapePrior | None, opts: BundleOptions):
     """Stages 2-4 of the module docstring from the starting ``state``.
@@ -1193,7 +1195,7 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
 
     def problem(sig: float, free: np.ndarray, sel: np.ndarray | None = None) -> _Problem:
         s = slice(None) if sel is None else sel
-        return _Problem(vi[s], pi[s], uv[s], w[s], m, n, cam_map, free, X0, Lam, sig**2)
+        return _Problem(_Data(vi[s], pi[s], uv[s], w[s], m, n, X0), cam_map, free, Lam, sig**2)
 
     last: dict = {}
     stages: dict[str, Solve] = {}
@@ -1208,7 +1210,7 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
         # free k4..k6 only after some iterations of the 5-term model: from a poor start the
         # rational model has bad local minima (figueroa: benchmarks/bench_bundle.py --accuracy)
         std_map, _ = _cam_map("standard", fix_aspect, state.cam[0] / state.cam[1])
-        std_prob = _Problem(vi, pi, uv, w, m, n, std_map, no_pts, X0, None, 0.0)
+        std_prob = _Problem(data, std_map, no_pts, None, 0.0)
         state, stages["flat_standard"], _ = _solve(
             std_prob, state, min(max_iterations, WARM_START_ITERATIONS), tol, 1e-3)
     flat_prob = problem(0.0, no_pts)

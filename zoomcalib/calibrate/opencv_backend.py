@@ -58,6 +58,7 @@ import numpy as np
 
 from zoomcalib.calibrate.bundle import (
     CAMERA_NAMES,
+    _Data,
     _Problem,
     _State,
     as_blocks,
@@ -351,8 +352,8 @@ def _problem_at_solution(obj: list[np.ndarray], img: list[np.ndarray], K: np.nda
     cam[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     cam[4:4 + n_dist] = dist[:n_dist]
     cam_map = _free_camera_columns(flags, n_dist, K)
-    prob = _Problem(vi, pi, uv, np.ones(len(vi)), len(obj), len(points), cam_map,
-                    np.zeros((len(points), 3), bool), points, None, 0.0)
+    prob = _Problem(_Data(vi, pi, uv, np.ones(len(vi)), len(obj), len(points), points), cam_map,
+                    np.zeros((len(points), 3), bool), None, 0.0)
     state = _State(cam, np.asarray(rvecs, np.float64), np.asarray(tvecs, np.float64), points)
     return prob, state
 
