@@ -192,24 +192,7 @@ def project_jacobian(cam: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, poin
     if not jacobian:
         return uv
     n_obs = len(x)
-    Jc = np.zeros((n_obs, 2, 12))
-    Jc[:, 0, 0] = xd
-    Jc[:, 1, 1] = yd
-    Jc[:, 0, 2] = 1.0
-    Jc[:, 1, 3] = 1.0
-    # du/dk1..3 = fx x r^(2i) / b, du/dk4..6 = -fx x rad r^(2i) / b (v likewise)
-    fxx, fyy = fx * x * ib, fy * y * ib
-    fxr, fyr = -fx * x * rad * ib, -fy * y * rad * ib
-    for col, pw in ((4, r2), (5, r4), (8, r6)):
-        Jc[:, 0, col] = fxx * pw
-        Jc[:, 1, col] = fyy * pw
-    for col, pw in ((9, r2), (10, r4), (11, r6)):
-        Jc[:, 0, col] = fxr * pw
-        Jc[:, 1, col] = fyr * pw
-    Jc[:, 0, 6] = fx * 2.0 * xy
-    Jc[:, 1, 6] = fy * (r2 + 2.0 * yy)
-    Jc[:, 0, 7] = fx * (r2 + 2.0 * xx)
-    Jc[:, 1, 7] = fy * 2.0 * xy
+    Jc = _camera_columns(fx, fy, x, y, (xd, yd), (r2, r4, r6), rad, ib)
     da = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4
     db = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4
     drad = (da - rad * db) * ib
@@ -231,6 +214,35 @@ def project_jacobian(cam: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, poin
         Jp[:, :, :3] = Jp[:, :, :3] @ left_jacobian(rvecs)[view_idx]
     Jx = B @ R[view_idx] if point_jacobian else None
     return uv, Jc, Jp, Jx
+
+
+def _camera_columns(fx: float, fy: float, x: np.ndarray, y: np.ndarray, distorted: tuple,
+                    powers: tuple, rad: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """``d uv / d cam`` (N, 2, 12) of :func:`project_jacobian` from the normalised point
+    ``(x, y)``, its distorted ``(x_d, y_d)``, ``(r^2, r^4, r^6)``, the radial factor and
+    ``1 / b``."""
+    xd, yd = distorted
+    r2, r4, r6 = powers
+    xx, yy, xy = x * x, y * y, x * y
+    Jc = np.zeros((len(x), 2, 12))
+    Jc[:, 0, 0] = xd
+    Jc[:, 1, 1] = yd
+    Jc[:, 0, 2] = 1.0
+    Jc[:, 1, 3] = 1.0
+    # du/dk1..3 = fx x r^(2i) / b, du/dk4..6 = -fx x rad r^(2i) / b (v likewise)
+    fxx, fyy = fx * x * ib, fy * y * ib
+    fxr, fyr = -fx * x * rad * ib, -fy * y * rad * ib
+    for col, pw in ((4, r2), (5, r4), (8, r6)):
+        Jc[:, 0, col] = fxx * pw
+        Jc[:, 1, col] = fyy * pw
+    for col, pw in ((9, r2), (10, r4), (11, r6)):
+        Jc[:, 0, col] = fxr * pw
+        Jc[:, 1, col] = fyr * pw
+    Jc[:, 0, 6] = fx * 2.0 * xy
+    Jc[:, 1, 6] = fy * (r2 + 2.0 * yy)
+    Jc[:, 0, 7] = fx * (r2 + 2.0 * xx)
+    Jc[:, 1, 7] = fy * 2.0 * xy
+    return Jc
 
 
 def similarity_basis(points: np.ndarray) -> np.ndarray:
