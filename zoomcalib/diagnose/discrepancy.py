@@ -866,6 +866,21 @@ def _session_advice(table: ZoomTable) -> list[str]:
             "told from its path over zoom; steps captured in more than one session would tell"]
 
 
+def _narrow_variants(table: ZoomTable, variants: dict, skipped: dict, exclude: dict[str, str],
+                     restrict: dict[str, str]) -> None:
+    """Drop the ``exclude`` causes from ``variants`` (each reported under ``skipped`` with its
+    why) and keep of each ``restrict`` cause its named variant only (ValueError when it has
+    none of that name); in place."""
+    for cause, why in exclude.items():
+        if variants.pop(cause, None) is not None:
+            skipped[cause] = why
+    for cause, name in restrict.items():
+        kept = [v for v in variants.get(cause, []) if " + ".join(t.name for t in v) == name]
+        if not kept:
+            raise ValueError(f"{table.source}: cause {cause!r} has no variant {name!r}")
+        variants[cause] = kept
+
+
 def diagnose_table(table: ZoomTable, response: LensResponse | None,
                    tolerances: Tolerances | None = None, fit_pitch: bool = False,
                    locked_tilt: bool = False, exclude: dict[str, str] | None = None,
@@ -941,14 +956,7 @@ def diagnose_table(table: ZoomTable, response: LensResponse | None,
         fitter = Fitter(Context.build(table, z, response), shape, groups)
         base = baseline_terms(response.groups, locked_tilt)
         variants, skipped = cause_variants(table, response.groups)
-    for cause, why in (exclude or {}).items():
-        if variants.pop(cause, None) is not None:
-            skipped[cause] = why
-    for cause, name in (restrict or {}).items():
-        kept = [v for v in variants.get(cause, []) if " + ".join(t.name for t in v) == name]
-        if not kept:
-            raise ValueError(f"{table.source}: cause {cause!r} has no variant {name!r}")
-        variants[cause] = kept
+    _narrow_variants(table, variants, skipped, exclude or {}, restrict or {})
     final, chosen = select_causes(fitter, base, variants, require)
     if response is None and chosen and _lens_free_baseline(fitter, chosen) != base:
         # the path's degree chosen with the causes beside it, and the causes again
