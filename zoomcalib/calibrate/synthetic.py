@@ -16,7 +16,7 @@ OpenCV's convention; board in mm.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -24,7 +24,7 @@ import numpy as np
 from ..targets import parse_pattern
 from .result import Observations
 
-__all__ = ["Sweep", "sweep_detections", "with_view_fields", "calibrated_run"]
+__all__ = ["Sweep", "SweepSettings", "sweep_detections", "with_view_fields", "calibrated_run"]
 
 
 @dataclass
@@ -37,20 +37,54 @@ class Sweep:
     truth: dict[str, dict]
 
 
-def sweep_detections(rng: np.random.Generator, steps: int = 3, views: int = 10,
-                     image_size: tuple[int, int] = (800, 600), noise_px: float = 0.1,
-                     fx_range: tuple[float, float] = (700.0, 2800.0),
-                     max_tilt_deg: float = 35.0, drift_px: float = 12.0,
-                     pattern: str = "chessboard:11x8:20",
-                     outliers: Mapping[tuple[int, int], float] | None = None,
-                     misprint_mm: float = 0.0) -> Sweep:
-    """A seeded synthetic sweep (module docstring).
+@dataclass(frozen=True)
+class SweepSettings:
+    """What :func:`sweep_detections` draws (module docstring).
 
-    ``outliers`` maps ``(step index, view index)`` to a displacement (px) added to three of
-    that view's points, which a robust fit should reject. ``misprint_mm``: the 1-sigma of the
-    board's printing error (module docstring; drawn first, and only when positive).
+    Attributes
+    ----------
+    steps, views : int
+        Zoom steps, and views per step.
+    image_size : (int, int)
+        Width and height, px.
+    noise_px : float
+        Corner noise, 1-sigma per coordinate, px.
+    fx_range : (float, float)
+        Focal lengths of the first and the last step, px (log-spaced between).
+    max_tilt_deg : float
+        The board's tilts about the two image axes are drawn within this, degrees.
+    drift_px : float
+        Size of the principal point's drift over the sweep, px.
+    pattern : str
+        Target spec.
+    outliers : mapping of (step index, view index) to float, optional
+        A displacement (px) added to three of that view's points, which a robust fit should
+        reject.
+    misprint_mm : float
+        The 1-sigma of the board's printing error (drawn first, and only when positive).
     """
-    board = parse_pattern(pattern).object_points.astype(float)
+
+    steps: int = 3
+    views: int = 10
+    image_size: tuple[int, int] = (800, 600)
+    noise_px: float = 0.1
+    fx_range: tuple[float, float] = (700.0, 2800.0)
+    max_tilt_deg: float = 35.0
+    drift_px: float = 12.0
+    pattern: str = "chessboard:11x8:20"
+    outliers: Mapping[tuple[int, int], float] | None = None
+    misprint_mm: float = 0.0
+
+
+def sweep_detections(rng: np.random.Generator, settings: SweepSettings | None = None,
+                     **fields) -> Sweep:
+    """A seeded synthetic sweep (module docstring) of ``settings`` (default: its defaults);
+    ``fields``, keywords named as its fields, replace them (``steps=1, views=20``)."""
+    opts = replace(settings or SweepSettings(), **fields)
+    steps, views, image_size = opts.steps, opts.views, opts.image_size
+    noise_px, fx_range, max_tilt_deg = opts.noise_px, opts.fx_range, opts.max_tilt_deg
+    drift_px, outliers, misprint_mm = opts.drift_px, opts.outliers, opts.misprint_mm
+    board = parse_pattern(opts.pattern).object_points.astype(float)
     printed = board.copy()
     if misprint_mm > 0:
         printed[:, :2] += rng.normal(0.0, misprint_mm, (len(board), 2))
