@@ -1,7 +1,7 @@
 """How wide should a real sweep's sigmas be? A Monte Carlo of synthetic sweeps that imitate it.
 
 ``python benchmarks/bench_real_mc.py FOLDER --out DIR [--pattern chessboard:22x15:25]
-[--draws 10] [--seed 0] [--errors resampled|imitated] [--in-plane-mm 0.3]
+[--draws 10] [--seed 0] [--errors resampled|imitated|views] [--in-plane-mm 0.3]
 [--board-shape print] [--draws-board-shape points] [--verbose]``
 
 ``FOLDER`` and ``--out`` as for ``bench_real_ptz.py`` (the real PTZ set of
@@ -11,7 +11,7 @@
    their sigmas, every view's pose, each capture session's board (modes, point heights and,
    where kept, the print's in-plane shape) and each step's residual sd per coordinate.
 2. Each draw builds a sweep with the same steps, views and visible corners, projected by
-   ``cv2.projectPoints`` with the step's measured camera and poses, and errors from one of two
+   ``cv2.projectPoints`` with the step's measured camera and poses, and errors from one of these
    generators:
 
    - ``resampled`` (default): the real run's own residuals, view by view, each view's whole
@@ -23,6 +23,11 @@
      is made a per-view one by the signs. The residuals are those of a fit, a little smaller
      than the errors (by the parameters each view's corners determine: 6 pose and a share
      of the intrinsics and heights, of about 600 coordinates).
+   - ``views``: no projection: each step's real views themselves, drawn with replacement (a
+     bootstrap over views, the pairs bootstrap clustered by view). Whatever differs from view
+     to view, the errors within each view and the views' poses alike, is in the spread; the
+     "truth" the z are taken against is the real run's estimate. With ``n`` views per step
+     its spread is smaller than the estimator's by about ``sqrt((n - 1) / n)``.
    - ``imitated``: a model of the causes. Every session's board is the nominal board plus
      the measured smooth shape, fresh ripples (three plane waves of 3-6 cycles across the
      board, random direction and phase, of the measured point heights' RMS) and in-plane
@@ -133,10 +138,25 @@ def resample_sweep(run, zw, rng: np.random.Generator
     return sweep, truth
 
 
+def resample_views(run, zw, rng: np.random.Generator
+                   ) -> tuple[dict[str, Observations], dict[str, dict]]:
+    """One sweep of each step's real views drawn with replacement (module docstring,
+    ``views``), and the real run's estimates as the centre the draws scatter about."""
+    sweep, truth = {}, {}
+    for step, r in zw.results.items():
+        obs = run.observations[step]
+        pick = rng.integers(0, obs.n_views, obs.n_views)
+        sweep[step] = Observations(obs.object_points, [obs.views[i] for i in pick],
+                                   obs.image_size, [f"{obs.names[i]}#{k}"
+                                                    for k, i in enumerate(pick)])
+        truth[step] = {"fx": r.fx, "cx": r.cx, "cy": r.cy}
+    return sweep, truth
+
+
 def main() -> None:
     ap = real_set_parser(__doc__)
     ap.add_argument("--draws", type=int, default=10)
-    ap.add_argument("--errors", default="resampled", choices=("resampled", "imitated"))
+    ap.add_argument("--errors", default="resampled", choices=("resampled", "imitated", "views"))
     ap.add_argument("--in-plane-mm", type=float, default=0.3,
                     help="in-plane board errors of the imitated errors, mm RMS")
     ap.add_argument("--board-shape", default="print", choices=BOARD_SHAPES,
@@ -163,6 +183,8 @@ def main() -> None:
         t = time.perf_counter()
         if args.errors == "resampled":
             sweep, truth = resample_sweep(run, zw, rng)
+        elif args.errors == "views":
+            sweep, truth = resample_views(run, zw, rng)
         else:
             sweep, truth = draw_sweep(run, zw, args.in_plane_mm, rng)
         if d == 0 and args.errors == "imitated":
