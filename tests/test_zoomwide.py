@@ -23,6 +23,7 @@ from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.zoommodel import prior_operator
 from zoomcalib.calibrate.zoomwide import (
     DISTORTION_SETS,
+    RATIONAL_PRIOR_AT_CORNER,
     TermChoice,
     calibrate_zoom_wide,
     prior_strength,
@@ -725,6 +726,13 @@ def test_the_rational_model_at_every_step_when_asked(rng):
     for name, r in zw.results.items():
         assert zw.terms[name] == ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
         assert len(r.dist) == 8 and r.dist[5] != 0.0
+        # the ridge of k1-k3 against k4-k6 is bounded by the prior: every step converges (all
+        # three stopped at the iteration cap without it)
+        assert r.converged, (name, r.info["stop_reason"])
+        # the denominator's terms at the corner stay within a few of their prior sigmas
+        corner = 0.5 * np.hypot(*obs[name].image_size) / r.fx
+        assert np.all(np.abs(r.dist[5:] * corner ** np.array([2, 4, 6]))
+                      < 4 * RATIONAL_PRIOR_AT_CORNER), name
         for q in ("fx", "cx", "cy"):
             z = (getattr(r, q) - truth[name][q]) / r.sd[q]
             assert abs(z) < 4, (name, q, getattr(r, q), truth[name][q], r.sd[q])
@@ -946,3 +954,29 @@ def test_the_basin_check_fits_the_corners_the_adjustment_keeps(rng):
     basin = r.info["basin"]
     for q, start in zip(("cx", "cy"), basin["start_px"], strict=True):
         assert abs(basin["alone"][q] - start) < 3 * r.info["sd_noise_model"][q], (q, basin)
+
+
+def test_a_covariance_that_rounding_leaves_indefinite_takes_a_ridge_and_says_so(rng):
+    """The posterior covariance's inverse: exact where the information is positive definite;
+    where rounding leaves it indefinite (a rank-deficient product plus a perturbation of
+    1e-12), the ridge is taken and recorded, and the directions the information determines
+    keep their inverse."""
+    from types import SimpleNamespace
+
+    from zoomcalib.calibrate.zoomwide import _inverse_or_ridge
+
+    A = rng.normal(size=(40, 6)) * np.array([1e3, 1.0, 1.0, 1e-2, 10.0, 1.0])
+    S = A.T @ A
+    prob = SimpleNamespace(covariance_ridge=None)
+    assert np.allclose(_inverse_or_ridge(S, prob) @ S, np.eye(6), atol=1e-8)
+    assert prob.covariance_ridge == 0.0
+    # two equal columns: singular; a symmetric perturbation makes it indefinite
+    B = np.column_stack([A, A[:, 0]])
+    T = B.T @ B
+    T -= 1e-12 * np.abs(T).max() * np.eye(7)
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(T)
+    cov = _inverse_or_ridge(T, prob)
+    assert prob.covariance_ridge > 0 and np.all(np.isfinite(cov))
+    # a direction the information determines (column 1 alone) keeps its variance
+    assert cov[1, 1] == pytest.approx(np.linalg.inv(S)[1, 1], rel=1e-3)

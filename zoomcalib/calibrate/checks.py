@@ -219,8 +219,7 @@ def step_flags(res: CalibrationResult, image_size: tuple[int, int]) -> list[Flag
     flags += _basin_flags(res.info.get("basin") or {})
     few = {nm: d for nm, d in (scatter or {}).get("unchecked", {}).items()
            if nm in ("fx", "fy", "cx", "cy")}
-    if few:
-        name = next(nm for nm in ("fx", "fy", "cx", "cy") if nm in few)
+    for name in (nm for nm in ("fx", "fy", "cx", "cy") if nm in few):
         used = scatter.get("pooled", {}).get(name, scatter.get("widened", {}).get(name, 1.0))
         # the views' part of it: what the board points add (board_point.excess) taken out
         views_part = np.sqrt(max(used**2 - board.get("excess", {}).get(name, 0.0), 0.0))

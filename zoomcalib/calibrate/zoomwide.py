@@ -129,6 +129,15 @@ term that some steps of a chain estimate is free at all its steps: where a step'
 cannot measure it (the long end's narrow field), its neighbours carry it through the prior, and
 its sigma says how well (:func:`_tie_terms`).
 
+The rational model's denominator ``1 + k4 r^2 + k5 r^4 + k6 r^6`` trades with its numerator
+along a curved ridge: with ``k1 = k4``, ``k2 = k5`` growing together the distortion hardly
+changes, and a step whose views prefer the ridge by a few noise variances has no minimum at a
+finite distance (the solve walks up it until its iteration cap, and the covariance at the
+point it stops at gives fx a sigma hundreds of times what the views determine). Each of
+``k4 r_c^2, k5 r_c^4, k6 r_c^6`` at the image's corner (``r_c`` the half-diagonal over fx)
+therefore has a zero-mean prior of sd :data:`RATIONAL_PRIOR_AT_CORNER`: it bounds the ridge
+and barely moves a step that determines its terms (``benchmarks/bench_solver_iterations.py``).
+
 References: Zheng, Wang & Huang, ISPRS J. Photogramm. 2015 (zoom/focus models of the intrinsics
 in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (1995)
 (systematic, repeatable principal-point motion of up to 90 px).
@@ -573,6 +582,7 @@ class _ZoomProblem:
         self.free, self.chains, self.u, self.tau = free, setup.chain_idx, setup.u, tau
         self.order, self.forms = order or {}, forms or {}
         self.board_prior = setup.board_prior_mm
+        self.rational_sd = setup.rational_sd
         self.cam_col = np.full(free.shape, -1)
         self.cam_col[free] = np.arange(int(free.sum()))
         self.n_cam = int(free.sum())
@@ -605,6 +615,12 @@ class _ZoomProblem:
                 block = np.zeros((len(D), self.n_unknowns))
                 block[:, self.cam_col[steps, j]] = D
                 rows.append(block)
+        steps, terms = np.nonzero(self.free[:, [PARAMS.index(q) for q in RATIONAL_TERMS]])
+        if len(steps):  # the rational model's terms: a weak prior (module docstring)
+            block = np.zeros((len(steps), self.n_unknowns))
+            columns = self.cam_col[steps, PARAMS.index(RATIONAL_TERMS[0]) + terms]
+            block[np.arange(len(steps)), columns] = 1.0 / self.rational_sd[steps, terms]
+            rows.append(block)
         if self.n_modes:
             block = np.zeros((self.n_modes, self.n_unknowns))
             block[:, self.n_cam:self.n_cam + self.n_modes] = np.eye(self.n_modes) / self.board_prior
@@ -1371,6 +1387,10 @@ class _Setup:
     aspect_held: bool
     keep_print: bool
     board_prior_mm: float
+    #: (S, 3) prior sd of each step's k4, k5, k6 (:data:`RATIONAL_PRIOR_AT_CORNER`)
+    rational_sd: np.ndarray
+    #: the steps whose start lay far up the rational model's ridge (:func:`_off_the_ridge`)
+    restarted: tuple[str, ...] = ()
 
     def problem(self, free: np.ndarray, tau=None, models=None, forms=None) -> _ZoomProblem:
         order = {k: m.order for k, m in (models or {}).items()}
@@ -1477,12 +1497,42 @@ def _set_up(observations: Mapping[str, Observations], opts: ZoomWideOptions,
     state.modes = np.zeros(phi.shape[1] * (len(session_names) + 2 * opts.print_shape))
     if opts.board_points:
         state.heights = np.zeros((len(session_names), len(board)))
+    rational_sd = _rational_sd(state.cams[:, 0], observations[names[0]].image_size)
     steps = [_Step.from_observations(n, observations[n], max(init[n].rms_px, 1e-3) / np.sqrt(2))
              for n in names]
     setup = _Setup(names, steps, board, phi, u, chain_idx, labels, session_names, session, init,
                    terms, held, skipped, sds, shared_aspect, aspect_held,
-                   bool(opts.print_shape and phi.shape[1]), opts.board_prior_mm)
+                   bool(opts.print_shape and phi.shape[1]), opts.board_prior_mm,
+                   rational_sd, _off_the_ridge(state, free, rational_sd, names))
     return setup, state, free
+
+
+def _off_the_ridge(state: _State, free: np.ndarray, rational_sd: np.ndarray,
+                   names: list[str]) -> tuple[str, ...]:
+    """Start every radial term (k1-k6) of a step at zero where its start (OpenCV's rational
+    fit) has a term of k4-k6 beyond 3 of its prior sigmas: OpenCV walks up the ridge the
+    prior bounds, and from there the adjustment would have to walk back down its curve (module
+    docstring). The steps so started, by name."""
+    rational = [PARAMS.index(q) for q in RATIONAL_TERMS]
+    far = np.any(free[:, rational] & (np.abs(state.cams[:, rational]) > 3 * rational_sd),
+                 axis=1)
+    radial = [PARAMS.index(q) for q in ("k1", "k2", "k3", *RATIONAL_TERMS)]
+    state.cams[np.ix_(far, radial)] = 0.0
+    return tuple(n for n, f in zip(names, far, strict=True) if f)
+
+
+#: Prior sd of what each of the rational model's denominator terms ``k4 r^2, k5 r^4, k6 r^6``
+#: adds at the image's corner (``r`` the corner's distance from the principal point over fx).
+RATIONAL_PRIOR_AT_CORNER = 10.0
+
+
+def _rational_sd(fx: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """(S, 3) prior sd of k4, k5, k6 at focal lengths ``fx`` (S,) px: the terms' effect at the
+    corner, ``k_n r_c^(2n)`` with ``r_c = half-diagonal / fx``, has sd
+    :data:`RATIONAL_PRIOR_AT_CORNER` (module docstring)."""
+    corner = 0.5 * np.hypot(*image_size) / np.asarray(fx, float)
+    powers = np.array([CORNER_POWER[q] for q in RATIONAL_TERMS])
+    return RATIONAL_PRIOR_AT_CORNER / corner[:, None] ** powers
 
 
 def _test_the_print(setup: _Setup, state: _State, free: np.ndarray, max_rounds: int
@@ -1536,6 +1586,9 @@ def _describe(result: ZoomWideResult, setup: _Setup, prob: _ZoomProblem, solve: 
         r.info["board_session"] = setup.labels[s]
         r.info["basin"] = basins[s].to_dict()
         r.info["tau_source"] = tau_source
+        if names[s] in setup.restarted:
+            r.info["rational_start"] = ("radial terms started at zero: OpenCV's rational fit "
+                                        "lay far up the ridge of k1-k3 against k4-k6")
         r.info["zoom_model"] = {k: m.name for k, m in models.items()}
         if joint_cov is not None:
             r.info["prior_share"] = _prior_share(r, joint_cov, s)
