@@ -9,7 +9,8 @@ steps, z 1.5 to 4, 24 views each, and one half of split ``--split`` of its rando
 on it once, every Levenberg-Marquardt solve counted (the rounds of noise re-estimation, the
 print test's solve, the basin and term checks).
 
-Printed: the number of solves, how each stopped, the accepted iterations, and for the solves
+Printed: the number of solves, how each stopped, the accepted iterations, each rational
+step's fx and cy with their sigmas and its radial terms, and for the solves
 that reached the iteration cap, over their last 10 iterations, the mean cost decrease an
 iteration achieved and the decrease the Gauss-Newton step predicted at the end (both relative
 to the cost; the stop rule asks for a predicted decrease below 1e-9). An achieved decrease
@@ -91,6 +92,11 @@ def main() -> None:
               f"{np.max(predicted):.1e})")
     final = {s: r.info.get("stop_reason") for s, r in result.results.items()}
     print(f"the adjustment's own stop per step: {final}")
+    for name, r in result.results.items():
+        if len(r.dist) == 8:
+            k = ", ".join(f"{v:.2f}" for v in np.asarray(r.dist)[[0, 1, 4, 5, 6, 7]])
+            print(f"  {name} (rational): fx {r.fx:.2f} +- {r.sd['fx']:.2f} px, cy {r.cy:.2f} +- "
+                  f"{r.sd['cy']:.2f} px; k1 k2 k3 k4 k5 k6 {k}")
 
 
 if __name__ == "__main__":
