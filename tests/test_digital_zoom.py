@@ -196,6 +196,8 @@ def test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_f
     for name, r in part.items():
         assert r.converged, (name, r.info["stop_reason"])
     a, b = part["z1.50"], full["z1.50"]
+    print(f"z1.50 fx: half {a.fx:.2f} +- {a.sd['fx']:.2f}, all views {b.fx:.2f} +- "
+          f"{b.sd['fx']:.2f} px")
     assert abs(a.fx - b.fx) < 3 * a.sd["fx"]
     assert a.sd["fx"] < 10 * b.sd["fx"]
 
@@ -262,3 +264,5 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
         assert shared_dropped.sd[q] == pytest.approx(shared.sd[q], rel=0.05), q
     sd_median = a.info["sd_noise_model"]["cy"] * median
     assert abs(a.cy - b.cy) / np.hypot(sd_median, b.sd["cy"]) > 5.0
+    print(f"z1.77 cy: halves {a.cy:.1f} +- {a.sd['cy']:.2f} and {b.cy:.1f} +- {b.sd['cy']:.2f} px,"
+          f" z {(a.cy - b.cy) / np.hypot(a.sd['cy'], b.sd['cy']):.1f}")
