@@ -847,8 +847,7 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
 def test_an_exact_print_is_found_exact(sweep):
     # the shared sweep's board is printed exactly: the print's modes do not pass their test
     # (chi-square of 24 at p = 0.001: 51.2) and are left out: the adjustment is then the one
-    # without them (it goes on from the test's solve, whose noise estimates and inliers
-    # differ a little: the same within a tenth of a sigma)
+    # without them (within a tenth of a sigma)
     obs, _, _, points = sweep
     zw = calibrate_zoom_wide(obs, print_shape=True)
     test = zw.print_test
@@ -980,3 +979,42 @@ def test_a_covariance_that_rounding_leaves_indefinite_takes_a_ridge_and_says_so(
     assert prob.covariance_ridge > 0 and np.all(np.isfinite(cov))
     # a direction the information determines (column 1 alone) keeps its variance
     assert cov[1, 1] == pytest.approx(np.linalg.inv(S)[1, 1], rel=1e-3)
+
+
+def test_a_print_test_that_five_terms_cannot_judge_is_judged_with_the_chosen_terms(
+        rng, monkeypatch):
+    """Where the print test's solve with k1, k2, p1, p2 and k3 free at every step stops
+    short (forced here: it is told it did not converge), the print is judged with each step's
+    chosen terms, which says so, and a kept print goes on from that solve; where both stop
+    short, it cannot be judged and is taken to be exact."""
+    import zoomcalib.calibrate.zoomwide as zoomwide
+
+    trapezoid = rng.uniform(0.3, 0.6)
+    obs, _, _ = sweep_observations(rng, steps=4, views=8, fx_range=(2300.0, 6000.0),
+                                   print_mm=(trapezoid, 0.0))
+    solve_with_noise = zoomwide._solve_with_noise
+    free_counts = []
+
+    def five_terms_stop_short(prob, state, free, max_rounds):
+        solve, iterations = solve_with_noise(prob, state, free, max_rounds)
+        free_counts.append(int(free.sum()))
+        if len(free_counts) in stop_short:
+            solve = replace(solve, stop_reason="iteration cap")
+        return solve, iterations
+
+    from dataclasses import replace
+
+    monkeypatch.setattr(zoomwide, "_solve_with_noise", five_terms_stop_short)
+    stop_short = {1}
+    zw = calibrate_zoom_wide(obs, print_shape=True)
+    test = zw.print_test
+    # the first solve had every step's five terms free, the second the chosen ones (fewer)
+    assert free_counts[0] > free_counts[1], free_counts
+    assert test.why is None and test.kept and zw.print_modes is not None, test
+    assert test.terms.startswith("each step's chosen terms") and "iteration cap" in test.terms
+    assert "judged with each step's chosen terms" in test.summary()
+    free_counts.clear()
+    stop_short = {1, 2}
+    zw = calibrate_zoom_wide(obs, print_shape=True)
+    assert not zw.print_test.kept and "iteration cap" in zw.print_test.why
+    assert zw.print_modes is None
