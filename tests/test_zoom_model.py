@@ -449,3 +449,19 @@ def test_zoom_steps_exif_focal_length(tmp_path):
     # the unreadable ones are said, with the first reason, not silently unknown
     assert "EXIF unreadable in" in steps["wide"][3]["zoom_note"]
     assert "zoom_note" not in steps["tele"][3]
+
+
+def test_a_focal_length_that_is_not_a_length_is_said_not_taken(tmp_path):
+    from PIL import Image
+
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for i, f in enumerate((0.0, 20.0)):
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0x920A] = f  # FocalLength, mm: 0 is no focal length
+        Image.new("L", (32, 24), 128).save(folder / f"im{i}.jpg", exif=exif)
+    steps = zoom_steps(tmp_path)
+    assert steps[0][2] == 20.0  # the one usable value, not a median with 0
+    note = steps[0][3]["zoom_note"]
+    assert note.startswith("EXIF unreadable in 1 of 2 images") and "im0.jpg" in note
+    assert "not a length in mm" in note

@@ -352,6 +352,7 @@ def test_a_step_that_cannot_start_is_left_out_not_fatal(rng):
     zw = calibrate_zoom_wide(obs)
     assert set(zw.skipped) == {"step2"}
     assert zw.skipped["step2"].startswith("step step2: no starting calibration"), zw.skipped
+    assert "; robust start: " in zw.skipped["step2"], zw.skipped  # both reasons said
     assert set(zw.results) == {"step0", "step1", "step3"}
     for name, r in zw.results.items():
         assert abs(r.fx / truth[name]["fx"] - 1) < 0.003
@@ -441,7 +442,8 @@ def test_the_start_survives_where_opencvs_own_start_fails(seed):
     # at no camera without distortion: what the robust start is there for
     assert calibrate_opencv(obs, flags=_distortion_flags(("k1",))).fx > 1.5 * fx
     assert calibrate_opencv(obs, flags=_distortion_flags(())).fx < 0.1 * fx
-    robust = _robust_start(obs)
+    robust, failure = _robust_start(obs)
+    assert failure is None
     # 1 % is several of the step's own fx sigmas (0.3 % zoom-wide at this step)
     assert abs(robust.fx / fx - 1) < 0.01, robust.fx
     for chosen in (("k1",), ("k1", "k2", "p1", "p2")):
@@ -759,6 +761,10 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     assert choice.why is None and list(choice.failed) == ["rational"]
     assert "diverged" in choice.to_dict()["failed"]["rational"]
     assert not choice.rational
+    from zoomcalib.calibrate.run import zoom_wide_step_notes
+
+    assert zoom_wide_step_notes({"distortion_choice": choice.to_dict()}) == [
+        "term sets not fitted on held-out views, so not candidates: rational"]
 
     def k1_places_no_third_view(o, terms, *args):
         squared, count = real(o, terms, *args)
@@ -769,6 +775,10 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     monkeypatch.setattr(zoomwide, "held_out_errors", k1_places_no_third_view)
     choice = select_distortion(step)
     assert choice.unplaced == {"k1": 1}
+    # the run's log says so, as it says a set that failed
+    notes = zoom_wide_step_notes({"distortion_choice": choice.to_dict()})
+    assert notes == ["held-out views a term set could not place, left out of every set's "
+                     "comparison: k1 1"], notes
     # every set is judged without that view: its squared errors are in none of them
     squared, count = real(step, DISTORTION_SETS["k1k2"])
     kept = np.arange(len(count)) != 2

@@ -912,7 +912,10 @@ def _outliers(z: np.ndarray, inlier: np.ndarray, pi: np.ndarray, n: int, k: floa
 
 
 def _robust_sigma(r: np.ndarray) -> float:
-    """1.4826 x median absolute residual component: sigma of Gaussian residuals."""
+    """1.4826 x median absolute residual component: sigma of Gaussian residuals.
+
+    The median is of ``|r|`` about zero, the fit's own centre, not about the residuals' median
+    (``scipy.stats.median_abs_deviation``): an outlier-heavy side must not move the centre."""
     return float(1.4826 * np.median(np.abs(r)))
 
 

@@ -493,8 +493,9 @@ def zoom_from_name(name: str) -> float | None:
 
 def exif_focal_length(path: str | os.PathLike, errors: list[str] | None = None
                       ) -> float | None:
-    """The EXIF FocalLength (tag 0x920A, mm) of an image, or None when absent or unreadable;
-    why it could not be read is appended to ``errors`` (``"<file>: <reason>"``) when given.
+    """The EXIF FocalLength (tag 0x920A, mm) of an image, or None when absent, unreadable or
+    not a positive finite number; why a present value could not be used is appended to
+    ``errors`` (``"<file>: <reason>"``) when given.
 
     Uses Pillow when it is installed; without Pillow, returns None.
     """
@@ -520,8 +521,12 @@ def exif_focal_length(path: str | os.PathLike, errors: list[str] | None = None
         else:
             f = float(value)
     except (TypeError, ValueError, ZeroDivisionError):
-        return None
-    return f if math.isfinite(f) and f > 0 else None
+        f = math.nan
+    if math.isfinite(f) and f > 0:
+        return f
+    if errors is not None:
+        errors.append(f"{Path(path).name}: EXIF FocalLength {value!r} is not a length in mm")
+    return None
 
 
 def _exif_zoom(folder: Path) -> tuple[float | None, dict]:

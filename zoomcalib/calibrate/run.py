@@ -837,6 +837,25 @@ def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
     return sessions
 
 
+def zoom_wide_step_notes(info: dict) -> list[str]:
+    """What the log says of one step of the zoom-wide adjustment, from its result's ``info``:
+    a basin it moved to, why its distortion terms were not chosen, the term sets that could
+    not be fitted on held-out views, and the held-out views a term set could not place."""
+    notes = []
+    if info.get("basin", {}).get("moved"):
+        notes.append(info["basin"]["summary"])
+    choice = info.get("distortion_choice") or {}
+    if choice.get("why"):
+        notes.append(f"distortion terms not chosen ({choice['why']})")
+    elif choice.get("failed"):
+        notes.append("term sets not fitted on held-out views, so not candidates: "
+                     + ", ".join(choice["failed"]))
+    if choice.get("unplaced"):
+        notes.append("held-out views a term set could not place, left out of every set's "
+                     "comparison: " + ", ".join(f"{k} {n}" for k, n in choice["unplaced"].items()))
+    return notes
+
+
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
                directions: dict[str, str], pp_model: str = "angle2",
                sessions: dict[str, str] | None = None, workers: int = 1,
@@ -869,14 +888,8 @@ def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str
         run.failures.append(f"step {step}: left out of the zoom-wide adjustment: {why}")
         log(run.failures[-1])
     for step, res in zw.results.items():
-        if res.info.get("basin", {}).get("moved"):
-            log(f"zoom-wide: step {step}: {res.info['basin']['summary']}")
-        choice = res.info.get("distortion_choice") or {}
-        if choice.get("why"):
-            log(f"zoom-wide: step {step}: distortion terms not chosen ({choice['why']})")
-        elif choice.get("failed"):
-            log(f"zoom-wide: step {step}: term sets not fitted on held-out views, so not "
-                f"candidates: {', '.join(choice['failed'])}")
+        for note in zoom_wide_step_notes(res.info):
+            log(f"zoom-wide: step {step}: {note}")
         run.results[step]["zoom-wide"] = res
         # a per-step backend that failed here is reported, but the step's result is complete
         run.backend_failures.pop(step, None)

@@ -985,7 +985,7 @@ def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
     """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
     it could not be started or None)``; no term of ``held_terms`` is chosen. Without
     ``select`` the terms are ``model``'s all (five, or the rational model's eight)."""
-    seed = _robust_start(obs, held_terms)
+    seed, seed_failure = _robust_start(obs, held_terms)
     held = select_distortion(obs, start=seed) if select else None
     every = DISTORTION_SETS["rational" if model == "rational" else "k1k2p1p2k3"]
     terms = {name: _without(with_decentring(held.terms, decentring) if select else every,
@@ -993,7 +993,8 @@ def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
     try:
         return terms[name], held, _opencv_start(name, obs, terms, seed, held_terms), None
     except ValueError as exc:
-        return terms[name], held, None, str(exc)
+        why = str(exc) if seed_failure is None else f"{exc}; robust start: {seed_failure}"
+        return terms[name], held, None, why
 
 
 def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
@@ -1018,15 +1019,16 @@ def _initial(observations: Mapping[str, Observations], select: bool, decentring:
 
 
 def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
-                  ) -> CalibrationResult | None:
+                  ) -> tuple[CalibrationResult | None, str | None]:
     """A calibration with k1 (unless held) that does not depend on OpenCV's own start
-    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried),
-    or None when no start gives a camera."""
+    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried)
+    and None; or None and why no start gave a camera (the step then starts from OpenCV's own
+    start alone, and a step that cannot start says both reasons)."""
     try:
         return calibrate_opencv_robust(obs, flags=_distortion_flags(
-            _without(("k1",), held_terms)), camera_only=True)
-    except (ValueError, RuntimeError):
-        return None
+            _without(("k1",), held_terms)), camera_only=True), None
+    except (ValueError, RuntimeError) as exc:
+        return None, " ".join(str(exc).split()) or type(exc).__name__
 
 
 def _opencv_start(name: str, obs: Observations, terms: dict,
