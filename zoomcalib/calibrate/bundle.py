@@ -965,20 +965,21 @@ class _Covariances:
     ``'posterior'`` is ``s2 N^-1`` and ``'repeatability'`` the sandwich
     ``s2 N^-1 J^T J N^-1 = s2 (N^-1 - N^-1 P N^-1)``; without a prior they are equal. ``N^-1``
     is held through the Schur complement over the poses: ``Sinv = S^-1`` (camera and points),
-    ``Hf = V^-1 W^T`` (6m, ny), ``Vinv`` (m, 6, 6) and ``RH = R^-T Hf^T`` (``S = R^T R``).
-    The prior on the free points is ``ca I + Urf cD Urf^T`` (``ca = 0``, ``Urf = None``: none);
+    ``pose_response = V^-1 W^T`` (6m, ny), ``Vinv`` (m, 6, 6) and
+    ``whitened_pose_response = R^-T pose_response^T`` (``S = R^T R``). The prior on the free
+    points is ``ca I + prior_modes cD prior_modes^T`` (``ca = 0``, ``prior_modes = None``: none);
     ``dof`` the denominator of ``s2`` (module docstring).
     """
 
     s2: float
     nc: int
     Sinv: np.ndarray
-    Hf: np.ndarray
+    pose_response: np.ndarray
     Vinv: np.ndarray
-    RH: np.ndarray
+    whitened_pose_response: np.ndarray
     names: list[str]
     ca: float = 0.0
-    Urf: np.ndarray | None = None
+    prior_modes: np.ndarray | None = None
     cD: np.ndarray | None = None
     dof: float = float("nan")
 
@@ -986,29 +987,29 @@ class _Covariances:
     def points(self) -> _PointCovariance:
         """Repeatability covariance of the free target coordinates, as an operator."""
         Sxx = self.Sinv[self.nc:, self.nc:]
-        if self.Urf is None:
+        if self.prior_modes is None:
             return _PointCovariance(Sxx, self.s2)
-        return _PointCovariance(Sxx, self.s2, self.ca, Sxx @ self.Urf, self.cD)
+        return _PointCovariance(Sxx, self.s2, self.ca, Sxx @ self.prior_modes, self.cD)
 
     def prior_dof(self) -> float:
         """``tr((N^-1 P)^2)``, the degrees of freedom the prior gives back to the residuals
         (module docstring): with ``Y`` the points' block of ``S^-1`` and ``P = ca I + U cD
         U^T``, ``ca^2 |Y|_F^2 + 2 ca tr(cD (Y U)^T (Y U)) + tr((cD U^T Y U)^2)``."""
         Y = self.Sinv[self.nc:, self.nc:]
-        YU = Y @ self.Urf
-        modes = self.cD @ (self.Urf.T @ YU)
+        YU = Y @ self.prior_modes
+        modes = self.cD @ (self.prior_modes.T @ YU)
         return float(self.ca**2 * np.sum(Y * Y) + 2.0 * self.ca * np.sum((YU @ self.cD) * YU)
                      + np.sum(modes * modes.T))
 
     def _prior_term(self, A: np.ndarray, B: np.ndarray | None = None) -> np.ndarray:
         """``A P B^T`` / s2 for rows ``A``, ``B`` of ``N^-1[:, x]`` (x: the free points)."""
         B = A if B is None else B
-        AU, BU = A @ self.Urf, B @ self.Urf
+        AU, BU = A @ self.prior_modes, B @ self.prior_modes
         return self.ca * (A @ B.T) + AU @ self.cD @ BU.T
 
     def _prior_diag(self, A: np.ndarray) -> np.ndarray:
         """``diag(A P A^T)`` / s2."""
-        AU = A @ self.Urf
+        AU = A @ self.prior_modes
         return self.ca * np.einsum("ij,ij->i", A, A) + np.einsum("ij,ij->i", AU @ self.cD, AU)
 
     def camera_sd(self, cam_map: np.ndarray, kind: str) -> np.ndarray:
@@ -1018,7 +1019,7 @@ class _Covariances:
         post = self.s2 * self.Sinv[:nc, :nc]
         post_var = np.einsum("ij,jk,ik->i", cam_map, post, cam_map)
         var = _checked_variances(post_var, post_var, CAMERA_NAMES, "posterior")
-        if kind == "repeatability" and self.Urf is not None:
+        if kind == "repeatability" and self.prior_modes is not None:
             rep = post - self.s2 * self._prior_term(self.Sinv[:nc, nc:])
             var = _checked_variances(np.einsum("ij,jk,ik->i", cam_map, rep, cam_map),
                                      post_var, CAMERA_NAMES, "repeatability")
@@ -1027,11 +1028,12 @@ class _Covariances:
     def pose_sd(self, kind: str) -> np.ndarray:
         """(m, 6) 1-sigma of ``rvec, tvec`` per view: ``Cov(p) / s2 = V^-1 + H S^-1 H^T``."""
         names = self.names[len(self.Sinv):]
+        whitened = self.whitened_pose_response
         post = self.s2 * (np.einsum("vii->vi", self.Vinv).ravel()
-                          + np.einsum("ij,ij->j", self.RH, self.RH))
+                          + np.einsum("ij,ij->j", whitened, whitened))
         var = _checked_variances(post, post, names, "posterior")
-        if kind == "repeatability" and self.Urf is not None:
-            rep = post - self.s2 * self._prior_diag(self.Hf @ self.Sinv[:, self.nc:])
+        if kind == "repeatability" and self.prior_modes is not None:
+            rep = post - self.s2 * self._prior_diag(self.pose_response @ self.Sinv[:, self.nc:])
             var = _checked_variances(rep, post, names, "repeatability")
         return np.sqrt(var).reshape(-1, 6)
 
@@ -1045,45 +1047,49 @@ class _Covariances:
 
     def full(self, kind: str) -> np.ndarray:
         """The whole matrix over ``names`` (camera, free points, poses)."""
-        HS = self.Hf @ self.Sinv
-        cov_pp = self.Hf @ HS.T
+        HS = self.pose_response @ self.Sinv
+        cov_pp = self.pose_response @ HS.T
         for v in range(len(self.Vinv)):
             cov_pp[6 * v:6 * v + 6, 6 * v:6 * v + 6] += self.Vinv[v]
         out = self.s2 * np.block([[self.Sinv, -HS.T], [-HS, cov_pp]])
-        if kind == "repeatability" and self.Urf is not None:
+        if kind == "repeatability" and self.prior_modes is not None:
             Nx = np.vstack([self.Sinv[:, self.nc:], -HS[:, self.nc:]])   # N^-1[:, x]
             out -= self.s2 * self._prior_term(Nx)
         return out
 
 
-def _covariances(prob: _Problem, state: _State, ne, cam_names, m: int) -> _Covariances:
-    """Covariances at the solution ``state`` of ``prob``, from the normal equations ``ne`` of
-    its last linearisation (None: linearised afresh). The prior's weight is the problem's own
-    (``prob.sig2``), so ``N`` is the normal matrix of the cost that was minimised."""
-    U, W, V = (ne if ne is not None else prob.normal_equations(state))[:3]
+def _covariances(prob: _Problem, state: _State, normal_eqs, cam_names, m: int) -> _Covariances:
+    """Covariances at the solution ``state`` of ``prob``, from the normal equations
+    ``normal_eqs`` of its last linearisation (None: linearised afresh). The prior's weight is
+    the problem's own (``prob.sig2``), so ``N`` is the normal matrix of the cost that was
+    minimised."""
+    U, W, V = (normal_eqs if normal_eqs is not None else prob.normal_equations(state))[:3]
     r = prob.residuals(state)
     dof = 2 * prob.N - prob.n_unknowns
     try:
-        iL = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
-        G = iL @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
-        Gf = G.reshape(6 * m, -1)
-        cf = scipy.linalg.cho_factor(U - Gf.T @ Gf, check_finite=False)
+        pose_chol_inv = np.linalg.inv(np.linalg.cholesky(V))      # V = L L^T, per view
+        G = pose_chol_inv @ W.transpose(0, 2, 1)                  # (m, 6, ny) = L^-1 W^T
+        pose_coupling = G.reshape(6 * m, -1)
+        schur_chol = scipy.linalg.cho_factor(U - pose_coupling.T @ pose_coupling,
+                                             check_finite=False)
     except np.linalg.LinAlgError as exc:
         raise ValueError("the normal equations are singular at the solution (rms "
                          f"{np.sqrt(np.mean(r**2) * 2):.3g} px): the data do not determine "
                          "the unknowns, or the adjustment diverged from a poor start (pass "
                          "K0/dist0)") from exc
-    Hf = (iL.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
+    pose_response = (pose_chol_inv.transpose(0, 2, 1) @ G).reshape(6 * m, -1)
     cov = _Covariances(
-        s2=np.nan, nc=prob.nc, Sinv=_inverse_from_cholesky(cf[0]), Hf=Hf,
-        Vinv=iL.transpose(0, 2, 1) @ iL,
-        RH=scipy.linalg.solve_triangular(cf[0], Hf.T, trans="T", check_finite=False),
+        s2=np.nan, nc=prob.nc, Sinv=_inverse_from_cholesky(schur_chol[0]),
+        pose_response=pose_response, Vinv=pose_chol_inv.transpose(0, 2, 1) @ pose_chol_inv,
+        whitened_pose_response=scipy.linalg.solve_triangular(
+            schur_chol[0], pose_response.T, trans="T", check_finite=False),
         names=_parameter_names(cam_names, prob.free_idx, m))
     if prob.Lam is not None:
-        # the prior block of N is c (a I + Urf D Urf^T), c = sig2 / sc^2 (normal_equations)
+        # the prior block of N is c (a I + prior_modes D prior_modes^T), c = sig2 / sc^2
+        # (normal_equations)
         _, sc, Rs = prob.shape_deviation(state.X)
         c = prob.sig2 / sc**2
-        cov.ca, cov.Urf = c * prob.Lam.a, prob.Lam.rotated_columns(Rs, prob.free_idx)
+        cov.ca, cov.prior_modes = c * prob.Lam.a, prob.Lam.rotated_columns(Rs, prob.free_idx)
         cov.cD = c * prob.Lam.D
         dof += cov.prior_dof()
     cov.dof = float(dof)
@@ -1204,8 +1210,8 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
     stages: dict[str, Solve] = {}
 
     def lm(name: str, prob: _Problem, st: _State, lam: float = 1e-10) -> _State:
-        st, stages[name], ne = _solve(prob, st, max_iterations, tol, lam)
-        last["prob"], last["ne"] = prob, ne
+        st, stages[name], normal_eqs = _solve(prob, st, max_iterations, tol, lam)
+        last["prob"], last["normal_eqs"] = prob, normal_eqs
         return st
 
     # ---- stage 2: target held at its nominal shape --------------------------------------
@@ -1249,8 +1255,8 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
             problem(0.0, no_pts, np.flatnonzero(inlier)), flat_state, max_iterations, tol)
 
     # a converged solve's last linearisation is at its solution
-    ne = last.get("ne") if last.get("prob") is prob else None
-    return flat_state, state, prob, inlier, stages, ne
+    normal_eqs = last.get("normal_eqs") if last.get("prob") is prob else None
+    return flat_state, state, prob, inlier, stages, normal_eqs
 
 
 @dataclass(frozen=True)
@@ -1534,14 +1540,14 @@ def _camera_sigmas(prob: _Problem, state: _State, normal, cov: _Covariances,
     names = CAMERA_NAMES[:4 + (5 if model == "standard" else 8)]
     camera_sd = cov.camera_sd(cam_map, "repeatability")
     groups = view_groups(obs.views, obs.image_size)
-    prior = None if cov.Urf is None else (lambda x: cov._prior_diag(x[prob.nc:].T))
+    prior = None if cov.prior_modes is None else (lambda x: cov._prior_diag(x[prob.nc:].T))
     scatter = view_scatter(prob.camera_influence(state, normal[1], normal[2],
                                                  cov.Sinv[:prob.nc]),
                            groups[prob.vi], int(groups.max()) + 1, CAMERA_NAMES, camera_sd,
                            lambda: prob.camera_deletions(state, *normal[:3], groups),
                            prob.camera_noise_share(state, normal[1], normal[2], cov.Sinv,
                                                    groups, prior), prob.pi,
-                           None if cov.Urf is None else prob.camera_influence(
+                           None if cov.prior_modes is None else prob.camera_influence(
                                state, normal[1], normal[2], cov.Sinv[:prob.nc],
                                hold_points=True))
     noise_model = dict(zip(names, camera_sd[:len(names)].tolist(), strict=True))

@@ -431,17 +431,18 @@ def _camera_covariance(at_solution: _AtSolution
     """
     (U, W, V, *_), s2, cam_map = at_solution.blocks, at_solution.s2, at_solution.cam_map
     try:
-        iL = np.linalg.inv(np.linalg.cholesky(V))
+        pose_chol_inv = np.linalg.inv(np.linalg.cholesky(V))
     except np.linalg.LinAlgError:
         return None
-    G = iL @ W.transpose(0, 2, 1)                           # (m, 6, nc) = L^-1 W^T
+    G = pose_chol_inv @ W.transpose(0, 2, 1)                           # (m, 6, nc) = L^-1 W^T
     nc = cam_map.shape[1]
-    Gf = G.reshape(-1, U.shape[0])
-    S_inv, full_rank = scaled_inverse((U - Gf.T @ Gf)[:nc, :nc])
+    pose_coupling = G.reshape(-1, U.shape[0])
+    S_inv, full_rank = scaled_inverse((U - pose_coupling.T @ pose_coupling)[:nc, :nc])
     if not (full_rank and np.isfinite(s2)):
         return None
-    H = iL.transpose(0, 2, 1) @ G                           # (m, 6, nc) = V^-1 W^T
-    pose_var = (np.einsum("vij,vij->vj", iL, iL)            # diag(V^-1) = column norms of L^-1
+    H = pose_chol_inv.transpose(0, 2, 1) @ G                           # (m, 6, nc) = V^-1 W^T
+    # diag(V^-1): the column norms of L^-1
+    pose_var = (np.einsum("vij,vij->vj", pose_chol_inv, pose_chol_inv)
                 + np.einsum("vik,kl,vil->vi", H, S_inv, H))
     return s2 * cam_map @ S_inv @ cam_map.T, np.sqrt(s2 * pose_var), S_inv
 

@@ -1965,14 +1965,14 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
     and, if ``check``, the view-scatter check of the intrinsics (:func:`_view_scatter`)."""
     r, J = prob.evaluate(state)
     U, W, V, _, _ = prob.normal_equations(state)[1]
-    W3 = W.reshape(len(U), len(V), 6)
-    through_pose = np.einsum("gvi,vij->gvj", W3, np.linalg.inv(V))        # W_v V_v^-1
-    S = U - np.einsum("gvj,hvj->gh", through_pose, W3)
+    coupling_by_view = W.reshape(len(U), len(V), 6)
+    through_pose = np.einsum("gvi,vij->gvj", coupling_by_view, np.linalg.inv(V))        # W_v V_v^-1
+    S = U - np.einsum("gvj,hvj->gh", through_pose, coupling_by_view)
     cov = _inverse_or_ridge(S, prob)
     if not check:
         return cov, None
     camera_rows = cov[:prob.n_cam]
-    A, g = _view_blocks(prob, r, J, W3, V)
+    A, g = _view_blocks(prob, r, J, coupling_by_view, V)
     share = noise_share(camera_rows.T, A @ camera_rows.T, cov,
                         model_variance=np.einsum("ii->i", camera_rows[:, :prob.n_cam]))
     return cov, _view_scatter(prob, r, J, camera_rows @ through_pose.reshape(len(U), -1),
@@ -2013,21 +2013,21 @@ def _view_groups(prob: _ZoomProblem) -> np.ndarray:
     return np.concatenate([offsets[s] + step.group for s, step in enumerate(prob.steps)])
 
 
-def _view_blocks(prob: _ZoomProblem, r: np.ndarray, J, W3: np.ndarray, V: np.ndarray
+def _view_blocks(prob: _ZoomProblem, r: np.ndarray, J, coupling_by_view: np.ndarray, V: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Per group of views (:func:`_view_groups`), its share of the Schur complement and of the
     gradient, ``A_g`` (groups, n_glob, n_glob) and ``g_g`` (groups, n_glob): the sums of
     ``Jt_v^T Jt_v`` and ``Jt_v^T r_v`` over its views, ``Jt_v = J_g,v - J_p,v V_v^-1 W_v^T``
     a view's rows over the intrinsics and board modes, its pose projected out
-    (:mod:`zoomcalib.calibrate.scatter`); ``W3`` (n_glob, views, 6). The intrinsics' move
-    when a group is left out is ``(S - A_g)^-1 g_g``."""
+    (:mod:`zoomcalib.calibrate.scatter`); ``coupling_by_view`` (n_glob, views, 6). The
+    intrinsics' move when a group is left out is ``(S - A_g)^-1 g_g``."""
     n_glob, n_views = prob.n_glob, len(V)
     row_view = np.repeat(_view_rows(prob), 2)
     order = np.argsort(row_view, kind="stable")
     bounds = np.searchsorted(row_view[order], np.arange(n_views + 1))
     data = J[:len(row_view)].tocsr()[order]
     residual = r[:len(row_view)][order]
-    through_pose = np.linalg.solve(V, W3.transpose(1, 2, 0))             # (views, 6, n_glob)
+    through_pose = np.linalg.solve(V, coupling_by_view.transpose(1, 2, 0))  # (views, 6, n_glob)
     groups = _view_groups(prob)
     A, g = np.zeros((groups.max() + 1, n_glob, n_glob)), np.zeros((groups.max() + 1, n_glob))
     for v in range(n_views):                       # dense blocks of a few hundred rows each
