@@ -117,3 +117,18 @@ def test_the_solve_without_the_prior_is_written_beside_the_table(rendered):
             assert abs(row[q] - true) < 4 * row[f"sd_{q}"], (step["step"], q, row[q], true)
             assert row[f"sd_{q}"] >= 0.99 * smoothed[step["step"]][f"sd_{q}"]
         assert 0.0 <= free[step["step"]]["step_correlation"]["cy"] < 1.0
+    # the correlation of those rows' principal points, beside them: a correlation matrix
+    # whose largest cy entry between two steps is the one calibration.json gives
+    from zoomcalib.calibrate.io import read_principal_point_correlation
+    from zoomcalib.diagnose.run import load_zoom_table
+
+    steps = [s["step"] for s in truth["steps"]]
+    corr = read_principal_point_correlation(out / "zoom_calibration_unsmoothed_correlation.json",
+                                            steps)
+    for i, step in enumerate(steps):
+        others = [2 * j + 1 for j in range(len(steps)) if j != i]
+        assert np.max(np.abs(corr[2 * i + 1, others])) == pytest.approx(
+            free[step]["step_correlation"]["cy"], rel=1e-9, abs=1e-12)
+    loaded = load_zoom_table(out / "zoom_calibration_unsmoothed.csv")
+    np.testing.assert_array_equal(loaded.pp_correlation, read_principal_point_correlation(
+        out / "zoom_calibration_unsmoothed_correlation.json", loaded.step))

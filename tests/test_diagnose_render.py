@@ -100,9 +100,13 @@ def test_rendered_backlash_is_diagnosed(tmp_path):
     messages = []
     diagnose_input(tmp_path / "zw" / "zoom_calibration.csv", tmp_path / "diag3", lens,
                    sensor.pixel_pitch_mm, tol, log=messages.append)
-    assert any("zoom_calibration_unsmoothed.csv" in m for m in messages), messages
+    assert any("zoom_calibration_unsmoothed.csv" in m and "correlation" in m
+               for m in messages), messages
     zoom_wide = read_json(tmp_path / "diag3" / "diagnosis.json")
     assert zoom_wide["cause"] == "backlash", zoom_wide["candidates"]
+    # weighed with the correlation of those rows' principal points, written beside them
+    assert zoom_wide["noise"]["row_correlation"]["used"] is True
+    assert 0.0 < zoom_wide["noise"]["row_correlation"]["largest"] < 1.0
 
 
 def test_rendered_axis_tilt_is_diagnosed(tmp_path):

@@ -68,7 +68,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -87,8 +87,10 @@ __all__ = [
     "capture_sittings",
     "exif_focal_length",
     "read_calibration",
+    "read_principal_point_correlation",
     "read_zoom_table",
     "write_calibration",
+    "write_principal_point_correlation",
     "write_zoom_table",
     "yaml_prefix",
     "zoom_from_name",
@@ -368,6 +370,61 @@ def _fmt(v) -> str:
         v = float(v)
         return "" if math.isnan(v) else repr(v)
     return str(v)
+
+
+#: Beside ``zoom_calibration_unsmoothed.csv``: the correlation of its rows' principal points
+#: (:func:`write_principal_point_correlation`).
+PP_CORRELATION_FILE = "zoom_calibration_unsmoothed_correlation.json"
+
+
+def write_principal_point_correlation(path: str | os.PathLike, steps: Sequence[str],
+                                      correlation: np.ndarray) -> Path:
+    """Write the (2S, 2S) correlation of the steps' principal points, ordered
+    ``(cx, cy)`` step by step, as JSON: ``{"steps": [...], "order": "cx, cy per step",
+    "correlation": [[...], ...]}`` (floats in shortest round-trip form)."""
+    corr = np.asarray(correlation, float)
+    if corr.shape != (2 * len(steps), 2 * len(steps)):
+        raise ValueError(f"{path}: a correlation of {len(steps)} steps' principal points is "
+                         f"({2 * len(steps)}, {2 * len(steps)}), got {corr.shape}")
+    doc = {"steps": [str(s) for s in steps], "order": "cx, cy per step",
+           "correlation": corr.tolist()}
+    _atomic_write(Path(path), json.dumps(doc, indent=1) + "\n")
+    return Path(path)
+
+
+def read_principal_point_correlation(path: str | os.PathLike, steps: Sequence[str]
+                                     ) -> np.ndarray:
+    """The (2N, 2N) correlation of the principal points of ``steps`` (a subset of the file's,
+    in any order), ordered ``(cx, cy)`` step by step, from a file of
+    :func:`write_principal_point_correlation`.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: not such a file, a step it does not hold, or a matrix that is not a
+        correlation (not symmetric, a diagonal other than 1, not positive definite).
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+        names = [str(v) for v in doc["steps"]]
+        corr = np.asarray(doc["correlation"], float)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a principal-point correlation file ({exc})") from None
+    if corr.shape != (2 * len(names), 2 * len(names)):
+        raise ValueError(f"{path}: {len(names)} steps need a ({2 * len(names)}, "
+                         f"{2 * len(names)}) correlation, got {corr.shape}")
+    missing = [s for s in steps if s not in names]
+    if missing:
+        raise ValueError(f"{path}: no correlation for step {missing[0]}")
+    at = np.ravel([[2 * names.index(s), 2 * names.index(s) + 1] for s in steps]).astype(int)
+    corr = corr[np.ix_(at, at)]
+    if not (np.all(np.isfinite(corr)) and np.allclose(corr, corr.T, atol=1e-9)
+            and np.allclose(np.diag(corr), 1.0, atol=1e-9)):
+        raise ValueError(f"{path}: not a correlation matrix (symmetric, unit diagonal)")
+    if np.linalg.eigvalsh(corr)[0] <= 0:
+        raise ValueError(f"{path}: the correlation is not positive definite")
+    return corr
 
 
 def write_zoom_table(path: str | os.PathLike, rows: Iterable[Mapping]) -> Path:

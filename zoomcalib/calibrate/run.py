@@ -57,10 +57,12 @@ from .guards import (
 )
 from .io import (
     KEYSTONE_COLUMNS,
+    PP_CORRELATION_FILE,
     capture_date,
     capture_sittings,
     ignored_top_images,
     write_calibration,
+    write_principal_point_correlation,
     write_zoom_table,
     zoom_steps,
 )
@@ -470,7 +472,8 @@ def _each_step(run: CalibrateRun, steps: list, step_files: dict[str, list[Path]]
 def _write_results(run: CalibrateRun, out: Path, meta: dict, rows: list[dict],
                    log: Callable[[str], None]) -> None:
     """``calibration.json`` and ``.yml``, and for a zoom set (``rows``: the zoom table's, else
-    empty) ``zoom_calibration.csv``, its unsmoothed twin and the zoom model."""
+    empty) ``zoom_calibration.csv``, its unsmoothed twin with the correlation of that twin's
+    principal points, and the zoom model."""
     if run.results:
         run.files += list(write_calibration(out, run.results, meta))
     if rows:
@@ -478,6 +481,10 @@ def _write_results(run: CalibrateRun, out: Path, meta: dict, rows: list[dict],
         unsmoothed = _unsmoothed_table(run, rows)
         if unsmoothed:
             run.files.append(write_zoom_table(out / UNSMOOTHED_TABLE, unsmoothed))
+            correlation = getattr(run.zoom_wide, "unsmoothed_pp_correlation", None)
+            if correlation is not None:
+                run.files.append(write_principal_point_correlation(
+                    out / PP_CORRELATION_FILE, list(run.zoom_wide.unsmoothed), correlation))
         _zoom_model(run, [r for r in rows if r["status"] != "unusable"], out, log)
 
 

@@ -938,6 +938,12 @@ class ZoomWideResult:
         Per step, the solve without the smoothness prior (:func:`_unsmoothed_rows`): rows
         that are not tied to each other by the prior, for the diagnosis; empty when that
         solve had no covariance.
+    unsmoothed_pp_correlation : (2S, 2S) ndarray or None
+        The correlation of those rows' principal points across steps (the solve's steps share
+        the aspect ratio, each capture session's board and the print), ordered ``(cx, cy)``
+        step by step in the order of ``unsmoothed``
+        (:func:`_principal_point_correlation`); None without that solve's covariance or with
+        the principal point held.
     converged : bool
     stop_reason : str
     iterations : int
@@ -971,6 +977,7 @@ class ZoomWideResult:
     print_test: PrintTest | None = None
     u: dict[str, float] = field(default_factory=dict)
     unsmoothed: dict[str, dict] = field(default_factory=dict)
+    unsmoothed_pp_correlation: np.ndarray | None = None
 
 
 def _map_steps(function, items: list, workers: int) -> list:
@@ -1180,8 +1187,9 @@ def _with_scatter(result: ZoomWideResult, names: list[str], cams: np.ndarray, no
                 factor[s, j] = max(own / base[q], 1.0)
     if callable(noise):
         def scaled(steps, j, noise=noise):
-            f = factor[steps, j]
-            return noise(steps, j) * np.outer(f, f) + np.diag(gap2[steps, j])
+            at = np.ix_(np.asarray(steps), np.atleast_1d(j))
+            f = factor[at].reshape(-1)
+            return noise(steps, j) * np.outer(f, f) + np.diag(gap2[at].reshape(-1))
         return cams, scaled, free
     return cams, np.sqrt((np.asarray(noise, float) * factor) ** 2 + gap2), free
 
@@ -1211,6 +1219,23 @@ def _unsmoothed_rows(cams: np.ndarray, cov, free: np.ndarray, names: list[str]
             for s, n in enumerate(names):
                 out[n]["sd_fy"] = float(sd[s] * cams[s, 1] / cams[s, 0])
     return out
+
+
+def _principal_point_correlation(cov, names: list[str]) -> np.ndarray | None:
+    """(2S, 2S) correlation of every step's ``(cx, cy)`` with every other's, from ``cov``
+    (:func:`_joint_covariance`, scaled as the table's sigmas are: :func:`_with_scatter`),
+    ordered ``(cx_0, cy_0, cx_1, ...)``; None when a principal point is held (no variance).
+
+    ``corr_ab = C_ab / sqrt(C_aa C_bb)``: with the table's sigmas it rebuilds the covariance
+    of the rows, which the diagnosis weighs them with."""
+    C = np.asarray(cov(list(range(len(names))), (PARAMS.index("cx"), PARAMS.index("cy"))),
+                   float)
+    sd = np.sqrt(np.diag(C))
+    if not np.all(sd > 0):
+        return None
+    corr = C / np.outer(sd, sd)
+    np.fill_diagonal(corr, 1.0)
+    return 0.5 * (corr + corr.T)
 
 
 def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.ndarray],
@@ -1244,7 +1269,10 @@ def _held_out_paths(cams: np.ndarray, cov, free: np.ndarray, chains: list[np.nda
 
 def _joint_covariance(prob: _ZoomProblem, state: _State):
     """``cov(steps, j)`` of the per-step intrinsics of a solved problem, or None when its
-    posterior covariance is not positive definite."""
+    posterior covariance is not positive definite. ``j`` is a parameter's index in
+    :data:`PARAMS`, or a sequence of them: the block then holds, step by step, each of those
+    parameters (``(cx_0, cy_0, cx_1, ...)`` for ``j = (2, 3)``). A held parameter's rows and
+    columns are zero."""
     try:
         cov = _posterior_covariance(prob, state, check=False)[0]
     except (np.linalg.LinAlgError, ValueError):
@@ -1252,9 +1280,12 @@ def _joint_covariance(prob: _ZoomProblem, state: _State):
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
         return None
 
-    def block(steps: list[int], j: int) -> np.ndarray:
-        col = prob.cam_col[steps, j]
-        return cov[np.ix_(col, col)]
+    def block(steps: list[int], j) -> np.ndarray:
+        col = prob.cam_col[np.ix_(np.asarray(steps), np.atleast_1d(j))].reshape(-1)
+        out = cov[np.ix_(col, col)]
+        held = col < 0
+        out[held, :], out[:, held] = 0.0, 0.0
+        return out
     return block
 
 
@@ -1609,6 +1640,7 @@ def _describe(result: ZoomWideResult, setup: _Setup, prob: _ZoomProblem, solve: 
     held_paths = _held_out_paths(*scaled, setup.chain_idx, setup.u, forms, models, names)
     if joint_cov is not None:
         result.unsmoothed = _unsmoothed_rows(*scaled, names)
+        result.unsmoothed_pp_correlation = _principal_point_correlation(scaled[1], names)
     for name, doc in result.zoom_models.items():
         doc.update(form=forms.get(name, _Form()).to_dict(), held_out=held_paths.get(name))
     for s, r in enumerate(result.results.values()):

@@ -64,7 +64,7 @@ from .model import (
     setting_term,
     smooth_path_term,
 )
-from .noise import NoiseFit, NoiseShape, estimate_noise, gls
+from .noise import NoiseFit, NoiseShape, RowWeights, estimate_noise, gls
 from .table import ZoomTable
 
 __all__ = ["CAUSES", "BIC_MARGIN", "AMBIGUITY_BIC", "ALPHA", "NOISE_SCALE_MAX", "LinearFit",
@@ -197,6 +197,8 @@ class LinearFit:
         converged'``.
     noise : NoiseFit or None
         The estimated noise scales (None when the noise was given).
+    weights : RowWeights or None
+        The weights the fit used (None: ``variance`` per row, independent rows).
     """
 
     terms: tuple[Term, ...]
@@ -214,6 +216,7 @@ class LinearFit:
     converged: bool = False
     stop_reason: str = ""
     noise: NoiseFit | None = None
+    weights: RowWeights | None = None
 
     @property
     def names(self) -> list[str]:
@@ -247,13 +250,15 @@ class LinearFit:
                 "noise": self.noise.to_dict() if self.noise is not None else None}
 
 
-def _held_out(A: np.ndarray, y: np.ndarray, w: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """(2N,) residuals of every group's rows predicted from the other groups' rows."""
+def _held_out(A: np.ndarray, y: np.ndarray, weights: RowWeights, groups: np.ndarray
+              ) -> np.ndarray:
+    """(2N,) residuals of every group's rows predicted from the other groups' rows (their
+    weights among themselves: a correlated held-out row does not inform the fit)."""
     rows = np.repeat(groups, 2)
     cv = np.empty_like(y)
     for label in np.unique(groups):
         out = rows == label
-        beta, _, _ = gls(A[~out], y[~out], w[~out])
+        beta, _, _ = gls(A[~out], y[~out], weights.subset(~out))
         cv[out] = y[out] - A[out] @ beta
     return cv
 
@@ -265,8 +270,9 @@ def fit_terms(terms: tuple[Term, ...], ctx: Context, noise: NoiseShape | np.ndar
     Parameters
     ----------
     noise : NoiseShape or (N,) ndarray
-        The noise shapes, whose scales are estimated for this model by REML, or the 1-sigma
-        per axis of each row, px, taken as known.
+        The noise shapes, whose scales are estimated for this model by REML (with the rows'
+        correlation when the shape has one), or the 1-sigma per axis of each row, px, taken
+        as known (independent rows).
     groups : (N,) int ndarray
         Rows sharing a label are held out together in the cross-validation.
     """
@@ -276,21 +282,24 @@ def fit_terms(terms: tuple[Term, ...], ctx: Context, noise: NoiseShape | np.ndar
     if n <= k:
         raise ValueError(f"{ctx.table.source}: {n // 2} rows cannot fit {k} parameters")
     noise_fit = estimate_noise(A, y, noise) if isinstance(noise, NoiseShape) else None
-    variance = noise_fit.variance if noise_fit is not None else np.asarray(noise) ** 2
-    w = np.repeat(1.0 / variance, 2)
-    beta, rank, _ = gls(A, y, w)
+    if noise_fit is not None:
+        variance, weights = noise_fit.variance, noise_fit.weights
+    else:
+        variance = np.asarray(noise) ** 2
+        weights = RowWeights(np.repeat(1.0 / variance, 2))
+    beta, rank, _ = gls(A, y, weights)
     r = y - A @ beta
-    chi2 = float(np.sum(w * r ** 2))
-    cov = np.linalg.pinv((A * w[:, None]).T @ A, rcond=1e-12)
-    cv = _held_out(A, y, w, groups)
+    chi2 = weights.chi2(r)
+    cov = np.linalg.pinv(weights.normal(A), rcond=1e-12)
+    cv = _held_out(A, y, weights, groups)
     converged = rank == k and (noise_fit is None or noise_fit.converged)
     reason = ("rank deficient" if rank < k else
               "noise not converged" if not converged else "exact")
     return LinearFit(terms, beta, cov, r.reshape(-1, 2), variance, chi2, chi2 / (n - k),
                      float(np.sqrt(np.mean(r ** 2))),
-                     float(chi2 + np.sum(np.log(1.0 / w)) + k * np.log(n)),
+                     float(chi2 + weights.log_det() + k * np.log(n)),
                      float(np.sqrt(np.mean(cv ** 2))), cv.reshape(-1, 2), rank, converged,
-                     reason, noise_fit)
+                     reason, noise_fit, weights)
 
 
 class Fitter:
@@ -496,9 +505,9 @@ def _f_test(fit: LinearFit, ctx: Context, extra: tuple[Term, ...]) -> dict:
     A = design_matrix(fit.terms, ctx)
     B = np.hstack([A, design_matrix(extra, ctx)])
     y = ctx.table.principal_point.reshape(-1)
-    w = np.repeat(1.0 / fit.variance, 2)
-    beta, rank, _ = gls(B, y, w)
-    rss = float(np.sum(w * (y - B @ beta) ** 2))
+    weights = fit.weights or RowWeights(np.repeat(1.0 / fit.variance, 2))
+    beta, rank, _ = gls(B, y, weights)
+    rss = weights.chi2(y - B @ beta)
     q, dof = rank - fit.rank, len(y) - rank
     if q <= 0 or dof <= 0:
         return {"tested": False, "q": q, "dof": dof}
@@ -704,8 +713,18 @@ class Diagnosis:
         return {**noise, "rms_sigma_px": float(np.sqrt(np.mean(self.sigma_px ** 2))),
                 "rms_play_px": float(np.sqrt(np.mean(self.play_sd_px ** 2))),
                 "measurement_sd_used": self.table.has_sd,
+                "row_correlation": self._correlation_dict(),
                 "play_shape": "tolerance file" if self.response is not None
                 else "(fx / median fx), no lens model"}
+
+    def _correlation_dict(self) -> dict | None:
+        """Whether the rows were weighed with their correlation, and its largest value
+        between two rows' principal points (None: independent rows)."""
+        corr = self.table.pp_correlation
+        if corr is None or not self.table.has_sd:
+            return None
+        off = np.abs(corr - np.diag(np.diag(corr)))
+        return {"used": True, "largest": float(off.max(initial=0.0))}
 
     def to_dict(self) -> dict:
         """The ``diagnosis.json`` document."""
@@ -752,15 +771,19 @@ class Diagnosis:
 
 
 def noise_shape(table: ZoomTable, play_px: np.ndarray, with_lens: bool = True) -> NoiseShape:
-    """The table's noise shapes: its sigmas (ones when it has none) and the play ``play_px``
-    ((N,) px per axis; ignored without a lens, where ``fx / median fx`` takes its place)."""
+    """The table's noise shapes: its sigmas (ones when it has none), their correlation across
+    rows when the table has one (``pp_correlation``) and the play ``play_px`` ((N,) px per
+    axis; ignored without a lens, where ``fx / median fx`` takes its place)."""
     measured = (0.5 * (table.sd_cx ** 2 + table.sd_cy ** 2) if table.has_sd
                 else np.ones(table.n))
     measured = np.where(measured > 0, measured, np.min(measured[measured > 0], initial=1.0))
+    correlation = table.pp_correlation if table.has_sd else None
     if with_lens:
-        return NoiseShape(measured, np.asarray(play_px) ** 2, table.has_sd, True)
+        return NoiseShape(measured, np.asarray(play_px) ** 2, table.has_sd, True,
+                          correlation=correlation)
     relative = table.fx / np.median(table.fx)
-    return NoiseShape(measured, relative ** 2, table.has_sd, False, "fx / median fx")
+    return NoiseShape(measured, relative ** 2, table.has_sd, False, "fx / median fx",
+                      correlation)
 
 
 def _noise(table: ZoomTable, response: LensResponse, z: np.ndarray,

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibrate.io import read_zoom_table
+from ..calibrate.io import read_principal_point_correlation, read_zoom_table
 from ..optics.mechanics import Tolerances
 from ..optics.prescription import Prescription
 from .discrepancy import Diagnosis, baseline_terms, cause_variants, diagnose_table
@@ -118,9 +118,16 @@ def usable_rows(path: str | Path) -> tuple[list[dict], list[str]]:
 
 def load_zoom_table(path: str | Path) -> ZoomTable:
     """Read and check a ``zoom_calibration.csv`` (its usable rows, :func:`usable_rows`);
-    errors name the file and row."""
+    errors name the file and row. A correlation of its rows' principal points beside it
+    (``<table name>_correlation.json``, as ``calibrate`` writes for the zoom-wide
+    adjustment's solve without the prior: :data:`~zoomcalib.calibrate.io.PP_CORRELATION_FILE`)
+    is read into ``pp_correlation``."""
     path = Path(path)
-    return ZoomTable.from_rows(usable_rows(path)[0], str(path))
+    table = ZoomTable.from_rows(usable_rows(path)[0], str(path))
+    beside = path.with_name(f"{path.stem}_correlation.json")
+    if beside.exists():
+        table.pp_correlation = read_principal_point_correlation(beside, table.step)
+    return table
 
 
 def _row_calibrations(table: ZoomTable, cal) -> list[RowCalibration] | None:
@@ -186,8 +193,10 @@ def _independent_rows(table_path: Path, log: Callable[[str], None]) -> Path:
         return table_path
     beside = table_path.with_name(UNSMOOTHED_TABLE)
     if beside.exists():
+        correlated = beside.with_name(f"{beside.stem}_correlation.json").exists()
         log(f"{table_path}: rows of the zoom-wide adjustment, tied by its smoothness prior; "
-            f"diagnosing those of its solve without the prior ({beside.name})")
+            f"diagnosing those of its solve without the prior ({beside.name})"
+            + (", weighed with their principal points' correlation" if correlated else ""))
         return beside
     return table_path
 

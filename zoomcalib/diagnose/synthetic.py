@@ -55,7 +55,7 @@ from .table import ZoomTable
 
 __all__ = ["TableOptions", "IndependentTableOptions", "synthetic_zoom_table",
            "independent_zoom_table", "unlisted_capture", "cause_terms", "HIDDEN_CAUSES",
-           "PLAY_DISTRIBUTIONS"]
+           "PLAY_DISTRIBUTIONS", "session_correlation"]
 
 HIDDEN_CAUSES = ("axis_tilt", "backlash", "thermal_drift", "cam_harmonic", "static_decenter",
                  "focus_shift")
@@ -230,11 +230,19 @@ def _add_cause(b: _Bench, state: _State, cause: str, m: float, noise_rms: float,
 
 
 def _rows(b: _Bench, rng: np.random.Generator, pp: np.ndarray, sd_true: np.ndarray,
-          sd_reported: np.ndarray, focus: np.ndarray | None, temperature: np.ndarray | None
+          sd_reported: np.ndarray, focus: np.ndarray | None, temperature: np.ndarray | None,
+          sessions: np.ndarray | None = None, share: float = 0.0
           ) -> tuple[list[dict], np.ndarray]:
-    """The ``zoom_calibration.csv`` rows and the (N, 2) measurement noise added to ``pp`` (px)."""
+    """The ``zoom_calibration.csv`` rows and the (N, 2) measurement noise added to ``pp`` (px).
+
+    With ``sessions`` ((N,) int labels), the share ``share`` of each row's measurement variance
+    is common to its session, per axis: ``sd_i (sqrt(1 - share) e_i + sqrt(share) u_k)``, the
+    rows' ``session`` column says which."""
     n = b.n
     noise = np.stack([rng.standard_normal(n) * sd_true, rng.standard_normal(n) * sd_true], -1)
+    if sessions is not None:
+        common = rng.standard_normal((int(sessions.max()) + 1, 2))[sessions]
+        noise = np.sqrt(1.0 - share) * noise + np.sqrt(share) * common * sd_true[:, None]
     cx = pp[:, 0] + noise[:, 0]
     cy = pp[:, 1] + noise[:, 1]
     fx_meas = b.fx * (1.0 + rng.normal(0.0, 5e-4, n))
@@ -250,8 +258,26 @@ def _rows(b: _Bench, rng: np.random.Generator, pp: np.ndarray, sd_true: np.ndarr
             row["focus"] = float(focus[i])
         if temperature is not None:
             row["temperature"] = float(temperature[i])
+        if sessions is not None:
+            row["session"] = f"session{sessions[i] + 1}"
         rows.append(row)
     return rows, noise
+
+
+def session_correlation(sessions: np.ndarray, share: float) -> np.ndarray:
+    """(2N, 2N) correlation of the rows' measured principal points, ``(cx_0, cy_0, cx_1,
+    ...)``, when the share ``share`` of each row's variance is common to its session
+    (``sessions`` (N,) labels), per axis.
+
+    Examples
+    --------
+    >>> session_correlation(np.array([0, 0, 1]), 0.5)[0]
+    array([1. , 0. , 0.5, 0. , 0. , 0. ])
+    """
+    same = np.asarray(sessions)[:, None] == np.asarray(sessions)[None, :]
+    corr = np.kron(share * same, np.eye(2))
+    np.fill_diagonal(corr, 1.0)
+    return corr
 
 
 def _draw(value: float | tuple[float, float], rng: np.random.Generator,
@@ -488,6 +514,14 @@ class IndependentTableOptions(TableOptions):
         Largest fraction of the unlisted effect's chi2 any one cause may capture.
     max_captured_pair : float, optional
         Largest fraction any two causes together may capture; None: no limit.
+    sessions : int
+        Capture sessions, contiguous runs of the capture order (the ``session`` column) when
+        more than 1.
+    session_share : float or (float, float)
+        The share of each row's measurement variance common to the rows of its session, per
+        axis (a board that one session shares moves its steps' principal points together);
+        a range draws it uniformly. ``truth["sd"]["correlation"]`` is the rows' correlation
+        (:func:`session_correlation`).
     """
 
     causes: Sequence[tuple[str, float | tuple[float, float]]] = ()
@@ -498,6 +532,8 @@ class IndependentTableOptions(TableOptions):
     unlisted_degree: int = 3
     max_captured: float = 0.5
     max_captured_pair: float | None = None
+    sessions: int = 1
+    session_share: float | tuple[float, float] = 0.0
 
     def check(self) -> list[str]:
         """The causes' names; ValueError for an unknown or repeated cause or an unknown play
@@ -509,6 +545,10 @@ class IndependentTableOptions(TableOptions):
         if self.play_distribution not in PLAY_DISTRIBUTIONS:
             raise ValueError(f"play_distribution must be one of {tuple(PLAY_DISTRIBUTIONS)}, "
                              f"got {self.play_distribution!r}")
+        shares = np.ravel(self.session_share)
+        if self.sessions < 1 or not np.all((shares >= 0) & (shares < 1)):
+            raise ValueError(f"sessions must be at least 1 and session_share in [0, 1), got "
+                             f"{self.sessions} and {self.session_share}")
         return names
 
 
@@ -586,7 +626,8 @@ def independent_zoom_table(lens: Prescription, rng: np.random.Generator,
         (``scale``, ``distribution``, ``sd_px`` (N,) its linearised 1-sigma per axis,
         ``effect_px`` (N, 2) from the tracer, ``decenter_mm`` and ``tilt_rad`` (N, G, 2) the
         draws per lens group); ``sd`` (``factor``, ``growth``, ``true_px``,
-        ``reported_px``); ``locked_px`` (N, 2) the principal points of the offset and locked
+        ``reported_px``, ``session_share`` and ``correlation``, the rows' correlation or
+        None); ``locked_px`` (N, 2) the principal points of the offset and locked
         errors alone; ``measurement_noise_px`` (N, 2); ``noise_rms_px`` (true) and
         ``assumed_noise_rms_px`` (from the reported sigmas and the tolerance file's play);
         ``z``. The table's (cx, cy) are exactly ``locked_px + play.effect_px + sum of the
@@ -622,14 +663,19 @@ def independent_zoom_table(lens: Prescription, rng: np.random.Generator,
                                  opts.unlisted_degree, opts.max_captured,
                                  opts.max_captured_pair, rng)
         pp = pp + extra["effect_px"]
-    rows, measurement = _rows(b, rng, pp, noise.sd_px, factor * noise.sd_px, focus, temperature)
+    share = _draw(opts.session_share, rng) if opts.sessions > 1 else 0.0
+    labels = (np.repeat(np.arange(opts.sessions), [len(c) for c in np.array_split(
+        np.arange(b.n), opts.sessions)]) if opts.sessions > 1 else None)
+    rows, measurement = _rows(b, rng, pp, noise.sd_px, factor * noise.sd_px, focus, temperature,
+                              labels, share)
     truth = {
         "causes": truth_causes, "unlisted": extra,
         "play": {"scale": p_scale, "distribution": opts.play_distribution,
                  "sd_px": noise.play_px, "effect_px": play_effect, "decenter_mm": play_dec,
                  "tilt_rad": play_tilt},
         "sd": {"factor": factor, "growth": growth, "true_px": noise.sd_px,
-               "reported_px": factor * noise.sd_px},
+               "reported_px": factor * noise.sd_px, "session_share": share,
+               "correlation": None if labels is None else session_correlation(labels, share)},
         "locked_px": locked, "measurement_noise_px": measurement,
         "noise_rms_px": noise.rms_px, "assumed_noise_rms_px": noise.assumed_rms_px, "z": b.z,
     }

@@ -105,6 +105,12 @@ class ZoomTable:
         columns): rows ``A`` (cx, cy) and ``B`` (p1, p2) of
         :func:`zoomcalib.calibrate.opencv_backend.keystone_response`; None unless every row
         has all of them.
+    pp_correlation : (2N, 2N) ndarray or None
+        The correlation of the rows' measured principal points, ordered
+        ``(cx_0, cy_0, cx_1, ...)``: the rows of one adjustment without its smoothness
+        prior share its aspect ratio and boards (``zoom_calibration_unsmoothed_correlation.json``
+        beside its table, :func:`zoomcalib.diagnose.run.load_zoom_table`); None for
+        independent rows.
     calibrations : list of RowCalibration or None
         Each row's per-step calibration (observations and solution), when the diagnosis made
         them itself (an image folder): its group terms then use each calibration's own response
@@ -129,6 +135,7 @@ class ZoomTable:
     source: str = "table"
     backend: str | None = None
     keystone: np.ndarray | None = None
+    pp_correlation: np.ndarray | None = field(default=None, repr=False, compare=False)
     calibrations: list | None = field(default=None, repr=False, compare=False)
     response_cache: dict = field(default_factory=dict, repr=False, compare=False)
 

@@ -33,6 +33,7 @@ from ..optics.lens_camera import lens_camera
 from ..optics.mechanics import ARCMIN, UM
 from .discrepancy import BIC_MARGIN, Diagnosis, baseline_terms, cause_variants
 from .model import Context, Term, design_matrix
+from .noise import RowWeights
 from .response import opposite_errors
 
 __all__ = ["distortion_jacobian", "distortion_evidence", "resolve_with_distortion",
@@ -106,12 +107,12 @@ def _group_term_parts(term: Term, groups: tuple[str, ...]) -> tuple[str | None, 
     return None, "", 0
 
 
-def _fit(cols: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def _fit(cols: np.ndarray, y: np.ndarray, weights: RowWeights
+         ) -> tuple[float, np.ndarray, np.ndarray]:
     """chi2, parameters and their covariance of the weighted linear fit."""
-    sw = np.sqrt(w)
-    beta, *_ = np.linalg.lstsq(cols * sw[:, None], y * sw, rcond=None)
-    cov = np.linalg.pinv((cols * w[:, None]).T @ cols)
-    return float(np.sum(w * (y - cols @ beta) ** 2)), beta, cov
+    beta, *_ = np.linalg.lstsq(weights.whiten(cols), weights.whiten(y), rcond=None)
+    cov = np.linalg.pinv(weights.normal(cols))
+    return weights.chi2(y - cols @ beta), beta, cov
 
 
 def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
@@ -157,18 +158,18 @@ def distortion_evidence(diag: Diagnosis, p: np.ndarray, sd_p: np.ndarray,
     others = tuple(t for s in diag.causes if s.cause not in causes for t in s.terms)
     base = baseline_terms(diag.response.groups, locked_tilt=True) + others
     y = np.concatenate([diag.table.principal_point.reshape(-1), p.reshape(-1)])
-    w_c = np.repeat(1.0 / diag.final.variance, 2)
+    w_c = diag.final.weights or RowWeights(np.repeat(1.0 / diag.final.variance, 2))
     largest = base + tuple(t for c in causes for v in variants[c] for t in v)
     scale = 1.0
     for _ in range(20):  # fixed point of the distortion rows' chi2 per degree of freedom
-        w = np.concatenate([w_c, 1.0 / (scale * sd_p.reshape(-1)) ** 2])
+        w = w_c.stacked(1.0 / (scale * sd_p.reshape(-1)) ** 2)
         _, beta, _ = _fit(columns(largest), y, w)
         r = (y - columns(largest) @ beta)[2 * diag.table.n:] / sd_p.reshape(-1)
         new = float(np.sqrt(np.sum(r ** 2) / max(r.size - len(beta) / 2, 1.0)))
         if abs(new - scale) < 1e-4 * scale:
             break
         scale = new
-    w = np.concatenate([w_c, 1.0 / (scale * sd_p.reshape(-1)) ** 2])
+    w = w_c.stacked(1.0 / (scale * sd_p.reshape(-1)) ** 2)
     base_chi2, _, _ = _fit(columns(base), y, w)
     out: dict = {"p_scale": scale, "baseline_chi2": base_chi2, "causes": {},
                  "base_causes": [s.cause for s in diag.causes if s.cause not in causes]}
