@@ -1188,14 +1188,24 @@ def _warn_guard(g: dict, guard_warn_ratio: float, target_sigma_mm: float | None)
                       RuntimeWarning, stacklevel=4)
 
 
-def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
-                  Lam: _ShapePrior | None, opts: BundleOptions):
-    """Stages 2-4 of the module docstring from the starting ``state``.
+@dataclass
+class _Stages:
+    """What stages 2-4 give (:func:`_solve_stages`): the flat-target fit (on the final
+    inliers), the solution, the final problem, the inlier mask (N,), the per-stage
+    :class:`~zoomcalib.calibrate.solver.Solve` and the normal equations at the final solve's
+    end when it converged (else None)."""
 
-    Returns the flat-target fit (on the final inliers), the solution, the final problem, the
-    inlier mask (N,), the per-stage :class:`~zoomcalib.calibrate.solver.Solve` and the normal
-    equations at the final solve's end when it converged (else None).
-    """
+    flat_state: _State
+    state: _State
+    problem: _Problem
+    inlier: np.ndarray
+    stages: dict
+    normal_eqs: tuple | None
+
+
+def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.ndarray,
+                  Lam: _ShapePrior | None, opts: BundleOptions) -> _Stages:
+    """Stages 2-4 of the module docstring from the starting ``state``."""
     model, fix_aspect, refine_target = opts.model, opts.fix_aspect, opts.refine_target
     robust, reject_sigma = opts.robust, opts.reject_sigma
     max_iterations, tol = opts.max_iterations, opts.tol
@@ -1256,7 +1266,7 @@ def _solve_stages(data: _Data, state: _State, cam_map: np.ndarray, free_pts: np.
 
     # a converged solve's last linearisation is at its solution
     normal_eqs = last.get("normal_eqs") if last.get("prob") is prob else None
-    return flat_state, state, prob, inlier, stages, normal_eqs
+    return _Stages(flat_state, state, prob, inlier, stages, normal_eqs)
 
 
 @dataclass(frozen=True)
@@ -1414,9 +1424,11 @@ def calibrate_bundle(obs: Observations, options: BundleOptions | None = None, *,
     modes = _shape_modes(X0) if opts.refine_target else None
     shape_prior = (_ShapePrior.from_modes(modes, opts.target_sigma_mm, opts.warp_sigma_mm)
                    if opts.refine_target and opts.target_sigma_mm is not None else None)
-    flat_state, state, prob, inlier, stages, normal = _solve_stages(
+    solved = _solve_stages(
         _Data(vi, pi, uv, w, m, n, X0), _State(cam, rv0, tv0, X0.copy()), unknowns.cam_map,
         unknowns.free_pts, shape_prior, opts)
+    flat_state, state, prob = solved.flat_state, solved.state, solved.problem
+    inlier, stages, normal = solved.inlier, solved.stages, solved.normal_eqs
     # stage 5: covariance, the view-scatter check and the result
     if normal is None:
         normal = prob.normal_equations(state)

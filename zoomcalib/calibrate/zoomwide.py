@@ -146,7 +146,7 @@ in one self-calibrating bundle); Willson, CMU-RI-TR-94-17 (1994); Wiley & Wong (
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -1472,8 +1472,11 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations],
     print_test, solved, state = _test_the_print(setup, state, free, opts.max_rounds,
                                                 held_terms)
     # first without the smoothness prior: per-step values free of the flat-board bias
-    solve, state, free, joint_cov, iterations, basins = _solve_unsmoothed(
-        setup, state, free, observations, opts, held_terms, workers, solved)
+    free_solve = _solve_unsmoothed(setup, state, free, observations, opts, held_terms,
+                                   workers, solved)
+    solve, state, free = free_solve.solve, free_solve.start, free_solve.free
+    joint_cov, iterations, basins = (free_solve.joint_cov, free_solve.iterations,
+                                     free_solve.basins)
     forms = _Form.of(opts.pp_model, np.exp(setup.u),
                      0.5 * np.hypot(*observations[setup.names[0]].image_size))
     if joint_cov is not None:
@@ -1763,10 +1766,25 @@ def _common_board(observations: Mapping[str, Observations]) -> np.ndarray:
     return board
 
 
+@dataclass
+class _Unsmoothed:
+    """The solve without the smoothness prior (:func:`_solve_unsmoothed`): the solve, the state
+    it started from, the free mask, the joint covariance of its per-step values
+    (:func:`_joint_covariance`; None when it did not converge or has none), its iterations and
+    the basin checks (one :class:`~zoomcalib.calibrate.basins.BasinCheck` per step)."""
+
+    solve: Solve
+    start: _State
+    free: np.ndarray
+    joint_cov: Callable | None
+    iterations: int
+    basins: list[BasinCheck]
+
+
 def _solve_unsmoothed(setup: _Setup, state: _State, free: np.ndarray,
                       observations: Mapping[str, Observations], opts: ZoomWideOptions,
                       held_terms: tuple[str, ...], workers: int,
-                      solved: tuple[Solve, int] | None = None):
+                      solved: tuple[Solve, int] | None = None) -> _Unsmoothed:
     """The solve without the smoothness prior (``setup.problem(free)`` builds it; ``solved``:
     that solve and its iterations, already made from ``state``, as the print's test makes it).
     Where the terms are chosen (``opts.select``, the standard model) and the board has height
@@ -1775,10 +1793,7 @@ def _solve_unsmoothed(setup: _Setup, state: _State, free: np.ndarray,
     solve is
     repeated when a step's terms changed, from the first solve's state. Then every step's
     principal point is checked for a basin of lower cost (:func:`_move_to_best_basins`), and
-    the solve repeated when one moved. Returns the solve, the state it started from, the free
-    mask, the joint covariance of its per-step values (None when it did not converge or has
-    none), the iterations and the basin checks (one :class:`~zoomcalib.calibrate.basins.
-    BasinCheck` per step)."""
+    the solve repeated when one moved."""
     problem, max_rounds, init = setup.problem, opts.max_rounds, setup.init
     reselect = bool(opts.select and opts.model == "standard" and setup.phi.shape[1])
     unsmoothed = problem(free)
@@ -1806,7 +1821,7 @@ def _solve_unsmoothed(setup: _Setup, state: _State, free: np.ndarray,
         solve, more = _solve_with_noise(unsmoothed, state, free, max_rounds)
         iterations += more
     joint_cov = _joint_covariance(unsmoothed, solve.state) if solve.converged else None
-    return solve, state, free, joint_cov, iterations, basins
+    return _Unsmoothed(solve, state, free, joint_cov, iterations, basins)
 
 
 def _move_to_best_basins(prob: _ZoomProblem, state: _State,
