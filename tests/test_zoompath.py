@@ -129,3 +129,22 @@ def test_a_path_that_jumps_between_sessions_is_flagged(held_back):
     rec["error"][i] += 10 * rec["sd"][i]
     flags = [f for f in model.flags() if f.startswith("cy:")]
     assert flags and "step3" in flags[0], model.flags()
+
+
+def test_both_zoom_models_offer_one_interface():
+    # calibrate writes, reports and exports either through ZoomModelLike alone
+    import inspect
+
+    from zoomcalib.calibrate.zoompath import PosteriorZoomModel
+    from zoomcalib.zoom.model import ZoomModel, ZoomModelLike
+
+    members = [m for m in vars(ZoomModelLike) if not m.startswith("_")]
+    assert {"names", "predict", "at", "camera", "holdout_error", "flags", "summary",
+            "to_dict"} <= set(members)
+    for cls in (ZoomModel, PosteriorZoomModel):
+        for name in members:
+            assert hasattr(cls, name), (cls.__name__, name)
+        # every method callable as the protocol calls it (holdout_error with no argument)
+        assert all(p.default is not inspect.Parameter.empty
+                   for p in list(inspect.signature(cls.holdout_error).parameters.values())[1:])
+        assert "extrapolate" in inspect.signature(cls.at).parameters

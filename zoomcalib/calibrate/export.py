@@ -54,7 +54,7 @@ from .io import _atomic_write, _fmt
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
-    from ..zoom import ZoomModel
+    from ..zoom.model import ZoomModelLike
     from .run import CalibrateRun
 
 __all__ = [
@@ -299,7 +299,7 @@ def write_mrcal_model(path: str | os.PathLike, K: np.ndarray,
 # zoom model grid
 
 
-def write_zoom_model_grid(path: str | os.PathLike, model: ZoomModel,
+def write_zoom_model_grid(path: str | os.PathLike, model: ZoomModelLike,
                           n_points: int = 50) -> Path:
     """Write ``zoom_model_grid.csv``: the zoom model at ``n_points`` zooms spread evenly over
     its calibrated range (ends included).

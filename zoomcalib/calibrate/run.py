@@ -44,6 +44,7 @@ import numpy as np
 from ..detect import detection_pool, image_files
 from ..pool import map_in_processes, stop_pool
 from ..targets import Target, parse_pattern
+from ..zoom.model import ZoomModelLike
 from .advice import advise
 from .export import write_exports
 from .guards import (
@@ -118,7 +119,7 @@ class CalibrateRun:
     zoom: dict[str, float | None] = field(default_factory=dict)
     failures: list[str] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
-    zoom_model: object | None = None
+    zoom_model: ZoomModelLike | None = None
     holdout: dict | None = None
     dropped: list[str] = field(default_factory=list)
     backend_failures: dict[str, list[str]] = field(default_factory=dict)

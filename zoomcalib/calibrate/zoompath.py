@@ -60,7 +60,7 @@ import numpy as np
 import scipy.stats
 
 from ..camera import CameraModel
-from ..zoom.model import ZoomIntrinsics, ZoomModel, intrinsics_at
+from ..zoom.model import ZoomIntrinsics, ZoomModel, ZoomModelLike, intrinsics_at
 from .zoommodel import held_out_residuals, path_between, prior_strength
 
 __all__ = ["PosteriorZoomModel", "FLAG_P", "zoom_model_from_dict"]
@@ -124,7 +124,7 @@ class PosteriorZoomModel:
     """The intrinsics of a zoom-wide adjustment at any zoom (module docstring).
 
     Build with :meth:`from_zoom_wide`; evaluate with :meth:`predict`, :meth:`at` and
-    :meth:`camera` (the interface of :class:`zoomcalib.zoom.ZoomModel`); check with
+    :meth:`camera` (the interface of :class:`zoomcalib.zoom.model.ZoomModelLike`); check with
     :meth:`holdout_error` and :meth:`flags`.
 
     Attributes
@@ -389,7 +389,7 @@ def _focal_path(result, steps: list[str], zoom: np.ndarray, fx: np.ndarray,
                   "sd": [float(v) for v in got[1] * fx]}
 
 
-def zoom_model_from_dict(d: Mapping) -> PosteriorZoomModel | ZoomModel:
+def zoom_model_from_dict(d: Mapping) -> ZoomModelLike:
     """The zoom model of a ``zoom_model.json``'s ``"model"``: this module's for a zoom-wide
     table (``kind: posterior``), else :meth:`zoomcalib.zoom.ZoomModel.from_dict`'s curves."""
     if d.get("kind") == "posterior":

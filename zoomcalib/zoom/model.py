@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import scipy.optimize
@@ -59,7 +59,8 @@ from scipy.interpolate import BSpline
 
 from zoomcalib.camera import CameraModel, Sensor
 
-__all__ = ["ParamFit", "ZoomIntrinsics", "ZoomModel", "FOCAL_NAMES", "KINDS"]
+__all__ = ["ParamFit", "ZoomIntrinsics", "ZoomModel", "ZoomModelLike", "FOCAL_NAMES",
+           "KINDS"]
 
 #: Parameters that may be fitted in log space.
 FOCAL_NAMES: tuple[str, ...] = ("fx", "fy")
@@ -567,6 +568,31 @@ def intrinsics_at(model, zoom: float, extrapolate: bool) -> ZoomIntrinsics:
 
 # ----------------------------------------------------------------------------------------------
 # the model
+
+
+@runtime_checkable
+class ZoomModelLike(Protocol):
+    """What a zoom model offers whoever evaluates or checks it: :class:`ZoomModel` (curves
+    fitted to a table's rows) and
+    :class:`zoomcalib.calibrate.zoompath.PosteriorZoomModel` (the zoom-wide adjustment's own
+    posterior) both do, and ``calibrate`` writes and reports either through this alone."""
+
+    @property
+    def names(self) -> list[str]: ...
+
+    def predict(self, zoom: float | Sequence[float] | np.ndarray) -> dict: ...
+
+    def at(self, zoom: float, *, extrapolate: bool = False) -> ZoomIntrinsics: ...
+
+    def camera(self, zoom: float) -> CameraModel: ...
+
+    def holdout_error(self) -> dict: ...
+
+    def flags(self) -> list[str]: ...
+
+    def summary(self) -> str: ...
+
+    def to_dict(self) -> dict: ...
 
 
 class ZoomModel:
