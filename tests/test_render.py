@@ -162,3 +162,28 @@ def test_a_mapping_reused_across_views_renders_as_a_fresh_one(rng):
     assert np.array_equal(render_coverage(target, reused, R, t, sensor, 0.7, 1),
                           render_coverage(target, camera_mapping(moved), R, t, sensor, 0.7, 1))
     assert not np.array_equal(first, render_coverage(target, reused, R, t, sensor, 0.7, 1))
+
+
+def test_the_lattice_spline_is_fitpacks_on_a_grid():
+    # the renderer's grid evaluation through cached basis matrices against FITPACK, for every
+    # derivative the renderer takes, inside the lattice and beyond it (FITPACK takes the
+    # nearest end there)
+    from scipy.interpolate import RectBivariateSpline
+
+    from zoomcalib.render.image import LatticeSpline
+
+    rng = np.random.default_rng(11)
+    vs, us = np.arange(-8.0, 252.0, 4.0), np.arange(-8.0, 332.0, 4.0)
+    z = rng.normal(size=(len(vs), len(us))).cumsum(0).cumsum(1)
+    fitpack = RectBivariateSpline(vs, us, z, kx=3, ky=3)
+    lattice = LatticeSpline(vs, us, z, kx=3, ky=3)
+    rows = (np.arange(0.0, 40.0), np.linspace(-11.0, 255.0, 37))
+    cols = (np.arange(320.0), np.sort(rng.uniform(-12.0, 335.0, 50)))
+    for v in rows:
+        for u in cols:
+            for dx, dy in ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)):
+                want = fitpack(v, u, dx=dx, dy=dy)
+                got = lattice(v, u, dx=dx, dy=dy)
+                assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want)), (dx, dy)
+    p = rng.uniform(0.0, 240.0, 20), rng.uniform(0.0, 320.0, 20)
+    np.testing.assert_array_equal(lattice.ev(*p), fitpack.ev(*p))

@@ -51,7 +51,8 @@ from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
-from scipy.interpolate import RectBivariateSpline
+import scipy.sparse
+from scipy.interpolate import BSpline, RectBivariateSpline
 from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
@@ -402,9 +403,67 @@ def _unprojected_lattice(mapping, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
     return cached[key]
 
 
+class LatticeSpline(RectBivariateSpline):
+    """A :class:`scipy.interpolate.RectBivariateSpline` whose evaluation on a grid goes through
+    the B-spline basis: ``s^(a,b)(x_i, y_j) = sum_pq B^(a)_p(x_i) c_pq B^(b)_q(y_j)``, i.e.
+    ``Bx^(a) C By^(b)^T`` with the basis matrices sparse (``k + 1`` non-zeros a row). The
+    product ``C By^(b)^T`` is kept for each column set and derivative order, so the bands of
+    one image, which share their columns, each cost a sparse product of their rows alone.
+    Values equal FITPACK's to rounding; scattered points (``grid=False``, :meth:`ev`) are
+    FITPACK's own."""
+
+    def __call__(self, x, y, dx: int = 0, dy: int = 0, grid: bool = True):
+        if not grid:
+            return super().__call__(x, y, dx=dx, dy=dy, grid=False)
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        return _basis(self, 0, x, dx) @ self._times_columns(y, dy)
+
+    def _times_columns(self, y: np.ndarray, dy: int) -> np.ndarray:
+        """``C By^(dy)^T`` (nx, len(y)), kept for the last column sets."""
+        cache = self.__dict__.setdefault("_columns", {})
+        key = (dy, y.shape, y.tobytes())
+        if key not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            tx, ty = self.tck[:2]
+            coeffs = self.tck[2].reshape(len(tx) - self.degrees[0] - 1, -1)
+            cache[key] = (_basis(self, 1, y, dy) @ coeffs.T).T
+        return cache[key]
+
+
+#: Basis matrices of :func:`_basis`, by knots, degree, order and points: the lattices of one
+#: sensor share their knots, and its images their bands' rows and columns.
+_BASES: dict[tuple, scipy.sparse.csr_matrix] = {}
+
+
+def _basis(spline: RectBivariateSpline, axis: int, at: np.ndarray, order: int):
+    """(len(at), n) sparse matrix of the ``order``-th derivative of each B-spline of the
+    spline's knots along ``axis`` (0: x, 1: y) at the points ``at``."""
+    knots, degree = spline.tck[axis], spline.degrees[axis]
+    key = (knots.tobytes(), degree, order, at.tobytes())
+    if key not in _BASES:
+        if len(_BASES) >= 256:
+            _BASES.clear()
+        _BASES[key] = _basis_matrix(knots, degree, at, order)
+    return _BASES[key]
+
+
+def _basis_matrix(knots: np.ndarray, degree: int, at: np.ndarray, order: int):
+    n = len(knots) - degree - 1
+    at = np.clip(at, knots[degree], knots[n])  # outside its knots FITPACK takes the nearest end
+    dense = BSpline(knots, np.eye(n), degree, extrapolate=True)(at, nu=order)
+    # the k + 1 splines that do not vanish at each point: those of its knot span
+    first = np.clip(np.searchsorted(knots, at, side="right") - 1, degree, n - 1) - degree
+    cols = first[:, None] + np.arange(degree + 1)
+    data = np.take_along_axis(dense, cols, axis=1)
+    return scipy.sparse.csr_matrix((data.ravel(), cols.ravel(),
+                                    np.arange(0, data.size + 1, degree + 1)),
+                                   shape=(len(at), n))
+
+
 def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
                       step_px: int = 4, surface: BoardSurface | None = None
-                      ) -> tuple[RectBivariateSpline, RectBivariateSpline]:
+                      ) -> tuple[LatticeSpline, LatticeSpline]:
     """Splines of the board point seen by each pixel position.
 
     Parameters
@@ -419,7 +478,7 @@ def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
 
     Returns
     -------
-    bx, by : RectBivariateSpline
+    bx, by : LatticeSpline
         Board x and y (mm) as functions of ``(v, u)`` (row, column order).
     """
     us = np.arange(-2 * step_px, sensor.width_px + 2 * step_px, step_px, dtype=float)
@@ -438,8 +497,8 @@ def board_coordinates(mapping, R: np.ndarray, t: np.ndarray, sensor: Sensor,
     if np.any(~np.isfinite(b)):
         raise ValueError("the board plane does not cover the whole field of view "
                          "(a pose looks past the board's horizon)")
-    bx = RectBivariateSpline(vs, us, b[:, 0].reshape(gv.shape), kx=3, ky=3)
-    by = RectBivariateSpline(vs, us, b[:, 1].reshape(gv.shape), kx=3, ky=3)
+    bx = LatticeSpline(vs, us, b[:, 0].reshape(gv.shape), kx=3, ky=3)
+    by = LatticeSpline(vs, us, b[:, 1].reshape(gv.shape), kx=3, ky=3)
     return bx, by
 
 
