@@ -1628,7 +1628,7 @@ def _test_the_print(setup: _Setup, state: _State, free: np.ndarray, max_rounds: 
 
 def _describe(result: ZoomWideResult, setup: _Setup, prob: _ZoomProblem, solve: Solve,
               unsmoothed: tuple, basins: list, forms: dict, models: dict,
-              joint_cov: np.ndarray | None, tau_source: str) -> None:
+              joint_cov: Callable | None, tau_source: str) -> None:
     """Fill ``result``'s board, print, unsmoothed rows, held-out paths and each step's
     ``info`` (session, basin check, where tau came from, zoom models, the prior's share)."""
     names = setup.names
