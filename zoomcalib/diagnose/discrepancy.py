@@ -817,6 +817,8 @@ def fit_pixel_pitch(table: ZoomTable, response: LensResponse, tolerances: Tolera
     minimum inside the range) and ``stop_reason`` (``'grid minimum'`` or ``'range end'``).
     """
     lo, hi = response.pitch_range(table.fx, table.source)
+    # a grid, not scipy.optimize.minimize_scalar: the spiral's phase makes D multimodal in the
+    # pitch, and the grid also gives the D - min D <= 1 interval
     grid = np.geomspace(lo, hi, n_grid) if hi > lo else np.array([lo])
     table = replace(table, calibrations=None)  # the paraxial shift: one trace per pitch is too dear
     groups = table.zoom_groups()

@@ -250,6 +250,8 @@ def _inverse(y: np.ndarray, transform: str) -> np.ndarray:
 
 def _smoother(A: np.ndarray, y: np.ndarray, w: np.ndarray, lam_rel: float | None):
     """Weighted (penalised) least squares; returns coef, unscaled cov, hat diagonal, residuals.
+    (Not ``scipy.interpolate.make_smoothing_spline``: it returns neither the coefficients'
+    covariance nor the hat diagonal, which the curves' sigmas and the penalty's choice need.)
 
     ``w`` are the true weights (1 / variance of y, or arbitrary equal ones); they are normalised
     internally for conditioning and the covariance is returned for the true weights.
