@@ -281,3 +281,20 @@ def test_fits_report_whether_every_parameter_is_determined(response):
     twice = fit_terms((offset_term(), offset_term()), ctx, np.ones(table.n), table.zoom_groups())
     assert twice.rank == 2 and not twice.converged
     assert twice.summary()["stop_reason"] == "rank deficient"
+
+
+def test_a_required_cause_leads_the_causes_and_names_the_table(response):
+    # a cause required by other evidence than the principal points (the tangential
+    # distortion's, in the diagnosis) heads the list and the summary, even where a cause the
+    # principal points select by themselves has the larger drop in BIC on them
+    rng = np.random.default_rng(31)
+    rows, truth = synthetic_zoom_table(LENS, "backlash", rng, magnitude=12.0, with_temperature=True)
+    table = ZoomTable.from_rows(rows)
+    plain = diagnose_table(table, response)
+    assert plain.cause == "backlash", plain.cause
+    held = diagnose_table(table, response, require={"thermal_drift": "given by the test"})
+    names = [s.cause for s in held.causes]
+    assert names[0] == "thermal_drift" and "backlash" in names, names
+    assert held.cause == "thermal_drift"
+    drift, backlash = held.causes[0], held.causes[names.index("backlash")]
+    assert drift.evidence == "given by the test" and backlash.drop_bic > drift.drop_bic

@@ -462,7 +462,10 @@ def _drop_each(fitter: Fitter, base, chosen) -> list[LinearFit]:
 
 
 def _describe(fitter: Fitter, base, chosen, final) -> None:
-    """Fill in each chosen cause's ``drop_bic`` and parameters from the final model."""
+    """Fill in each chosen cause's ``drop_bic`` and parameters from the final model, and
+    order them: the required ones first (other evidence than the principal points put them
+    in, so their ``drop_bic`` on the principal points understates them), then by
+    ``drop_bic``."""
     drops = _drop_each(fitter, base, chosen)
     start = sum(len(t.params) for t in base)
     names = final.names
@@ -473,7 +476,7 @@ def _describe(fitter: Fitter, base, chosen, final) -> None:
         s.params_sd = dict(zip(names[own], final.sd[own].tolist(), strict=True))
         s.drop_bic = float(without.bic - final.bic)
         start += k
-    chosen.sort(key=lambda s: -s.drop_bic)
+    chosen.sort(key=lambda s: (not s.evidence, -s.drop_bic))
 
 
 def _structure_terms(ctx: Context, groups: np.ndarray) -> list[tuple[str, tuple[Term, ...]]]:
