@@ -118,7 +118,8 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     Each calibration takes most of the keystone into its poses, which leaves the tilt a faint
     trace in the principal points (``fx theta (1 - (f / L) A)``) and a clear one in the
     tangential distortion; the diagnosis reads both with the table's keystone response
-    (docs/diagnose.md, "The diagnosis with the keystone")."""
+    (docs/diagnose.md, "The diagnosis with the keystone"). The default calibration's table (the
+    zoom-wide adjustment's) is diagnosed alike."""
     rng = np.random.default_rng(20261124)
     angle = rng.uniform(0.0, 2.0 * np.pi)
     truth = rng.uniform(0.9, 1.0) * np.array([np.cos(angle), np.sin(angle)])
@@ -144,6 +145,26 @@ def test_rendered_axis_tilt_is_diagnosed(tmp_path):
     evidence = doc["distortion_evidence"]
     assert evidence["best"] == "axis_tilt" and evidence["margin"] > 10.0, evidence
     joint = evidence["causes"]["axis_tilt"]
+    got = np.array([joint["params"]["tilt_x_mrad"], joint["params"]["tilt_y_mrad"]])
+    sd = np.array([joint["params_sd"]["tilt_x_mrad"], joint["params_sd"]["tilt_y_mrad"]])
+    assert np.all(np.abs(got - truth) < 3.0 * sd), (got, sd, truth)
+
+    # the default calibration (the zoom-wide adjustment) of the same images: its rows carry a
+    # keystone response of their own, so its table is diagnosed alike
+    import shutil
+
+    from zoomcalib.calibrate.run import calibrate_folder
+
+    shutil.copytree(tmp_path / "diag" / "calibration" / "detections",
+                    tmp_path / "zw" / "detections")
+    calibrate_folder(tmp_path / "set", "chessboard:9x6:25", tmp_path / "zw", ("opencv",),
+                     workers=1, log=lambda m: None, report=False)
+    diagnose_input(tmp_path / "zw" / "zoom_calibration.csv", tmp_path / "diag_zw", lens,
+                   sensor.pixel_pitch_mm, tol, log=lambda m: None, report=False)
+    zoom_wide = read_json(tmp_path / "diag_zw" / "diagnosis.json")
+    assert zoom_wide["cause"] == "axis_tilt", (zoom_wide["candidates"],
+                                               zoom_wide["distortion_evidence"])
+    joint = zoom_wide["distortion_evidence"]["causes"]["axis_tilt"]
     got = np.array([joint["params"]["tilt_x_mrad"], joint["params"]["tilt_y_mrad"]])
     sd = np.array([joint["params_sd"]["tilt_x_mrad"], joint["params_sd"]["tilt_y_mrad"]])
     assert np.all(np.abs(got - truth) < 3.0 * sd), (got, sd, truth)

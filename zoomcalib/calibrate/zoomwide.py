@@ -162,6 +162,7 @@ from .opencv_backend import (
     calibrate_opencv,
     calibrate_opencv_multistart,
     calibrate_opencv_robust,
+    keystone_response,
     not_a_camera,
     pose_sigmas_unused,
 )
@@ -1501,7 +1502,33 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations],
     _describe(result, setup, prob, solve, unsmoothed, basins, forms, models, joint_cov,
               tau_source)
     _add_model_choice_spread(result, observations, setup.held, opts.decentring, held_terms)
+    _add_keystone_responses(result, observations, "principal-point" in opts.fixed)
     return result
+
+
+def _add_keystone_responses(result: ZoomWideResult, observations: Mapping[str, Observations],
+                            principal_point_held: bool = False) -> None:
+    """Each step's ``info["keystone_response"]``: how its calibration answers a keystone of
+    the image (:func:`~zoomcalib.calibrate.opencv_backend.keystone_response`), linearised at
+    the adjustment's solution on the step's views and its board's estimated points, with the
+    step's distortion terms free, its aspect ratio held where every step shares one and its
+    principal point where it is held. The shared board and aspect make the adjustment's own
+    answer differ a little from this one-step problem's; the diagnosis reads an axis tilt's
+    keystone from it (``docs/diagnose.md``). Left out where that problem is singular."""
+    shared_aspect = bool(np.isfinite(result.aspect))
+    for name, res in result.results.items():
+        flags = _distortion_flags(result.terms.get(name, ()))
+        if shared_aspect:
+            flags |= cv2.CALIB_FIX_ASPECT_RATIO
+        if principal_point_held:
+            flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        obs = observations[name]
+        board = np.asarray(res.object_points, float)
+        obj = [board[np.asarray(ids)] for ids, _ in obs.views]
+        response = keystone_response(obj, res.K, res.dist, res.rvecs, res.tvecs, flags,
+                                     len(res.dist))
+        if response is not None:
+            res.info["keystone_response"] = {k: v.tolist() for k, v in response.items()}
 
 
 def _set_up(observations: Mapping[str, Observations], opts: ZoomWideOptions,
