@@ -68,7 +68,7 @@ def _single_backend(rows: Sequence[Mapping], steps: list[str], source: str) -> s
 
 def _keystone(rows: Sequence[Mapping]) -> np.ndarray | None:
     """(N, 4, 2) keystone response of every row, None unless all rows have it finite (a
-    per-step OpenCV calibration writes it; other backends do not)."""
+    per-step OpenCV calibration and the zoom-wide adjustment write it; the bundle does not)."""
     cols = [_column(rows, key) for key in KEYSTONE_COLUMNS]
     if any(c is None or not np.all(np.isfinite(c)) for c in cols):
         return None
