@@ -50,7 +50,8 @@ MANIFEST = "manifest.json"
 #: ones it does not write itself.
 _OWN_FILES: tuple[str, ...] = (
     "calibration.json", "calibration.yml", "zoom_calibration.csv",
-    "zoom_calibration_unsmoothed.csv", "zoom_model.json",
+    "zoom_calibration_unsmoothed.csv", "zoom_calibration_unsmoothed_correlation.json",
+    "zoom_model.json",
     "principal_point_path.png", "focal_length.png", "residuals_*.png", "cross_validation.png",
     "report.html",
     MANIFEST,
