@@ -435,7 +435,7 @@ def _long_end_step(seed: int, k1: float = 14.4) -> tuple[Observations, float]:
 
 @pytest.mark.parametrize("seed", [0, 3])
 def test_the_start_survives_where_opencvs_own_start_fails(seed):
-    from zoomcalib.calibrate.zoomwide import _distortion_flags, _opencv_start, _robust_start
+    from zoomcalib.calibrate.stepfits import _distortion_flags, _opencv_start, _robust_start
 
     obs, fx = _long_end_step(seed)
     # OpenCV from its own (homography) start ends at about twice the focal length with k1, and
@@ -480,7 +480,7 @@ def test_a_distortion_centre_off_the_principal_point_does_not_pin_it(rng):
     # centred 3, 2 px from the principal point: held at p1 = p2 = 0, the long end's principal
     # point landed on the distortion's centre with a sigma of 0.05-0.09 px (28-62 sigma off on
     # a rendered sweep); with p1, p2 free it stays within its sigmas of the truth
-    from zoomcalib.calibrate.zoomwide import with_decentring
+    from zoomcalib.calibrate.stepfits import with_decentring
 
     assert with_decentring(("k1",)) == ("k1", "p1", "p2")
     assert with_decentring(()) == () and with_decentring(("k1", "k2", "k3"))[2:4] == ("p1", "p2")
@@ -743,20 +743,20 @@ def test_the_rational_model_at_every_step_when_asked(rng):
 
 
 def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatch):
-    import zoomcalib.calibrate.zoomwide as zoomwide
+    import zoomcalib.calibrate.stepfits as stepfits
 
     obs, _, _ = sweep_observations(rng, steps=2, views=8, fx_range=(2300.0, 3000.0))
     step = obs["step0"]
     few = select_distortion(Observations(step.object_points, step.views[:5], step.image_size))
     assert few.terms == DISTORTION_SETS["k1k2p1p2k3"] and "fewer than 6" in few.why
-    real = zoomwide.held_out_errors
+    real = stepfits.held_out_errors
 
     def rational_fails(o, terms, *args):
         if "k4" in terms:
             raise RuntimeError("held-out fit of the rational model diverged")
         return real(o, terms, *args)
 
-    monkeypatch.setattr(zoomwide, "held_out_errors", rational_fails)
+    monkeypatch.setattr(stepfits, "held_out_errors", rational_fails)
     choice = select_distortion(step)
     assert choice.why is None and list(choice.failed) == ["rational"]
     assert "diverged" in choice.to_dict()["failed"]["rational"]
@@ -772,7 +772,7 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
             squared[2], count[2] = 0.0, 0  # a view its intrinsics could not place
         return squared, count
 
-    monkeypatch.setattr(zoomwide, "held_out_errors", k1_places_no_third_view)
+    monkeypatch.setattr(stepfits, "held_out_errors", k1_places_no_third_view)
     choice = select_distortion(step)
     assert choice.unplaced == {"k1": 1}
     # the run's log says so, as it says a set that failed
@@ -789,7 +789,7 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
             raise RuntimeError("held-out fit diverged: principal point outside the image")
         return real(o, terms, *args)
 
-    monkeypatch.setattr(zoomwide, "held_out_errors", only_none_fits)
+    monkeypatch.setattr(stepfits, "held_out_errors", only_none_fits)
     choice = select_distortion(step)
     # no evidence for no distortion: all five terms, and why
     assert choice.terms == DISTORTION_SETS["k1k2p1p2k3"], choice

@@ -13,8 +13,9 @@ Model
 -----
 Step ``s`` has intrinsics ``theta_s = (fx, fy, cx, cy, k1, k2, p1, p2, k3)`` (OpenCV's pinhole
 and Brown-Conrady model, pixels in OpenCV's convention), and the rational model's ``k4, k5, k6``
-where its held-out views choose them (:func:`select_distortion`); each view ``v`` its pose
-``Rt_cam_board = (rvec_v, tvec_v)``. The board is one surface for every view of every step:
+where its held-out views choose them (:func:`~zoomcalib.calibrate.stepfits.select_distortion`);
+each view ``v`` its pose ``Rt_cam_board = (rvec_v, tvec_v)``. The board is one surface for every
+view of every step:
 
 .. math::
 
@@ -117,7 +118,8 @@ above, a third-difference prior, or a polynomial of degree 1-3 in ``u`` (a diffe
 the next order with ``tau -> 0``), kept to the second-difference prior unless another candidate
 predicts the left-out steps better by 2 standard errors.
 
-Which distortion terms a step supports is chosen by held-out views (:func:`select_distortion`):
+Which distortion terms a step supports is chosen by held-out views
+(:func:`~zoomcalib.calibrate.stepfits.select_distortion`):
 two-fold cross-validation over the step's views with OpenCV, the simplest term set whose held-out
 error is within 1 % of the best. The choice is made twice: on the flat board, for the start,
 then on the board's shape estimated by the solve without the smoothness prior (OpenCV with
@@ -155,13 +157,11 @@ import scipy.linalg
 import scipy.sparse
 import scipy.stats
 
-from ..pool import map_in_processes, one_blas_thread
+from ..pool import one_blas_thread
 from .basins import BasinCheck, best_basin
 from .geometry import project_jacobian
 from .opencv_backend import (
     calibrate_opencv,
-    calibrate_opencv_multistart,
-    calibrate_opencv_robust,
     keystone_response,
     not_a_camera,
     pose_sigmas_unused,
@@ -169,6 +169,22 @@ from .opencv_backend import (
 from .result import CalibrationResult, Observations
 from .scatter import ViewScatter, deletion_steps, noise_share, view_groups, view_scatter
 from .solver import NormalBlocks, Solve, levenberg_marquardt
+from .stepfits import (
+    DISTORTION_SETS,
+    DISTORTION_TERMS,
+    RATIONAL_TERMS,
+    TermChoice,
+    _distortion_flags,
+    _eight,
+    _guess,
+    _initial,
+    _map_steps,
+    _select_on_board,
+    _without,
+    held_out_errors,
+    select_distortion,
+    with_decentring,
+)
 from .zoommodel import (
     CANDIDATES,
     PathPrior,
@@ -187,7 +203,7 @@ __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResu
            "prior_strength", "pooled_prior_strength", "second_difference", "board_height_modes"]
 
 #: Per-step intrinsics of the adjustment, in this order.
-PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+PARAMS = ("fx", "fy", "cx", "cy", *DISTORTION_TERMS)
 #: Parameters tied across zoom by the smoothness prior. Not the rational model's k4, k5, k6:
 #: nearly collinear with k1, k2, k3 (to first order ``k4 = -k1``), they are told apart only by
 #: a wide field's views, so only the steps whose held-out views choose them estimate them.
@@ -197,21 +213,11 @@ SMOOTHED = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
 ZOOM_MODELS = ("angle2", "prior2", "select")
 #: Parameters whose zoom model is chosen by held-out steps (``pp_model="select"``).
 SELECTED = ("cx", "cy")
-#: Distortion term sets, simplest first.
-DISTORTION_SETS: dict[str, tuple[str, ...]] = {
-    "none": (), "k1": ("k1",), "k1k2": ("k1", "k2"), "k1k2p": ("k1", "k2", "p1", "p2"),
-    "k1k2p1p2k3": ("k1", "k2", "p1", "p2", "k3"),
-    "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
-}
 #: Per distortion term, the power ``p`` of the corner's normalised radius ``d / fx`` that turns
 #: it into its displacement at the image corner as a fraction of the half-diagonal ``d``
 #: (radial ``k r^(p+1)``, tangential ``p r^2``; the rational model's denominator terms k4, k5, k6
 #: act to first order as -k1, -k2, -k3).
 CORNER_POWER = {"k1": 2, "k2": 4, "p1": 1, "p2": 1, "k3": 6, "k4": 2, "k5": 4, "k6": 6}
-_FIX_FLAGS = {"k1": cv2.CALIB_FIX_K1, "k2": cv2.CALIB_FIX_K2, "k3": cv2.CALIB_FIX_K3,
-              "k4": cv2.CALIB_FIX_K4, "k5": cv2.CALIB_FIX_K5, "k6": cv2.CALIB_FIX_K6}
-#: The rational model's denominator terms (OpenCV's ``CALIB_RATIONAL_MODEL``).
-RATIONAL_TERMS = ("k4", "k5", "k6")
 _OUTLIER_SIGMA = 5.0
 
 
@@ -233,32 +239,10 @@ def board_height_modes(points: np.ndarray, max_degree: int = 4) -> np.ndarray:
     return np.column_stack(cols) if cols else np.zeros((len(xy), 0))
 
 
-def _distortion_flags(terms: tuple[str, ...]) -> int:
-    flags = 0 if {"p1", "p2"} & set(terms) else cv2.CALIB_ZERO_TANGENT_DIST
-    if set(RATIONAL_TERMS) & set(terms):
-        flags |= cv2.CALIB_RATIONAL_MODEL
-    for k, bit in _FIX_FLAGS.items():
-        if k not in terms:
-            flags |= bit
-    return flags
 
 
-def _eight(dist) -> np.ndarray:
-    """(8,) OpenCV's first eight distortion terms of ``dist`` (zeros where it has fewer)."""
-    d = np.zeros(8)
-    d[:min(len(np.ravel(dist)), 8)] = np.ravel(dist)[:8]
-    return d
 
 
-def _guess(start: CalibrationResult, terms: tuple[str, ...]) -> dict:
-    """``start``'s camera matrix and distortion as OpenCV's initial guess for a fit of
-    ``terms`` (the others zero; five terms unless ``terms`` has a rational one)."""
-    start_dist = _eight(start.dist)
-    rational = bool(set(RATIONAL_TERMS) & set(terms))
-    if not rational and np.any(start_dist[5:]):
-        start_dist[:] = 0.0  # a rational fit's k1, k2, k3 mean other things
-    dist = [d if p in terms else 0.0 for p, d in zip(PARAMS[4:], start_dist, strict=True)]
-    return {"K_guess": start.K, "dist_guess": np.array(dist if rational else dist[:5])}
 
 
 def _tied(free: np.ndarray, j: int) -> np.ndarray:
@@ -271,203 +255,14 @@ def _tied(free: np.ndarray, j: int) -> np.ndarray:
     return tied
 
 
-def with_decentring(terms: tuple[str, ...], decentring: bool = True) -> tuple[str, ...]:
-    """``terms`` with p1, p2 added when a radial term is among them (in :data:`PARAMS` order;
-    ``decentring`` False: ``terms`` as they are).
-
-    OpenCV's model centres the radial distortion on the principal point; a real lens's centre
-    of distortion lies elsewhere by some px (Willson & Shafer, CMU-CS-93-122, 1993: the image
-    centres of a zoom lens). To first order in the offset ``e`` (normalised), radial
-    distortion about ``e`` is radial distortion about the principal point plus the tangential
-    terms ``p1 = -k1 e_y``, ``p2 = -k1 e_x``. Held at zero, they make the distortion's centre
-    pin the principal point: at the long end, where the views' perspective barely does, the
-    principal point then lands on the centre of distortion with a sigma of hundredths of a
-    px, however far that is from it. The held-out choice does not ask for them (their effect
-    on the image points is what a pose and a principal-point shift take up)."""
-    if not decentring or not {"k1", "k2", "k3"} & set(terms):
-        return tuple(terms)
-    return tuple(q for q in PARAMS[4:] if q in terms or q in ("p1", "p2"))
 
 
-def held_out_errors(obs: Observations, terms: tuple[str, ...],
-                    board_points: np.ndarray | None = None,
-                    start: CalibrationResult | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Squared reprojection errors of held-out views, two folds (even and odd views):
-    intrinsics from one half with ``terms`` free, each view of the other half placed by
-    ``cv2.solvePnP`` with those intrinsics. Returns per view the sum of squared errors (px^2)
-    and the number of points, both (V,); a view that cannot be placed has 0 points (the
-    caller sees it: :func:`select_distortion` judges every set on the views all placed).
-    RuntimeError when a fold's fit is no camera
-    (:func:`~zoomcalib.calibrate.opencv_backend.not_a_camera`).
-
-    ``board_points`` (n, 3), board frame: the board's estimated shape (a waving board's
-    heights), used in place of ``obs.object_points``; OpenCV then needs a start, ``start``'s
-    camera matrix and distortion (the terms not in ``terms`` set to zero).
-    """
-    flags = _distortion_flags(terms)
-    if board_points is not None:
-        obs = Observations(np.asarray(board_points, float), obs.views, obs.image_size, obs.names)
-    guess = {}
-    if start is not None:
-        guess = _guess(start, terms)
-    elif board_points is not None:
-        raise ValueError("held_out_errors: a board shape needs a start calibration")
-    idx = np.arange(obs.n_views)
-    squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
-    for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
-        with pose_sigmas_unused():  # a pose's sigma is not used here
-            res = calibrate_opencv(obs.subset(train), flags=flags, camera_only=True, **guess)
-        if (why := not_a_camera(res, obs.image_size)) is not None:
-            raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
-                               f"diverged: {why}")
-        for i in test:
-            ids, pts = obs.views[i]
-            obj = obs.object_points[ids].astype(np.float64)
-            try:
-                ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
-                if ok:
-                    proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
-                    squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
-            except cv2.error:
-                continue                   # not placed: 0 points, seen by the caller
-    return squared, count
 
 
-@dataclass
-class TermChoice:
-    """What :func:`select_distortion` chose, and why.
-
-    ``terms``: the chosen distortion terms. ``mse_px2``: held-out mean squared error per term
-    set (px^2 per point; ``inf`` where the set could not be fitted). ``excess_se_px2``: the
-    standard error of each set's excess over the best set, from the view-by-view differences.
-    ``board``: ``"flat"`` or ``"estimated"``, the board shape the choice was made on.
-    ``five_terms``: the best five-term set's name; ``rational_log_ratio``: the mean and the
-    standard error of the per-view log ratio of the rational model's held-out mean squared
-    error over that set's (:func:`_log_ratio`), None where not both could be fitted.
-    ``failed``: per term set that could not be fitted on the held-out halves, why (such a set
-    is not a candidate); ``why``: why no choice was made (too few views, no set fitted, or
-    only the set without distortion: half the views of a narrow step that cannot hold a
-    principal point with any term are no evidence that it has none), else None, the terms
-    then all five. ``unplaced``: per term set, the held-out views its
-    intrinsics could not place (``cv2.solvePnP`` failed); every set is then judged on the
-    views all of them placed.
-    """
-
-    terms: tuple[str, ...]
-    mse_px2: dict[str, float] = field(default_factory=dict)
-    excess_se_px2: dict[str, float] = field(default_factory=dict)
-    board: str = "flat"
-    five_terms: str = "k1k2p1p2k3"
-    rational_log_ratio: tuple[float, float] | None = None
-    failed: dict[str, str] = field(default_factory=dict)
-    why: str | None = None
-    unplaced: dict[str, int] = field(default_factory=dict)
-
-    @property
-    def rational(self) -> bool:
-        """The rational model was chosen."""
-        return bool(set(RATIONAL_TERMS) & set(self.terms))
-
-    def other_model_weight(self, tolerance: float = 0.01) -> float:
-        """The probability that the model not chosen (rational or the best five-term set) is
-        the better one: that the rational model's held-out error is below the five terms' by
-        more than ``tolerance`` (relative), or is not, from the per-view log ratio's mean ``m``
-        and standard error ``s`` (normal): ``P = Phi((log(1 - tolerance) - m) / s)``, and
-        ``1 - P`` where the rational model was chosen. 0 when unknown."""
-        if self.rational_log_ratio is None or not self.rational_log_ratio[1] > 0:
-            return 0.0
-        mean, se = self.rational_log_ratio
-        better = float(scipy.stats.norm.cdf((np.log1p(-tolerance) - mean) / se))
-        return 1.0 - better if self.rational else better
-
-    def to_dict(self) -> dict:
-        return {"terms": list(self.terms), "mse_px2": self.mse_px2,
-                "excess_se_px2": self.excess_se_px2, "board": self.board,
-                "five_terms": self.five_terms,
-                "rational_log_ratio": (None if self.rational_log_ratio is None
-                                       else list(self.rational_log_ratio)),
-                "failed": dict(self.failed), "why": self.why, "unplaced": dict(self.unplaced)}
 
 
-def select_distortion(obs: Observations, tolerance: float = 0.01,
-                      board_points: np.ndarray | None = None,
-                      start: CalibrationResult | None = None, n_se: float = 2.0) -> TermChoice:
-    """The simplest distortion term set whose held-out error (:func:`held_out_errors`, with
-    the board's shape ``board_points`` and the ``start`` calibration if given) exceeds the
-    best set's by less than ``tolerance`` (relative), ``n_se`` standard errors included:
-    ``excess + n_se * se(excess) <= tolerance * mse_best``. All five terms when the step has
-    fewer than 6 views. The rational model (OpenCV's eight terms) is an extension, not a
-    candidate of the same rank: it replaces that choice only where its held-out error is below
-    the best five-term set's by more than ``tolerance``, ``n_se`` standard errors included, view
-    by view (:func:`_log_ratio`: a wide field the five terms do not fit); where the data
-    cannot tell, its nearly collinear terms would only trade with the others.
-
-    With the board's shape known, the held-out error of the right terms is the detection noise
-    alone, so ``tolerance`` leaves out a term only when the systematic error it removes is
-    below about ``sqrt(tolerance)`` (10 %) of the noise per point; the standard errors keep it
-    where the data cannot tell (a choice that would otherwise change with the noise draw, each
-    draw reporting the sigma of its own choice). With a flat board its misfit sits in every
-    set's error and hides such terms.
-    """
-    if obs.n_views < 6:
-        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"],
-                          why=f"{obs.n_views} views, fewer than 6: all five terms")
-    per_view, failed = {}, {}
-    for name, terms in DISTORTION_SETS.items():
-        try:
-            per_view[name] = held_out_errors(obs, terms, board_points, start)
-        except (ValueError, RuntimeError) as exc:
-            failed[name] = " ".join(str(exc).split())
-    board = "flat" if board_points is None else "estimated"
-    # a view one set cannot place is judged by none: the sets are compared on the same views
-    placed = np.all([c > 0 for _, c in per_view.values()], axis=0) if per_view else None
-    unplaced = {k: int(np.sum(c == 0)) for k, (_, c) in per_view.items() if np.any(c == 0)}
-    if per_view and placed.sum() < 2:
-        per_view = {}
-    if not per_view:
-        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
-                          why="no term set could be fitted on held-out views: all five terms",
-                          unplaced=unplaced)
-    if set(per_view) == {"none"}:
-        # every set with a term diverged on half the views (a narrow step's principal point
-        # leaves the image): the folds cannot tell, which is no evidence for no distortion
-        return TermChoice(DISTORTION_SETS["k1k2p1p2k3"], board=board, failed=failed,
-                          why="only the set without distortion could be fitted on held-out "
-                              "views: all five terms", unplaced=unplaced)
-    per_view = {k: (sq[placed], c[placed]) for k, (sq, c) in per_view.items()}
-    n_points = {k: c.sum() for k, (_, c) in per_view.items()}
-    mse = {k: sq.sum() / n_points[k] if n_points[k] else np.inf
-           for k, (sq, _) in per_view.items()}
-    standard = [k for k in per_view if k != "rational"] or list(per_view)
-    best = min(standard, key=mse.get)
-    se = {k: float(np.std(sq - per_view[best][0], ddof=1) * np.sqrt(len(sq))
-                   / max(n_points[best], 1)) for k, (sq, _) in per_view.items()}
-    chosen = next(k for k in standard
-                  if mse[k] - mse[best] + n_se * se[k] <= tolerance * mse[best])
-    ratio = (_log_ratio(per_view["rational"], per_view[best])
-             if "rational" in per_view and "rational" not in standard else None)
-    if ratio is not None and ratio[0] + n_se * ratio[1] < np.log1p(-tolerance):
-        chosen = "rational"
-    return TermChoice(DISTORTION_SETS[chosen],
-                      {k: float(mse.get(k, np.inf)) for k in DISTORTION_SETS},
-                      {k: se[k] for k in per_view}, board, best, ratio, failed,
-                      unplaced=unplaced)
 
 
-def _log_ratio(rational: tuple[np.ndarray, np.ndarray], best: tuple[np.ndarray, np.ndarray]
-               ) -> tuple[float, float] | None:
-    """The mean and standard error of the per-view log ratio of the rational model's held-out
-    mean squared error over the best five-term set's (per view: squared sum, points). Judged
-    view by view, a view that one set places badly does not decide it; None below 4 views
-    placed by both. The rational model is chosen where the mean, ``n_se`` standard errors
-    included, is below ``log(1 - tolerance)`` (:func:`select_distortion`)."""
-    (sq_r, n_r), (sq_b, n_b) = rational, best
-    both = (n_r > 0) & (n_b > 0) & (sq_b > 0) & (sq_r > 0)
-    if both.sum() < 4:
-        return None
-    log_ratio = np.log(sq_r[both] / n_r[both]) - np.log(sq_b[both] / n_b[both])
-    return (float(np.mean(log_ratio)),
-            float(np.std(log_ratio, ddof=1) / np.sqrt(len(log_ratio))))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -934,7 +729,8 @@ class ZoomWideResult:
         (``held_out``) and, through the smoothness prior, those the other steps of its chain
         estimate.
     held_out : dict of str to TermChoice
-        Per step: the held-out errors behind its distortion terms (:class:`TermChoice`).
+        Per step: the held-out errors behind its distortion terms
+        (:class:`~zoomcalib.calibrate.stepfits.TermChoice`).
     unsmoothed : dict of str to dict
         Per step, the solve without the smoothness prior (:func:`_unsmoothed_rows`): rows
         that are not tied to each other by the prior, for the diagnosis; empty when that
@@ -981,94 +777,14 @@ class ZoomWideResult:
     unsmoothed_pp_correlation: np.ndarray | None = None
 
 
-def _map_steps(function, items: list, workers: int) -> list:
-    """``[function(*item) for item in items]``, in ``workers`` processes when more than one
-    (each step's OpenCV fits are independent of the others'; the results, in order, are the
-    same either way)."""
-    return map_in_processes(function, items, workers)
 
 
-def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
-                  held_terms: tuple[str, ...] = (), model: str = "standard"):
-    """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
-    it could not be started or None)``; no term of ``held_terms`` is chosen. Without
-    ``select`` the terms are ``model``'s all (five, or the rational model's eight)."""
-    seed, seed_failure = _robust_start(obs, held_terms)
-    held = select_distortion(obs, start=seed) if select else None
-    every = DISTORTION_SETS["rational" if model == "rational" else "k1k2p1p2k3"]
-    terms = {name: _without(with_decentring(held.terms, decentring) if select else every,
-                            held_terms)}
-    try:
-        return terms[name], held, _opencv_start(name, obs, terms, seed, held_terms), None
-    except ValueError as exc:
-        why = str(exc) if seed_failure is None else f"{exc}; robust start: {seed_failure}"
-        return terms[name], held, None, why
 
 
-def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
-             workers: int = 1, held_terms: tuple[str, ...] = (), model: str = "standard"):
-    """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
-    step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
-    start from :func:`_robust_start`, not from OpenCV's own start. Steps run in ``workers``
-    processes."""
-    terms, held, init, skipped = {}, {}, {}, {}
-    items = [(name, obs, select, decentring, held_terms, model)
-             for name, obs in observations.items()]
-    for (name, *_), (term, choice, start, why) in zip(
-            items, _map_steps(_initial_step, items, workers), strict=True):
-        terms[name] = term
-        if choice is not None:
-            held[name] = choice
-        if start is not None:
-            init[name] = start
-        else:
-            skipped[name] = why
-    return terms, held, init, skipped
 
 
-def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
-                  ) -> tuple[CalibrationResult | None, str | None]:
-    """A calibration with k1 (unless held) that does not depend on OpenCV's own start
-    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried)
-    and None; or None and why no start gave a camera (the step then starts from OpenCV's own
-    start alone, and a step that cannot start says both reasons)."""
-    try:
-        return calibrate_opencv_robust(obs, flags=_distortion_flags(
-            _without(("k1",), held_terms)), camera_only=True), None
-    except (ValueError, RuntimeError) as exc:
-        return None, " ".join(str(exc).split()) or type(exc).__name__
 
 
-def _opencv_start(name: str, obs: Observations, terms: dict,
-                  seed: CalibrationResult | None = None, held_terms: tuple[str, ...] = ()
-                  ) -> CalibrationResult:
-    """OpenCV with the step's chosen terms, then with k1 alone, then with no distortion (a
-    long-end step whose distortion OpenCV cannot separate): the start the adjustment then
-    improves. Each from OpenCV's own start and from ``seed`` (:func:`_robust_start`), the
-    result with the smallest RMS that is a camera
-    (:func:`~zoomcalib.calibrate.opencv_backend.not_a_camera`) kept; with neither, from a
-    range of focal lengths
-    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_multistart`).
-    ``terms[name]`` is set to the set used; ValueError when no set gives a camera."""
-    reasons = []
-    for attempt in dict.fromkeys((terms[name], _without(("k1",), held_terms), ())):
-        flags = _distortion_flags(attempt)
-        candidates, reason = [], "no start"
-        guesses = [{}] + ([] if seed is None else [_guess(seed, attempt)])
-        for guess in guesses:
-            try:
-                result = calibrate_opencv(obs, flags=flags, **guess)
-                reason = not_a_camera(result, obs.image_size)
-            except (ValueError, RuntimeError) as exc:
-                result, reason = None, str(exc)
-            candidates += [result] if reason is None else []
-        if not candidates:
-            candidates = [r for r in [calibrate_opencv_multistart(obs, flags=flags)] if r]
-        if candidates:
-            terms[name] = attempt
-            return min(candidates, key=lambda r: r.rms_px)
-        reasons.append(f"{'+'.join(attempt) or 'no distortion'}: {reason}")
-    raise ValueError(f"step {name}: no starting calibration ({'; '.join(reasons)})")
 
 
 #: The intrinsics ``fixed`` of :func:`calibrate_zoom_wide` can hold, as the per-step OpenCV
@@ -1086,8 +802,6 @@ def _held_terms(fixed: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(t for name in fixed for t in FIXABLE[name])
 
 
-def _without(terms: tuple[str, ...], held_terms: tuple[str, ...]) -> tuple[str, ...]:
-    return tuple(t for t in terms if t not in held_terms)
 
 
 def _free_mask(names: list[str], terms: Mapping[str, tuple[str, ...]]) -> np.ndarray:
@@ -1332,7 +1046,8 @@ class ZoomWideOptions:
     select : bool
         Choose each step's distortion terms by held-out views; else all five are free.
     decentring : bool
-        Free p1, p2 wherever a radial term is chosen (:func:`with_decentring`): the centre of
+        Free p1, p2 wherever a radial term is chosen
+        (:func:`~zoomcalib.calibrate.stepfits.with_decentring`): the centre of
         distortion is not taken to be the principal point. False holds them at zero unless
         the held-out views chose them, which pins the long end's principal point to the centre
         of distortion: right only for a lens whose distortion is centred on it.
@@ -1685,7 +1400,8 @@ def _describe(result: ZoomWideResult, setup: _Setup, prob: _ZoomProblem, solve: 
             r.info["prior_share"] = _prior_share(r, joint_cov, s)
 
 
-#: Smallest probability of the model not chosen (:meth:`TermChoice.other_model_weight`) for
+#: Smallest probability of the model not chosen
+#: (:meth:`~zoomcalib.calibrate.stepfits.TermChoice.other_model_weight`) for
 #: which what it would change is added to a step's variance.
 OTHER_MODEL_MIN_WEIGHT = 0.01
 
@@ -1701,7 +1417,8 @@ def _add_model_choice_spread(result: ZoomWideResult, observations: Mapping[str, 
         var(q) += w (q_other - q_chosen)^2,
 
     ``w`` the other model's probability of being the better one
-    (:meth:`TermChoice.other_model_weight`, at least :data:`OTHER_MODEL_MIN_WEIGHT`). The
+    (:meth:`~zoomcalib.calibrate.stepfits.TermChoice.other_model_weight`, at least
+    :data:`OTHER_MODEL_MIN_WEIGHT`). The
     change is that of per-step OpenCV calibrations of the step's views on the board's estimated
     shape with either model, started from the adjustment's values. Neither sigma covers it:
     both halves of a step can each choose a model firmly, differently, and be a few sigmas
@@ -1816,7 +1533,8 @@ def _solve_unsmoothed(setup: _Setup, state: _State, free: np.ndarray,
     that solve and its iterations, already made from ``state``, as the print's test makes it).
     Where the terms are chosen (``opts.select``, the standard model) and the board has height
     modes, the distortion terms are then chosen again on the board's estimated shape
-    (:func:`_select_on_board`; ``setup.terms`` and ``setup.held`` updated in place), and the
+    (:func:`~zoomcalib.calibrate.stepfits._select_on_board`; ``setup.terms`` and ``setup.held``
+    updated in place), and the
     solve is
     repeated when a step's terms changed, from the first solve's state. Then every step's
     principal point is checked for a basin of lower cost (:func:`_move_to_best_basins`), and
@@ -1926,7 +1644,8 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
     sigma, instead of holding it at zero: a term near the limit of what the held-out views can
     tell would otherwise be in or out with the noise draw. p1 and p2 go only to steps that
     estimate a radial term of their own: the decentring they carry is first order in the radial
-    distortion (:func:`with_decentring`), and where that is too small to measure so is it."""
+    distortion (:func:`~zoomcalib.calibrate.stepfits.with_decentring`), and where that is too small
+    to measure so is it."""
     free = free.copy()
     radial = free[:, [PARAMS.index(k) for k in ("k1", "k2", "k3")]].any(axis=1)
     for name in models:
@@ -1945,26 +1664,6 @@ def _tie_terms(state: _State, free: np.ndarray, chains: list[np.ndarray], u: np.
     return free
 
 
-def _select_on_board(observations: Mapping[str, Observations],
-                     init: Mapping[str, CalibrationResult], board_points: list[np.ndarray],
-                     terms: dict[str, tuple[str, ...]], held: dict[str, TermChoice],
-                     decentring: bool = True, workers: int = 1,
-                     held_terms: tuple[str, ...] = ()) -> bool:
-    """Choose each started step's distortion terms again, by held-out views on the board's
-    estimated shape (``board_points``, one (n, 3) array per step of ``init``, in its order;
-    :func:`select_distortion`, steps in ``workers`` processes); ``terms`` and ``held`` are
-    updated in place. True when a step's terms changed."""
-    changed = False
-    items = [(observations[name], 0.01, points, start)
-             for (name, start), points in zip(init.items(), board_points, strict=True)]
-    for name, choice in zip(init, _map_steps(select_distortion, items, workers), strict=True):
-        if not choice.excess_se_px2:
-            continue  # too few views, or no set could be fitted: keep the flat-board choice
-        held[name] = choice
-        chosen = _without(with_decentring(choice.terms, decentring), held_terms)
-        changed |= chosen != terms[name]
-        terms[name] = chosen
-    return changed
 
 
 def _solve_with_noise(prob: _ZoomProblem, state: _State, free: np.ndarray, max_rounds: int
