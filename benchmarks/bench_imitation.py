@@ -48,7 +48,7 @@ import cv2  # noqa: E402
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
-from zoomcalib.calibrate.zoomwide import _distortion_flags  # noqa: E402
+from zoomcalib.calibrate.stepfits import _distortion_flags  # noqa: E402
 from zoomcalib.camera import CameraModel, Sensor  # noqa: E402
 from zoomcalib.render.image import BoardSurface, camera_mapping, project_points  # noqa: E402
 from zoomcalib.render.sweep import CaptureEffects, render_zoom_sweep  # noqa: E402

@@ -29,7 +29,7 @@ from zoomcalib.calibrate.opencv_backend import (  # noqa: E402
     calibrate_opencv_multistart,
 )
 from zoomcalib.calibrate.result import Observations  # noqa: E402
-from zoomcalib.calibrate.zoomwide import _distortion_flags  # noqa: E402
+from zoomcalib.calibrate.stepfits import _distortion_flags  # noqa: E402
 from zoomcalib.camera import CameraModel  # noqa: E402
 from zoomcalib.render.image import camera_mapping, project_points  # noqa: E402
 from zoomcalib.render.sweep import SWEEP_SENSOR, sweep_poses  # noqa: E402

@@ -660,26 +660,26 @@ def test_normal_equations_summed_per_view_equal_the_assembled_jacobians(rng, mon
     # The solver sums J^T J and J^T r step by step and view by view without forming J; on a
     # sweep with two board sessions and the shared aspect ratio (every kind of global column),
     # each call must equal the products of the assembled sparse Jacobian.
-    import zoomcalib.calibrate.zoomwide as zoomwide
+    import zoomcalib.calibrate.zoomproblem as zoomproblem
 
     obs, _, _ = sweep_observations(rng, steps=4, views=8, retaped_at=2)
-    original = zoomwide._ZoomProblem.normal_equations
+    original = zoomproblem._ZoomProblem.normal_equations
     checked = []
 
     def compared(self, state):
         r, blocks = original(self, state)
         r_ref, J = self.evaluate(state)
-        ref = zoomwide._normal_blocks(self, J, r_ref)
+        ref = zoomproblem._normal_blocks(self, J, r_ref)
         # rounding only: the same sums in another order, each within 1e-9 of the sum of its
         # terms' magnitudes (the same products of |J| and |r|)
-        size = zoomwide._normal_blocks(self, abs(J), np.abs(r_ref))
+        size = zoomproblem._normal_blocks(self, abs(J), np.abs(r_ref))
         np.testing.assert_allclose(r, r_ref, rtol=1e-12, atol=1e-9)
         for got, want, bound in zip(blocks, ref, size, strict=True):
             assert np.all(np.abs(got - want) <= 1e-9 * bound + 1e-300)
         checked.append(self.n_modes)
         return r, blocks
 
-    monkeypatch.setattr(zoomwide._ZoomProblem, "normal_equations", compared)
+    monkeypatch.setattr(zoomproblem._ZoomProblem, "normal_equations", compared)
     sessions = {name: ("a" if k < 2 else "b") for k, name in enumerate(obs)}
     calibrate_zoom_wide(obs, sessions=sessions)
     assert len(checked) > 5 and max(checked) > 0
@@ -972,7 +972,7 @@ def test_a_covariance_that_rounding_leaves_indefinite_takes_a_ridge_and_says_so(
     keep their inverse."""
     from types import SimpleNamespace
 
-    from zoomcalib.calibrate.zoomwide import _inverse_or_ridge
+    from zoomcalib.calibrate.zoomproblem import _inverse_or_ridge
 
     A = rng.normal(size=(40, 6)) * np.array([1e3, 1.0, 1.0, 1e-2, 10.0, 1.0])
     S = A.T @ A
