@@ -484,7 +484,7 @@ def test_write_calibration_flat_folder_opencv_names(tmp_path, zc_result):
 def test_scaled_inverse_survives_units_that_a_pseudo_inverse_does_not():
     """A well-conditioned matrix seen in units 10^14 apart: the scaled inverse is exact, the
     unscaled pseudo-inverse loses it; a singular matrix is reported as not of full rank."""
-    from zoomcalib.calibrate.bundle import scaled_inverse
+    from zoomcalib.calibrate.bundleproblem import scaled_inverse
 
     rng = np.random.default_rng(7)
     X = rng.normal(size=(40, 6))

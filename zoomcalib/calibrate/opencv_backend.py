@@ -56,7 +56,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from zoomcalib.calibrate.bundle import (
+from zoomcalib.calibrate.bundleproblem import (
     CAMERA_NAMES,
     _Data,
     _Problem,
@@ -424,8 +424,8 @@ def _camera_covariance(at_solution: _AtSolution
     None when ``N`` is singular.
 
     The poses are eliminated (``S = U - W^T V^-1 W``, per view) and ``S`` is inverted scaled to
-    unit diagonal (:func:`~zoomcalib.calibrate.bundle.scaled_inverse`): the columns of fx (px)
-    and of a k3 seen through a 2-degree field differ by 10^10, which the scaling removes and a
+    unit diagonal (:func:`~zoomcalib.calibrate.bundleproblem.scaled_inverse`): the columns of fx
+    (px) and of a k3 seen through a 2-degree field differ by 10^10, which the scaling removes and a
     pseudo-inverse of the unscaled matrix does not survive. A pose's covariance is
     ``s^2 (V^-1 + H S^-1 H^T)`` with ``H = V^-1 W^T``.
     """

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .bundle import scaled_inverse
+from .bundleproblem import scaled_inverse
 from .result import DIST_NAMES, CalibrationResult, Observations
 
 __all__ = ["ViewGeometry", "view_geometry", "coverage_verdict", "intrinsic_names",

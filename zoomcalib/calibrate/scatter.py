@@ -462,7 +462,7 @@ def view_scatter(influence: np.ndarray, view_idx: np.ndarray, n_views: int,
     influence : (N, k) ndarray
         ``a_i``: corner ``i``'s share of the solution's move, ``(S^-1 Jt_i^T r_i)``, per
         parameter (``names``; a fixed parameter's column is zero), in the parameters' units.
-        :meth:`zoomcalib.calibrate.bundle._Problem.camera_influence` computes it.
+        :meth:`zoomcalib.calibrate.bundleproblem._Problem.camera_influence` computes it.
     view_idx : (N,) int ndarray
         The view of each corner, ``0 <= view_idx < n_views``.
     names : the parameters' names, k of them.
