@@ -21,7 +21,7 @@ where the pixels lie (:func:`residual_split`): ``edge`` within 1 px of either ed
 beyond 2.5 px of both (the squares' insides: noise, print, stains, compression), and the mean
 residual of the edge pixels by their side (``edge mean``: a profile the model misses shows
 there; edges that wander from pixel to pixel do not). ``sharp`` is the share of frames the
-refiner fitted with a sharpened PSF (:class:`~zoomcalib.detect.refine.SharpenedPSF`) and
+refiner fitted with a sharpened PSF (:class:`~zoomcalib.detect.cornermodel.SharpenedPSF`) and
 ``gain`` the sampled corners' median residual under their own sharpened PSFs over that under
 their Gaussian blurs (``RefineResult.sharpening_gain``; 1: no better).
 

@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from zoomcalib.detect.refine import _dot_eval, _dot_params, _window_grid, _xj_eval
+from zoomcalib.detect.cornermodel import _dot_eval, _dot_params, _window_grid, _xj_eval
 
 __all__ = ["Bound", "corner_crlb", "dot_crlb"]
 
@@ -102,9 +102,9 @@ def corner_crlb(
 
     ``F = J^T J / s^2`` over the ``(2 window + 1)^2`` pixels, ``J = dI/d(c_x, c_y, alpha_1,
     alpha_2, a, b[, log sigma])`` of the pixel-integrated blurred X-junction
-    (:func:`zoomcalib.detect.refine.xjunction_image`), ``s^2 = noise_sd^2 + quant_step^2 / 12``;
-    the bound is ``(F^-1)[:2, :2]``. All arguments broadcast against the leading shape of
-    ``angles``.
+    (:func:`zoomcalib.detect.cornermodel.xjunction_image`),
+    ``s^2 = noise_sd^2 + quant_step^2 / 12``; the bound is ``(F^-1)[:2, :2]``. All arguments
+    broadcast against the leading shape of ``angles``.
 
     Parameters
     ----------
@@ -183,7 +183,7 @@ def dot_crlb(
     """Cramér-Rao bound on the centre of a blurred dark ellipse (a dot).
 
     ``F = J^T J / s^2`` with ``J = dI/d(c_x, c_y, Q_11, Q_12, Q_22, a, b[, log sigma])`` of the
-    pixel-integrated blurred-ellipse model (:func:`zoomcalib.detect.refine.dot_image`) over the
+    pixel-integrated blurred-ellipse model (:func:`zoomcalib.detect.cornermodel.dot_image`) over the
     square window; the bound is ``(F^-1)[:2, :2]``. The bound is for the *ellipse* centre, the
     quantity :func:`~zoomcalib.detect.refine.refine_dots` estimates.
 

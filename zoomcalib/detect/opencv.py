@@ -151,7 +151,7 @@ class Detection:
     sharpening : (float, float, float) or None
         The camera's sharpening the ``model`` refiner fitted its corners with: the PSF
         ``(sigma, amount, radius)`` (px, 1, px) of
-        :class:`~zoomcalib.detect.refine.SharpenedPSF`; None when a Gaussian blur was used.
+        :class:`~zoomcalib.detect.cornermodel.SharpenedPSF`; None when a Gaussian blur was used.
     """
 
     file: str
