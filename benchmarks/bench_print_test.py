@@ -94,8 +94,8 @@ def main() -> None:
         walds = np.array([out[s, v][0] for s in seeds])
         kept = sum(out[s, v][2] for s in seeds)
         print(f"{v:>5}: kept {kept} of {len(seeds)}, mean Wald {np.nanmean(walds):.1f}, "
-              f"median {np.nanmedian(walds):.1f}, sd {np.nanstd(walds, ddof=1):.1f} (the "
-              "null's: 24, 24 - 0.7, 6.9)")
+              f"median {np.nanmedian(walds):.1f}, sd {np.nanstd(walds, ddof=1):.1f} "
+              "(chi-square on 24: 24, 23.3, 6.9)")
     if args.no_noiseless:
         return
     print(f"noise 1e-5 px, seed {args.first}:")
