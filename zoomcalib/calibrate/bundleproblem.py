@@ -7,10 +7,10 @@ backend (:mod:`zoomcalib.calibrate.opencv_backend`) builds the same problem at O
 solution to check that it is stationary and to compute its covariance.
 
 Unknowns, in :class:`_Problem`'s order: the free camera parameters (columns of ``cam_map`` over
-:data:`CAMERA_NAMES`) and the free target coordinates, then six per view (rotation as a small
-rotation of the camera frame, translation). The normal equations come as blocks ``U`` (camera
-and target), ``W`` (their coupling to each pose) and ``V`` (each pose's 6 x 6), the form the
-shared engine (:mod:`zoomcalib.calibrate.solver`) eliminates the poses from.
+:data:`CAMERA_NAMES`) and the free target coordinates, then six per view (Rodrigues vector,
+translation). The normal equations come as blocks ``U`` (camera and target), ``W`` (their
+coupling to each pose) and ``V`` (each pose's 6 x 6), the form the shared engine
+(:mod:`zoomcalib.calibrate.solver`) eliminates the poses from.
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ problem up from the steps' own fits (:mod:`zoomcalib.calibrate.stepfits`), solve
 shared engine (:mod:`zoomcalib.calibrate.solver`) and reports it.
 
 Unknowns, in :class:`_ZoomProblem`'s order: the global ones (each step's free intrinsics of
-:data:`PARAMS`, the shared aspect ratio, each session's board modes and the print's in-plane
-modes), then six per view (rotation, translation). :meth:`_ZoomProblem.normal_equations` sums
+:data:`PARAMS`, each session's board modes, the print's in-plane modes, the shared aspect
+ratio), then six per view (rotation, translation). :meth:`_ZoomProblem.normal_equations` sums
 ``J^T J`` and ``J^T r`` step by step and view by view without forming ``J``.
 """
 
