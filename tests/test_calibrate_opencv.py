@@ -25,9 +25,11 @@ from zoomcalib.calibrate.opencv_backend import (
     _normal_matrix_at_solution,
     _stationarity,
     calibrate_opencv,
+    calibrate_opencv_camera,
     calibrate_opencv_ro,
     calibrate_opencv_robust,
     default_fixed_point,
+    not_a_camera,
     observations_from_detections,
 )
 from zoomcalib.calibrate.result import Observations
@@ -180,6 +182,28 @@ def test_a_camera_only_fit_is_the_same_camera_without_the_checks(zc_obs, zc_resu
     assert zc_result.info["view_scatter"]["applied"]
     # its sigmas are the noise model's, which the full fit keeps beside its scaled ones
     assert light.sd == pytest.approx(zc_result.info["sd_noise_model"], rel=1e-12)
+
+
+def test_the_camera_alone_is_the_full_fits_camera(zc_obs, zc_result):
+    # the held-out folds need the camera matrix and distortion only: the same solve to the bit,
+    # from OpenCV's start and from a guess, with the same refusals
+    K, dist = calibrate_opencv_camera(zc_obs)
+    np.testing.assert_array_equal(K, zc_result.K)
+    np.testing.assert_array_equal(dist, zc_result.dist)
+    flags = cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3
+    guess = {"K_guess": zc_result.K * [[1.02], [1.02], [1.0]], "dist_guess": zc_result.dist}
+    full = calibrate_opencv(zc_obs, flags=flags, **guess)
+    K, dist = calibrate_opencv_camera(zc_obs, flags, **guess)
+    assert dist.shape == (8,) and dist[4] == zc_result.dist[4]  # held at its guess
+    np.testing.assert_array_equal(K, full.K)
+    np.testing.assert_array_equal(dist, full.dist)
+    two = Observations(zc_obs.object_points, zc_obs.views[:2], zc_obs.image_size,
+                       zc_obs.names[:2])
+    with pytest.raises(ValueError, match="calibrate_opencv_camera: 2 usable views"):
+        calibrate_opencv_camera(two)
+    assert not_a_camera(zc_result.K, zc_obs.image_size) is None
+    assert "outside the image" in not_a_camera(zc_result.K + [[0, 0, 2000], [0, 0, 0], [0, 0, 0]],
+                                               zc_obs.image_size)
 
 
 def test_rational_model_and_schur_bit(zc_obs, zc_result):

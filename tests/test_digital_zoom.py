@@ -7,6 +7,7 @@ disagreement that the noise model misses.
 """
 from __future__ import annotations
 
+import copy
 import warnings
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from zoomcalib.calibrate.digital_zoom import digital_zoom_sweep
 from zoomcalib.calibrate.io import observations_from_npz
 from zoomcalib.calibrate.result import Observations
 from zoomcalib.calibrate.scatter import view_groups
-from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide
+from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide, zoom_wide_starts
 
 DATA = Path(__file__).parent / "data"
 
@@ -97,6 +98,26 @@ def _real_sweep(rng: np.random.Generator):
                               drift_px=30.0, rng=rng)
 
 
+@pytest.fixture(scope="module")
+def real_sweep():
+    """:func:`_real_sweep` of seed 1, the generator as it leaves it (a copy per test) and the
+    sweep's default zoom-wide adjustment, shared by the tests below."""
+    rng = np.random.default_rng(1)
+    sweep = _real_sweep(rng)
+    return sweep, rng, calibrate_zoom_wide(sweep.observations)
+
+
+@pytest.fixture(scope="module")
+def split6(real_sweep):
+    """Split 6 of ``bench_real_zoom.py``'s halves of the seed-1 sweep: per step the two
+    halves, and the first half's steps' own fits (made once for the adjustments below)."""
+    sweep, rng, _ = real_sweep
+    rng = copy.deepcopy(rng)
+    halves = {s: random_halves(o, 10, rng)[6] for s, o in sweep.observations.items()}
+    first = {s: h[0] for s, h in halves.items()}
+    return halves, zoom_wide_starts(first)
+
+
 def test_the_halves_of_a_real_zoom_sweep_agree_within_their_sigmas():
     """Seven steps of figueroa's real corners (z 1.5 to 4, 24 views each), zoom-wide, two random
     splits into halves: 42 z of fx, cx, cy. The views share their errors (lens misfit, board),
@@ -136,14 +157,13 @@ def _fx_agreement(sweep, zoom_wide) -> tuple[float, float]:
     return float(np.ptp(fx) / fx.mean()), float(np.sqrt(np.mean(np.square(z))))
 
 
-def test_a_wide_window_takes_the_rational_model_and_fx_becomes_one_cameras():
+def test_a_wide_window_takes_the_rational_model_and_fx_becomes_one_cameras(real_sweep):
     """The same seven steps calibrated once, zoom-wide. Five terms over the widest windows of
     this wide lens trade with fx: mapped back to the sensor, the steps' fx spread over 1.0 %
     (2063-2084 px, sigmas 1-3 px). The held-out views choose the rational model at z 1.5, and
     the steps' fx then agree within 0.5 % and within 2.5 of their sigmas (RMS z against the
     other steps' weighted mean)."""
-    sweep = _real_sweep(np.random.default_rng(1))
-    zoom_wide = calibrate_zoom_wide(sweep.observations)
+    sweep, _, zoom_wide = real_sweep
     assert "k4" in zoom_wide.terms["z1.50"] and "k4" not in zoom_wide.terms["z4.00"]
     spread, rms_z = _fx_agreement(sweep, zoom_wide)
     assert spread < 0.005 and rms_z < 2.5, (spread, rms_z)
@@ -179,7 +199,8 @@ def test_where_the_halves_choose_different_models_the_sigma_covers_it():
     assert abs(z[1, 0]) < 3.0 and np.abs(z).max() < 3.5
 
 
-def test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_fx():
+def test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_fx(real_sweep,
+                                                                                  split6):
     """Split 6 of ``bench_real_zoom.py``'s halves (seed 1), first half, default adjustment: the
     two widest steps take the rational model, and the views of z 1.50 prefer the ridge where
     k1-k3 and k4-k6 grow together (``benchmarks/bench_solver_iterations.py``). Without a bound
@@ -188,10 +209,10 @@ def test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_f
     prior every row converges, the half's fx agrees with the full set's within 3 of its
     sigmas, and that sigma is within 10 times the full set's (half the views: 1.4 times, plus
     what the ridge still lends it)."""
-    rng = np.random.default_rng(1)
-    sweep = _real_sweep(rng)
-    half = {s: random_halves(o, 10, rng)[6][0] for s, o in sweep.observations.items()}
-    part, full = (calibrate_zoom_wide(obs).results for obs in (half, sweep.observations))
+    _, _, full = real_sweep
+    halves, starts = split6
+    part = calibrate_zoom_wide({s: h[0] for s, h in halves.items()}, starts=starts).results
+    full = full.results
     assert len(part["z1.50"].dist) == 8
     for name, r in part.items():
         assert r.converged, (name, r.info["stop_reason"])
@@ -202,7 +223,7 @@ def test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_f
     assert a.sd["fx"] < 10 * b.sd["fx"]
 
 
-def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
+def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step(real_sweep, split6):
     """Split 6 of ``bench_real_zoom.py``'s halves (seed 1). At z 1.77 (rational model, 12
     views a half) leaving out some views makes the deletion problem ``S - A_v`` singular up
     to rounding. Solved as it was, such deletions gave the first half's factors of 5.6-37 in
@@ -219,9 +240,8 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     the solve stopped at its iteration cap on z 1.50's rational ridge, where the deletion
     steps carried the solve's own unfinished gradient
     (``test_a_rational_step_whose_views_prefer_the_ridge_converges_with_an_honest_fx``)."""
-    rng = np.random.default_rng(1)
-    sweep = _real_sweep(rng)
-    halves = {s: random_halves(o, 10, rng)[6] for s, o in sweep.observations.items()}
+    sweep = real_sweep[0]
+    halves, starts = split6
     first = {s: h[0] for s, h in halves.items()}
     widest = first["z1.50"]
     (ids, uv), *rest = widest.views
@@ -232,8 +252,9 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     # solution's rounding); the default's shared aspect ratio on the same halves is checked
     # at the end
     a, a_dropped, b = (calibrate_zoom_wide(h, shared_aspect=False, board_points=False,
-                                           print_shape=False).results["z1.77"]
-                       for h in (first, dropped, {s: h[1] for s, h in halves.items()}))
+                                           print_shape=False, starts=given).results["z1.77"]
+                       for h, given in ((first, starts), (dropped, None),
+                                        ({s: h[1] for s, h in halves.items()}, None)))
     factor, factor_dropped = (r.info["view_scatter"]["factor"] for r in (a, a_dropped))
     test, test_dropped = (r.info["view_scatter"]["test_factor"] for r in (a, a_dropped))
     assert set(factor) == set(factor_dropped) and len(factor) >= 4
@@ -256,9 +277,9 @@ def test_a_steps_sigmas_do_not_hang_on_a_corner_of_another_step():
     # rounding of this half's posterior information left z1.77's k1..k6 ridge indefinite and
     # the covariance took a ridge of its own; the prior bounds it now (no ridge taken), and
     # the camera's sigmas stay put with or without the corner
-    shared, shared_dropped = (calibrate_zoom_wide(h, board_points=False, print_shape=False
-                                                  ).results["z1.77"]
-                              for h in (first, dropped))
+    shared, shared_dropped = (calibrate_zoom_wide(h, board_points=False, print_shape=False,
+                                                  starts=given).results["z1.77"]
+                              for h, given in ((first, starts), (dropped, None)))
     assert shared.info["covariance_ridge"] == 0
     for q in ("fx", "fy", "cx", "cy"):
         assert shared_dropped.sd[q] == pytest.approx(shared.sd[q], rel=0.05), q

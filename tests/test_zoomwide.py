@@ -5,6 +5,8 @@ of a board bent by sine waves (the adjustment models the board with Legendre mod
 Gaussian detection noise; principal point, distortion and poses drawn from a seeded generator.
 """
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -29,6 +31,7 @@ from zoomcalib.calibrate.zoomwide import (
     prior_strength,
     second_difference,
     select_distortion,
+    zoom_wide_starts,
 )
 from zoomcalib.render.pp_path import traced_path
 from zoomcalib.targets import parse_pattern
@@ -145,11 +148,46 @@ def test_prior_strength_recovers_the_roughness(rng):
 
 
 @pytest.fixture(scope="module")
-def sweep():
+def sweep_and_starts():
     rng = np.random.default_rng(20261124)
     # 0.012 px: the model detector's error on rendered JPEG frames (bench_detect_flags.py)
     obs, truth, wave = sweep_observations(rng, noise=0.012)
-    return obs, truth, wave, calibrate_zoom_wide(obs)
+    starts = zoom_wide_starts(obs)  # the steps' own fits, shared by the adjustments below
+    return obs, truth, wave, calibrate_zoom_wide(obs, starts=starts), starts
+
+
+@pytest.fixture(scope="module")
+def sweep(sweep_and_starts):
+    return sweep_and_starts[:4]
+
+
+@pytest.fixture(scope="module")
+def sweep_starts(sweep_and_starts):
+    return sweep_and_starts[4]
+
+
+def test_given_starts_give_the_same_adjustment_and_other_ones_are_refused(rng):
+    # the steps' own fits made once serve adjustments that differ in later options: the same
+    # result to the bit as making them again; starts made with another term choice, or for
+    # other observations, are refused with what differs
+    obs, _, _ = sweep_observations(rng, steps=3, views=8, fx_range=(2300.0, 6000.0))
+    starts = zoom_wide_starts(obs)
+    for options in ({}, {"pp_model": "prior2", "print_shape": False}):
+        made, given = (calibrate_zoom_wide(obs, starts=s, **options) for s in (None, starts))
+        for name, r in made.results.items():
+            np.testing.assert_array_equal(given.results[name].K, r.K)
+            np.testing.assert_array_equal(given.results[name].dist, r.dist)
+            assert given.results[name].sd == r.sd
+            assert given.terms[name] == made.terms[name]
+    assert set(starts.init) == set(obs) and not starts.skipped  # unchanged by the adjustments
+    with pytest.raises(ValueError, match="other options: select False"):
+        calibrate_zoom_wide(obs, starts=starts, select=False)
+    moved = dict(obs)
+    step = next(iter(obs))
+    moved[step] = dataclasses.replace(obs[step], views=[(ids, pts + 0.01)
+                                                        for ids, pts in obs[step].views])
+    with pytest.raises(ValueError, match="other observations"):
+        calibrate_zoom_wide(moved, starts=starts)
 
 
 @pytest.mark.parametrize("k1", [-0.026, 0.0])
@@ -193,7 +231,7 @@ def test_zoom_wide_recovers_every_step(sweep):
 
 
 @pytest.mark.parametrize("pp_model", ["angle2", "prior2"])
-def test_prior_strength_is_not_inflated_by_the_waving_board(sweep, pp_model):
+def test_prior_strength_is_not_inflated_by_the_waving_board(sweep, sweep_starts, pp_model):
     # Per-step OpenCV takes the bent board as flat and its principal points scatter by many of
     # their sigmas; a tau estimated from them came out 20-1000x the path's true roughness on
     # such sweeps. From the zoom-wide values it must stay near the truth: with 5 second
@@ -201,7 +239,7 @@ def test_prior_strength_is_not_inflated_by_the_waving_board(sweep, pp_model):
     # The truth's roughness is measured with the prior's own rows (angle2: in radians).
     obs, truth, _, zw = sweep
     if pp_model != "angle2":
-        zw = calibrate_zoom_wide(obs, pp_model=pp_model)
+        zw = calibrate_zoom_wide(obs, pp_model=pp_model, starts=sweep_starts)
     fx = np.array([t["fx"] for t in truth.values()])
     R = prior_operator(np.log(fx), 2, 1.0 / fx if pp_model == "angle2" else None)
     for q in ("cx", "cy"):
@@ -238,7 +276,7 @@ def test_zoom_wide_borrows_at_the_long_end(sweep):
     assert zw_sd < sd_per_step / 1.5
 
 
-def test_tau_is_marginalised_and_a_given_tau_is_used(sweep):
+def test_tau_is_marginalised_and_a_given_tau_is_used(sweep, sweep_starts):
     obs, truth, _, zw = sweep
     last = list(obs)[-1]
     for q in ("cx", "cy"):
@@ -247,7 +285,7 @@ def test_tau_is_marginalised_and_a_given_tau_is_used(sweep):
         assert m["tau_interval_90"][0] <= m["tau"] <= m["tau_interval_90"][1]
     # a prior 100x stronger than the estimated one for cx alone: the long end borrows more
     strong = zw.zoom_models["cx"]["tau"] / 100
-    given = calibrate_zoom_wide(obs, prior_strength={"cx": strong})
+    given = calibrate_zoom_wide(obs, prior_strength={"cx": strong}, starts=sweep_starts)
     assert given.zoom_models["cx"]["tau_kind"] == "given"
     assert given.zoom_models["cx"]["tau"] == strong
     noise_model = [r.results[last].info["sd_noise_model"]["cx"] for r in (given, zw)]
@@ -463,8 +501,7 @@ def test_a_mirrored_solution_is_flagged(sweep):
 
 
 def test_per_step_opencv_tries_more_starts_only_on_fronto_parallel_views(rng):
-    from zoomcalib.calibrate.opencv_backend import calibrate_opencv_robust
-    from zoomcalib.calibrate.run import FRONTO_PARALLEL_DEG
+    from zoomcalib.calibrate.opencv_backend import FRONTO_PARALLEL_DEG, calibrate_opencv_robust
 
     obs, fx = _long_end_step(0)
     res = calibrate_opencv_robust(obs, fronto_parallel_deg=FRONTO_PARALLEL_DEG)
@@ -854,12 +891,12 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
     assert max(np.abs(z["exact"])) > 6, z["exact"]
 
 
-def test_an_exact_print_is_found_exact(sweep):
+def test_an_exact_print_is_found_exact(sweep, sweep_starts):
     # the shared sweep's board is printed exactly: the print's modes do not pass their test
     # (chi-square of 24 at p = 0.001: 51.2) and are left out: the adjustment is then the one
     # without them (within a tenth of a sigma)
     obs, _, _, points = sweep
-    zw = calibrate_zoom_wide(obs, print_shape=True)
+    zw = calibrate_zoom_wide(obs, print_shape=True, starts=sweep_starts)
     test = zw.print_test
     assert test is not None and not test.kept and test.wald < test.threshold, test
     assert test.dof == 2 * zw.board_modes.size and zw.print_modes is None
@@ -986,9 +1023,18 @@ def test_a_covariance_that_rounding_leaves_indefinite_takes_a_ridge_and_says_so(
     with pytest.raises(np.linalg.LinAlgError):
         np.linalg.cholesky(T)
     cov = _inverse_or_ridge(T, prob)
-    assert prob.covariance_ridge > 0 and np.all(np.isfinite(cov))
+    assert prob.covariance_ridge == 1e-6 and np.all(np.isfinite(cov))
     # a direction the information determines (column 1 alone) keeps its variance
     assert cov[1, 1] == pytest.approx(np.linalg.inv(S)[1, 1], rel=1e-3)
+    # rounding of 2e-5 of the diagonal (as the information's difference of nearly equal terms
+    # left it on a real wide-angle half): the smallest ridge that covers it, not a failure
+    d = 1.0 / np.sqrt(np.diag(T))
+    U = T - 2e-5 * np.diag(1.0 / d**2)
+    cov = _inverse_or_ridge(U, prob)
+    assert prob.covariance_ridge == 1e-4 and np.all(np.isfinite(cov))
+    assert cov[1, 1] == pytest.approx(np.linalg.inv(S)[1, 1], rel=1e-2)
+    with pytest.raises(np.linalg.LinAlgError, match="indefinite beyond rounding"):
+        _inverse_or_ridge(T - 0.1 * np.diag(np.diag(T)), prob)
 
 
 def test_a_print_test_that_five_terms_cannot_judge_is_judged_with_the_chosen_terms(
@@ -1016,7 +1062,8 @@ def test_a_print_test_that_five_terms_cannot_judge_is_judged_with_the_chosen_ter
 
     monkeypatch.setattr(zoomwide, "_solve_with_noise", five_terms_stop_short)
     stop_short = {1}
-    zw = calibrate_zoom_wide(obs, print_shape=True)
+    starts = zoom_wide_starts(obs)  # the steps' own fits, for both adjustments
+    zw = calibrate_zoom_wide(obs, print_shape=True, starts=starts)
     test = zw.print_test
     # the first solve had every step's five terms free, the second the chosen ones (fewer)
     assert free_counts[0] > free_counts[1], free_counts
@@ -1025,6 +1072,6 @@ def test_a_print_test_that_five_terms_cannot_judge_is_judged_with_the_chosen_ter
     assert "judged with each step's chosen terms" in test.summary()
     free_counts.clear()
     stop_short = {1, 2}
-    zw = calibrate_zoom_wide(obs, print_shape=True)
+    zw = calibrate_zoom_wide(obs, print_shape=True, starts=starts)
     assert not zw.print_test.kept and "iteration cap" in zw.print_test.why
     assert zw.print_modes is None

@@ -823,6 +823,31 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
     return res
 
 
+def calibrate_opencv_camera(obs: Observations, flags: int = 0, *,
+                            K_guess: np.ndarray | None = None,
+                            dist_guess: Sequence[float] | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """The camera matrix (3, 3) px and distortion (5,) or (8,) of :func:`calibrate_opencv`'s
+    solve (``cv2.calibrateCamera``, the same inputs, criteria and result to the last bit) and
+    nothing else: no sigmas, poses nor check that OpenCV reached its minimum. For fits whose
+    camera alone is used and judged by its effect elsewhere (the held-out folds of the term
+    choice: a fold that stopped short only raises that set's held-out error). Raises as
+    :func:`calibrate_opencv` does, and RuntimeError for non-finite intrinsics."""
+    _, flags, n_dist = _check_model("standard", flags)
+    _check_views(obs, _names(obs), n_dist, 3, 0, "calibrate_opencv_camera")
+    K0, d0, flags = _initial(obs, flags, False, K_guess, dist_guess, n_dist)
+    obj = [np.asarray(obs.object_points[ids], np.float32) for ids, _ in obs.views]
+    img = [np.asarray(pts, np.float32).reshape(-1, 1, 2) for _, pts in obs.views]
+    _, K, dist, _, _ = _run(cv2.calibrateCamera, "calibrate_opencv_camera", obj, img,
+                            tuple(int(v) for v in obs.image_size), K0, d0, flags=flags,
+                            criteria=_criteria(None))
+    K, dist = np.asarray(K, np.float64).reshape(3, 3), np.asarray(dist, np.float64).ravel()
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
+        raise RuntimeError("calibrate_opencv_camera: calibration diverged (non-finite "
+                           "intrinsics)")
+    return K, dist[:n_dist].copy()
+
+
 def default_fixed_point(object_points: np.ndarray) -> int:
     """The target point :func:`calibrate_opencv_ro` holds fixed by default.
 
@@ -855,20 +880,23 @@ def default_fixed_point(object_points: np.ndarray) -> int:
     return int(best + 1)
 
 
-def not_a_camera(result: CalibrationResult, image_size: tuple[int, int]) -> str | None:
-    """Why a calibration is no camera (None when it is one): intrinsics that are not finite,
-    a focal length below a tenth of the image's larger side (a field of view over 157 degrees,
-    or a mirrored solution), pixels more than 2:1 from square, or a principal point outside the
-    image."""
+def not_a_camera(result: CalibrationResult | np.ndarray, image_size: tuple[int, int]
+                 ) -> str | None:
+    """Why a calibration (or its camera matrix (3, 3), px) is no camera (None when it is one):
+    intrinsics that are not finite, a focal length below a tenth of the image's larger side (a
+    field of view over 157 degrees, or a mirrored solution), pixels more than 2:1 from square,
+    or a principal point outside the image."""
+    K = np.asarray(result.K if isinstance(result, CalibrationResult) else result, float)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     w, h = image_size
-    if not np.all(np.isfinite([result.fx, result.fy, result.cx, result.cy])):
+    if not np.all(np.isfinite([fx, fy, cx, cy])):
         return "intrinsics not finite"
-    if min(result.fx, result.fy) < 0.1 * max(w, h):
-        return f"fx, fy ({result.fx:.1f}, {result.fy:.1f}) px below a tenth of the image"
-    if not 0.5 < result.fx / result.fy < 2.0:
-        return f"fx / fy = {result.fx / result.fy:.2f}"
-    if not (0 <= result.cx <= w - 1 and 0 <= result.cy <= h - 1):
-        return f"principal point ({result.cx:.0f}, {result.cy:.0f}) outside the image"
+    if min(fx, fy) < 0.1 * max(w, h):
+        return f"fx, fy ({fx:.1f}, {fy:.1f}) px below a tenth of the image"
+    if not 0.5 < fx / fy < 2.0:
+        return f"fx / fy = {fx / fy:.2f}"
+    if not (0 <= cx <= w - 1 and 0 <= cy <= h - 1):
+        return f"principal point ({cx:.0f}, {cy:.0f}) outside the image"
     return None
 
 
@@ -923,6 +951,12 @@ def fix_flags(names) -> int:
             raise ValueError(f"cannot fix {name!r}; choose from {', '.join(FIXABLE)}")
         flags |= FIXABLE[name]
     return flags
+
+
+#: Views all tilted less than this from fronto-parallel (degrees) leave OpenCV's own start
+#: ill-posed: :func:`calibrate_opencv_robust` then also tries a range of focal lengths (per-step
+#: OpenCV, and each step's start in the zoom-wide adjustment).
+FRONTO_PARALLEL_DEG = 15.0
 
 
 def calibrate_opencv_robust(obs: Observations, model: str = "standard", flags: int = 0,

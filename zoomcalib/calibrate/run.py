@@ -68,6 +68,7 @@ from .io import (
     zoom_steps,
 )
 from .opencv_backend import (
+    FRONTO_PARALLEL_DEG,
     calibrate_opencv_robust,
     fix_flags,
     observations_from_detections,
@@ -80,10 +81,6 @@ __all__ = ["CalibrateOptions", "CalibrateRun", "calibrate_folder", "residual_vec
            "step_file_stems", "BACKENDS"]
 
 BACKENDS = ("opencv", "bundle")
-
-#: Per-step OpenCV also tries several starts when every view is tilted less than this from
-#: fronto-parallel, degrees (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`).
-FRONTO_PARALLEL_DEG = 15.0
 
 
 @dataclass

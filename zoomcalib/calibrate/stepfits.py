@@ -9,15 +9,18 @@ choice is made again on the board's estimated shape once the adjustment has one
 (:func:`_select_on_board`). :func:`with_decentring` adds p1, p2 to a set with a radial term
 (the centre of distortion is not the principal point).
 
-*Starts.* :func:`_initial` gives every step its chosen terms, their held-out errors and an
-OpenCV calibration with them, in worker processes: from OpenCV's own start and from one that
-does not depend on it (:func:`_robust_start`, a range of focal lengths), with fewer terms where
-a long-end step's distortion cannot be separated (:func:`_opencv_start`). A step that cannot
-be started says why, and the adjustment goes on without it.
+*Starts.* :func:`step_starts` gives every step its chosen terms, their held-out errors and an
+OpenCV calibration with them, in worker processes: from OpenCV's own start and, where that is
+ill-posed (views near fronto-parallel), from a range of focal lengths (:func:`_robust_start`),
+with fewer terms where a long-end step's distortion cannot be separated
+(:func:`_opencv_start`). A step that cannot be started says why, and the adjustment goes on
+without it. An adjustment that differs only in its later options (the prior, the board, the
+principal point's model) can reuse them (:class:`StepStarts`).
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -27,16 +30,18 @@ import scipy.stats
 
 from ..pool import map_in_processes
 from .opencv_backend import (
+    FRONTO_PARALLEL_DEG,
     calibrate_opencv,
+    calibrate_opencv_camera,
     calibrate_opencv_multistart,
     calibrate_opencv_robust,
     not_a_camera,
-    pose_sigmas_unused,
 )
 from .result import CalibrationResult, Observations
 
-__all__ = ["DISTORTION_TERMS", "DISTORTION_SETS", "RATIONAL_TERMS", "TermChoice",
-           "select_distortion", "held_out_errors", "with_decentring"]
+__all__ = ["DISTORTION_TERMS", "DISTORTION_SETS", "RATIONAL_TERMS", "StepStarts", "TermChoice",
+           "observations_fingerprint", "select_distortion", "held_out_errors", "step_starts",
+           "with_decentring"]
 
 #: OpenCV's distortion terms, in its order (the zoom-wide adjustment's intrinsics after fx, fy,
 #: cx, cy).
@@ -103,7 +108,9 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
                     board_points: np.ndarray | None = None,
                     start: CalibrationResult | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Squared reprojection errors of held-out views, two folds (even and odd views):
-    intrinsics from one half with ``terms`` free, each view of the other half placed by
+    intrinsics from one half with ``terms`` free
+    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_camera`: the camera alone),
+    each view of the other half placed by
     ``cv2.solvePnP`` with those intrinsics. Returns per view the sum of squared errors (px^2)
     and the number of points, both (V,); a view that cannot be placed has 0 points (the
     caller sees it: :func:`select_distortion` judges every set on the views all placed).
@@ -125,18 +132,17 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     idx = np.arange(obs.n_views)
     squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
-        with pose_sigmas_unused():  # a pose's sigma is not used here
-            res = calibrate_opencv(obs.subset(train), flags=flags, camera_only=True, **guess)
-        if (why := not_a_camera(res, obs.image_size)) is not None:
+        K, dist = calibrate_opencv_camera(obs.subset(train), flags, **guess)
+        if (why := not_a_camera(K, obs.image_size)) is not None:
             raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
                                f"diverged: {why}")
         for i in test:
             ids, pts = obs.views[i]
             obj = obs.object_points[ids].astype(np.float64)
             try:
-                ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), res.K, res.dist)
+                ok, r, t = cv2.solvePnP(obj, pts.astype(np.float64), K, dist)
                 if ok:
-                    proj, _ = cv2.projectPoints(obj, r, t, res.K, res.dist)
+                    proj, _ = cv2.projectPoints(obj, r, t, K, dist)
                     squared[i], count[i] = np.sum((proj.reshape(-1, 2) - pts) ** 2), len(pts)
             except cv2.error:
                 continue                   # not placed: 0 points, seen by the caller
@@ -289,7 +295,7 @@ def _map_steps(function, items: list, workers: int) -> list:
 
 def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
                   held_terms: tuple[str, ...] = (), model: str = "standard"):
-    """One step of :func:`_initial`: ``(terms, held-out choice or None, start or None, why
+    """One step of :func:`step_starts`: ``(terms, held-out choice or None, start or None, why
     it could not be started or None)``; no term of ``held_terms`` is chosen. Without
     ``select`` the terms are ``model``'s all (five, or the rational model's eight)."""
     seed, seed_failure = _robust_start(obs, held_terms)
@@ -304,12 +310,46 @@ def _initial_step(name: str, obs: Observations, select: bool, decentring: bool,
         return terms[name], held, None, why
 
 
-def _initial(observations: Mapping[str, Observations], select: bool, decentring: bool,
-             workers: int = 1, held_terms: tuple[str, ...] = (), model: str = "standard"):
-    """Per step: chosen terms, their held-out errors and an OpenCV calibration with them; a
-    step that cannot be started is left out (``skipped``: step -> reason). The held-out fits
-    start from :func:`_robust_start`, not from OpenCV's own start. Steps run in ``workers``
-    processes."""
+@dataclass
+class StepStarts:
+    """Every step's own fits before a zoom-wide adjustment (:func:`step_starts`).
+
+    ``terms``: step -> its distortion terms; ``held``: step -> the held-out choice
+    (:class:`TermChoice`) where terms were chosen; ``init``: step -> the OpenCV calibration the
+    adjustment starts it from; ``skipped``: step -> why it could not be started.
+    ``made_for``: the choices the fits depend on (``select``, ``decentring``, the held terms,
+    the model) and the observations' fingerprint (:func:`observations_fingerprint`). An
+    adjustment of the same observations with the same choices, and any other options, can
+    start from them (``calibrate_zoom_wide(..., starts=...)``); it refuses others.
+    """
+
+    terms: dict[str, tuple[str, ...]]
+    held: dict[str, TermChoice]
+    init: dict[str, CalibrationResult]
+    skipped: dict[str, str]
+    made_for: tuple
+
+
+def observations_fingerprint(observations: Mapping[str, Observations]) -> str:
+    """A SHA-1 hex digest of the steps' names, image sizes, board points and every view's
+    point ids and image points: equal for the same observations, to the bit."""
+    digest = hashlib.sha1()
+    for name, obs in observations.items():
+        digest.update(f"{name}|{tuple(obs.image_size)}|{obs.n_views}|".encode())
+        digest.update(np.ascontiguousarray(obs.object_points, float).tobytes())
+        for ids, pts in obs.views:
+            digest.update(np.ascontiguousarray(ids, np.int64).tobytes())
+            digest.update(np.ascontiguousarray(pts, float).tobytes())
+    return digest.hexdigest()
+
+
+def step_starts(observations: Mapping[str, Observations], select: bool = True,
+                decentring: bool = True, workers: int = 1, held_terms: tuple[str, ...] = (),
+                model: str = "standard") -> StepStarts:
+    """Per step: chosen terms (``select``; else all of ``model``'s), their held-out errors and
+    an OpenCV calibration with them; a step that cannot be started is left out (``skipped``:
+    step -> reason). The held-out fits start from :func:`_robust_start`. Steps run in
+    ``workers`` processes (the results do not depend on it)."""
     terms, held, init, skipped = {}, {}, {}, {}
     items = [(name, obs, select, decentring, held_terms, model)
              for name, obs in observations.items()]
@@ -322,18 +362,23 @@ def _initial(observations: Mapping[str, Observations], select: bool, decentring:
             init[name] = start
         else:
             skipped[name] = why
-    return terms, held, init, skipped
+    made_for = (bool(select), bool(decentring), tuple(held_terms), model,
+                observations_fingerprint(observations))
+    return StepStarts(terms, held, init, skipped, made_for)
 
 
 def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
                   ) -> tuple[CalibrationResult | None, str | None]:
-    """A calibration with k1 (unless held) that does not depend on OpenCV's own start
-    (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`, every start tried)
-    and None; or None and why no start gave a camera (the step then starts from OpenCV's own
-    start alone, and a step that cannot start says both reasons)."""
+    """A calibration with k1 (unless held) that does not hang on OpenCV's own start where that
+    is ill-posed (:func:`~zoomcalib.calibrate.opencv_backend.calibrate_opencv_robust`: a range
+    of focal lengths tried too where its views are all within
+    :data:`~zoomcalib.calibrate.opencv_backend.FRONTO_PARALLEL_DEG` of fronto-parallel, or its
+    result is no camera) and None; or None and why no start gave a camera (the step then
+    starts from OpenCV's own start alone, and a step that cannot start says both reasons)."""
     try:
         return calibrate_opencv_robust(obs, flags=_distortion_flags(
-            _without(("k1",), held_terms)), camera_only=True), None
+            _without(("k1",), held_terms)), fronto_parallel_deg=FRONTO_PARALLEL_DEG,
+            camera_only=True), None
     except (ValueError, RuntimeError) as exc:
         return None, " ".join(str(exc).split()) or type(exc).__name__
 

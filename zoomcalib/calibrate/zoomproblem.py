@@ -633,25 +633,32 @@ def _posterior_covariance(prob: _ZoomProblem, state: _State, check: bool = True
                               share)
 
 
-#: Ridge (relative to each column's information) added to a posterior information that
-#: rounding left indefinite: a direction the data do not determine (the rational model's
-#: k1..k6 of a step of a dozen views) then gets a variance of 1e6 times its conditional one.
-_COVARIANCE_RIDGE = 1e-6
+#: Ridges (relative to each column's information), smallest first, added to a posterior
+#: information that rounding left indefinite: a direction the data do not determine (the
+#: rational model's k1..k6 of a step of a dozen views) then gets a variance of ``1 / r`` times
+#: its conditional one. The information ``U - W V^-1 W^T`` is formed by a difference of nearly
+#: equal terms, so along such a direction its rounding can reach 1e-5 of the diagonal (a
+#: half of a real wide-angle sweep's 7 steps, rational model at its widest).
+_COVARIANCE_RIDGES = (1e-6, 1e-5, 1e-4, 1e-3)
 
 
 def _inverse_or_ridge(S: np.ndarray, prob: _ZoomProblem) -> np.ndarray:
     """``S^-1`` by Cholesky on the unit-diagonal scaling of ``S``; where rounding leaves ``S``
-    indefinite, ``(S + r diag S)^-1`` with ``r =`` :data:`_COVARIANCE_RIDGE`, recorded in
-    ``prob.covariance_ridge`` (0 otherwise). LinAlgError if that fails too."""
+    indefinite, ``(S + r diag S)^-1`` with the smallest ``r`` of :data:`_COVARIANCE_RIDGES`
+    that makes it positive definite, recorded in ``prob.covariance_ridge`` (0 otherwise).
+    LinAlgError, saying so, if none does."""
     d = 1.0 / np.sqrt(np.maximum(np.diag(S), 1e-300))
     scaled = d[:, None] * S * d
-    prob.covariance_ridge = 0.0
-    try:
-        factor = scipy.linalg.cho_factor(scaled)
-    except np.linalg.LinAlgError:
-        prob.covariance_ridge = _COVARIANCE_RIDGE
-        factor = scipy.linalg.cho_factor(scaled + _COVARIANCE_RIDGE * np.eye(len(S)))
-    return d[:, None] * scipy.linalg.cho_solve(factor, np.eye(len(S))) * d
+    for ridge in (0.0, *_COVARIANCE_RIDGES):
+        try:
+            factor = scipy.linalg.cho_factor(scaled + ridge * np.eye(len(S)))
+        except np.linalg.LinAlgError:
+            continue
+        prob.covariance_ridge = ridge
+        return d[:, None] * scipy.linalg.cho_solve(factor, np.eye(len(S))) * d
+    raise np.linalg.LinAlgError(
+        f"the posterior information is indefinite beyond rounding (no ridge up to "
+        f"{_COVARIANCE_RIDGES[-1]:g} of its diagonal makes it positive definite)")
 
 
 def _view_rows(prob: _ZoomProblem) -> np.ndarray:

@@ -168,16 +168,18 @@ from .solver import Solve, levenberg_marquardt
 from .stepfits import (
     DISTORTION_SETS,
     RATIONAL_TERMS,
+    StepStarts,
     TermChoice,
     _distortion_flags,
     _eight,
     _guess,
-    _initial,
     _map_steps,
     _select_on_board,
     _without,
     held_out_errors,
+    observations_fingerprint,
     select_distortion,
+    step_starts,
     with_decentring,
 )
 from .zoommodel import (
@@ -219,8 +221,8 @@ from .zoomrows import (
 )
 
 __all__ = ["PARAMS", "SMOOTHED", "ZOOM_MODELS", "DISTORTION_SETS", "ZoomWideResult",
-           "TermChoice", "calibrate_zoom_wide", "select_distortion", "held_out_errors",
-           "with_decentring",
+           "StepStarts", "TermChoice", "calibrate_zoom_wide", "zoom_wide_starts",
+           "select_distortion", "held_out_errors", "with_decentring",
            "prior_strength", "pooled_prior_strength", "second_difference", "board_height_modes"]
 
 #: ``pp_model`` of :func:`calibrate_zoom_wide`: the second-difference prior of the angular
@@ -471,9 +473,22 @@ class ZoomWideOptions:
 
 
 @one_blas_thread
+def zoom_wide_starts(observations: Mapping[str, Observations],
+                     options: ZoomWideOptions | None = None, *, workers: int = 1,
+                     **fields) -> StepStarts:
+    """Every step's own fits (:func:`~zoomcalib.calibrate.stepfits.step_starts`: the held-out
+    choice of its terms and its OpenCV start) as :func:`calibrate_zoom_wide` makes them with
+    these options; give them to adjustments of the same observations (``starts=``) that
+    differ in the options the fits do not depend on (all but ``select``, ``decentring``,
+    ``fixed`` and ``model``) to skip making them again."""
+    opts = replace(options or ZoomWideOptions(), **fields)
+    return step_starts(observations, opts.select and opts.model == "standard", opts.decentring,
+                       workers, _held_terms(tuple(opts.fixed)), opts.model)
+
+
 def calibrate_zoom_wide(observations: Mapping[str, Observations],
                         options: ZoomWideOptions | None = None, *, workers: int = 1,
-                        **fields) -> ZoomWideResult:
+                        starts: StepStarts | None = None, **fields) -> ZoomWideResult:
     """Calibrate every zoom step of one camera together (module docstring).
 
     Parameters
@@ -487,6 +502,9 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations],
     workers : int
         Processes for the steps' own OpenCV fits (the distortion-term choice by held-out views
         and the starts); the results do not depend on it.
+    starts : StepStarts, optional
+        The steps' own fits, made earlier by :func:`zoom_wide_starts` for these observations
+        and options (ValueError otherwise): the result is the same as without them.
 
 
     Returns
@@ -496,15 +514,15 @@ def calibrate_zoom_wide(observations: Mapping[str, Observations],
     Raises
     ------
     ValueError
-        If the steps see different boards or have different image sizes, or fewer than 2
-        steps are given.
+        If the steps see different boards or have different image sizes, fewer than 2
+        steps are given, or ``starts`` were made for other observations or options.
     """
     opts = replace(options or ZoomWideOptions(), **fields)
     _check_options(opts.pp_model, opts.prior_strength)
     if opts.model not in ("standard", "rational"):
         raise ValueError(f"model must be 'standard' or 'rational', got {opts.model!r}")
     held_terms = _held_terms(tuple(opts.fixed))
-    setup, state, free = _set_up(observations, opts, held_terms, workers)
+    setup, state, free = _set_up(observations, opts, held_terms, workers, starts)
     print_test, solved, state = _test_the_print(setup, state, free, opts.max_rounds,
                                                 held_terms)
     # first without the smoothness prior: per-step values free of the flat-board bias
@@ -567,13 +585,21 @@ def _add_keystone_responses(result: ZoomWideResult, observations: Mapping[str, O
 
 
 def _set_up(observations: Mapping[str, Observations], opts: ZoomWideOptions,
-            held_terms: tuple[str, ...], workers: int) -> tuple[_Setup, _State, np.ndarray]:
-    """The steps' own fits and the adjustment's start (:class:`_Setup`, the state, the free
-    mask); ValueError when fewer than 2 steps can be started."""
+            held_terms: tuple[str, ...], workers: int, starts: StepStarts | None = None
+            ) -> tuple[_Setup, _State, np.ndarray]:
+    """The steps' own fits (``starts``, copied, or made) and the adjustment's start
+    (:class:`_Setup`, the state, the free mask); ValueError when fewer than 2 steps can be
+    started or ``starts`` do not fit."""
     select = opts.select and opts.model == "standard"
     board = _common_board(observations)
-    terms, held, init, skipped = _initial(observations, select, opts.decentring, workers,
-                                          held_terms, opts.model)
+    if starts is None:
+        starts = step_starts(observations, select, opts.decentring, workers, held_terms,
+                             opts.model)
+    else:
+        _check_starts(starts, observations, (bool(select), bool(opts.decentring),
+                                             tuple(held_terms), opts.model))
+        starts = copy.deepcopy(starts)  # the adjustment changes terms and choices in place
+    terms, held, init, skipped = starts.terms, starts.held, starts.init, starts.skipped
     names = [n for n in observations if n in init]
     if len(names) < 2:
         raise ValueError("a zoom-wide calibration needs 2 or more steps that can be started; "
@@ -608,6 +634,20 @@ def _set_up(observations: Mapping[str, Observations], opts: ZoomWideOptions,
                    bool(opts.print_shape and phi.shape[1]), opts.board_prior_mm,
                    rational_sd, _off_the_ridge(state, free, rational_sd, names))
     return setup, state, free
+
+
+def _check_starts(starts: StepStarts, observations: Mapping[str, Observations],
+                  choices: tuple) -> None:
+    """ValueError naming what differs when ``starts`` were not made for these observations
+    and these choices (``select``, ``decentring``, held terms, model)."""
+    made = starts.made_for
+    if made[:4] != choices:
+        names = ("select", "decentring", "held terms", "model")
+        diff = [f"{n} {a!r} (starts: {b!r})" for n, a, b in zip(names, choices, made[:4],
+                                                                   strict=True) if a != b]
+        raise ValueError("starts were made with other options: " + ", ".join(diff))
+    if made[4] != observations_fingerprint(observations):
+        raise ValueError("starts were made for other observations (their fingerprints differ)")
 
 
 def _off_the_ridge(state: _State, free: np.ndarray, rational_sd: np.ndarray,
