@@ -927,8 +927,7 @@ def calibrate_bundle(obs: Observations, options: BundleOptions | None = None, *,
     flat_state, state, prob = solved.flat_state, solved.state, solved.problem
     inlier, stages, normal = solved.inlier, solved.stages, solved.normal_eqs
     # stage 5: covariance, the view-scatter check and the result
-    if normal is None:
-        normal = prob.normal_equations(state)
+    normal = prob.normal_equations(state) if normal is None else normal
     cov = _covariances(prob, state, normal, unknowns.cam_names, m)
     sigmas = _camera_sigmas(prob, state, normal, cov, unknowns.cam_map, opts.model, obs,
                             opts.scatter_check)
