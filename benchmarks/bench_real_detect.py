@@ -1,7 +1,7 @@
 """The corner detectors on a real camera's frames: time per frame, fallbacks, fit residual.
 
 ``python benchmarks/bench_real_detect.py FOLDER [--pattern chessboard:22x15:25] [--frames 6]
-[--steps zoom_1x ...] [--calibrate]``
+[--steps zoom_1x ...] [--calibrate] [--at-cap]``
 
 ``FOLDER`` holds zoom-step subfolders of images (e.g. the ``calibration_images`` folder of the
 public set ``e-cagan/camera-calibration``: frames of a PTZ camera's H.264 stream, sharpened in
@@ -30,6 +30,12 @@ With ``--calibrate`` each step is also calibrated with plain OpenCV
 on each detector's corners (a fallback corner left out): if the detectors' RMS and
 intrinsics agree, the step's reprojection residual is not the detector's doing. ``--frames
 0`` takes every frame; ``--steps`` chooses the steps.
+
+With ``--at-cap`` the refiner's corners that converged only after using 30 iterations or more
+(most of them at their cap, by the undamped step's test of
+:func:`~zoomcalib.detect.refine._stationary_at_cap`) are compared with the same fit run with
+400 iterations: their distance over their position sd (the root mean square of the two axes'
+sds), median and largest.
 """
 
 from __future__ import annotations
@@ -77,6 +83,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--steps", nargs="+", default=None)
     ap.add_argument("--calibrate", action="store_true")
+    ap.add_argument("--at-cap", action="store_true")
     args = ap.parse_args()
     target = parse_pattern(args.pattern)
     steps = sorted((p for p in args.folder.iterdir() if p.is_dir()
@@ -90,7 +97,7 @@ def main() -> None:
           f" {'edge':>5} {'flat':>5} {'edge mean':>9} {'sharp':>5} {'gain':>5}")
     total = {m: 0.0 for m in METHODS}
     counts = {"frames": 0, "corners": 0, "fallback": 0}
-    residuals = []
+    residuals, at_cap = [], []
     for step in steps:
         files = image_files(step)[:args.frames or None]
         times = {m: [] for m in METHODS}
@@ -114,6 +121,8 @@ def main() -> None:
             fallback += det.n_fallback
             fit = refine_corners(grey.astype(float), det.points, sigma="shared",
                                  window=5, max_window=12)
+            if args.at_cap:
+                at_cap += _at_cap(grey, det.points, fit)
             resid.append(np.median(fit.rms[fit.converged]))
             blur.append(float(np.median(fit.sigma)))
             split.append(residual_split(grey, fit))
@@ -142,9 +151,26 @@ def main() -> None:
           + f" {total['model'] / total['sb']:8.2f} "
           f"{100 * counts['fallback'] / max(counts['corners'], 1):8.2f}% "
           f"{np.median(residuals):8.1f}")
+    if args.at_cap:
+        moved = np.asarray(at_cap)
+        print(f"converged after 30 or more iterations: {len(moved)} corners; distance to the "
+              f"fit with 400 iterations over their sd: median "
+              f"{np.median(moved) if len(moved) else np.nan:.3f}, largest "
+              f"{moved.max() if len(moved) else np.nan:.3f}")
     if calibrations:
         print("plain OpenCV per step on each detector's corners (5 terms):")
         print("\n".join(calibrations))
+
+
+def _at_cap(grey: np.ndarray, points: np.ndarray, fit: RefineResult) -> list[float]:
+    """Per corner of ``fit`` (the default refinement of ``points``) that converged after 30 or
+    more iterations and also converges with 400: its distance to that fit over its position
+    sd, ``sqrt(tr(cov) / 2)``."""
+    long = refine_corners(grey.astype(float), points, sigma="shared", window=5, max_window=12,
+                          max_iter=400)
+    late = fit.converged & (fit.n_iter >= 30) & long.converged
+    sd = np.sqrt(np.trace(long.cov[late], axis1=1, axis2=2) / 2)
+    return list(np.linalg.norm(fit.points[late] - long.points[late], axis=1) / sd)
 
 
 def residual_split(grey: np.ndarray, fit: RefineResult, window: int = 5

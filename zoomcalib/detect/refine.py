@@ -217,6 +217,7 @@ def _batched_lm(
     tol: float,
     rel_tol: float = 0.0,
     valid: Callable[[np.ndarray], np.ndarray] | None = None,
+    judged_at_cap: int | None = None,
 ) -> _LMOut:
     """Levenberg-Marquardt on K independent least-squares problems at once.
 
@@ -232,8 +233,11 @@ def _batched_lm(
     (and the position, the first two parameters, by less than ``tol`` unless the second term
     applies); that last step is taken without re-evaluating the model. ``rel_tol`` ends fits
     whose residual is large (a model that does not describe the image exactly) where further
-    steps cannot move the result by anything that matters against its own uncertainty. A
-    problem whose ``lambda`` exceeds 1e10 has stalled (not converged).
+    steps cannot move the result by anything that matters against its own uncertainty; with
+    it, a problem that used its iterations is converged where its undamped step from there
+    passes that test for its first ``judged_at_cap`` parameters (None: all;
+    :func:`_stationary_at_cap`). A problem whose
+    ``lambda`` exceeds 1e10 has stalled (not converged).
 
     Parameters
     ----------
@@ -254,6 +258,7 @@ def _batched_lm(
     cost = np.einsum("km,km->k", weights, resid * resid)
     lam = np.full(p.shape[0], 1e-3)
     active = np.isfinite(cost)
+    stalled = np.zeros(p.shape[0], dtype=bool)
     converged = np.zeros(p.shape[0], dtype=bool)
     n_iter = np.zeros(p.shape[0], dtype=int)
     n_par = p.shape[1]
@@ -302,8 +307,44 @@ def _batched_lm(
         p[acc], f[acc], jac[acc], resid[acc], cost[acc] = pt[ok], ft[ok], jt[ok], rt[ok], ct[ok]
         lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
         lam[idx[~ok]] *= 8.0
-        active[idx[lam[idx] > 1e10]] = False
+        stalled[idx[lam[idx] > 1e10]] = True
+        active &= ~stalled
+    if rel_tol > 0:
+        _stationary_at_cap(p, jac, resid, cost, weights, converged,
+                           ~converged & ~stalled & np.isfinite(cost) & (n_iter >= budget),
+                           rel_tol, judged_at_cap)
     return _LMOut(p, jac, resid, cost, converged, n_iter)
+
+
+def _stationary_at_cap(p: np.ndarray, jac: np.ndarray, resid: np.ndarray, cost: np.ndarray,
+                       weights: np.ndarray, converged: np.ndarray, at_cap: np.ndarray,
+                       rel_tol: float, judged: int | None = None) -> None:
+    """Problems that used their iterations while still taking steps (``at_cap``): converged
+    after all, in place, where the undamped Gauss-Newton step from where they stopped moves
+    each of the first ``judged`` parameters (None: all) by less than ``rel_tol`` of its
+    conditional sd, ``|delta_j| sqrt(A_jj) < rel_tol s``; that step is taken. A model that
+    misses the image (a sharpened, compressed frame) crawls there under damping: its last
+    steps cannot move the corner by anything that matters against its own sd. A fit whose
+    result includes its blur judges every parameter: a blur still running to its bound (steep
+    edges) keeps it unconverged."""
+    idx = np.flatnonzero(at_cap)
+    if idx.size == 0:
+        return
+    n_par = p.shape[1]
+    jw = jac[idx] * weights[idx, :, None]
+    A = np.einsum("kmp,kmq->kpq", jw, jac[idx])
+    g = np.einsum("kmp,km->kp", jw, resid[idx])
+    solvable = np.linalg.cond(A) < 1e14
+    idx, A, g = idx[solvable], A[solvable], g[solvable]
+    if idx.size == 0:
+        return
+    step = np.linalg.solve(A, g[..., None])[..., 0]
+    scale = np.sqrt(np.maximum(np.diagonal(A, axis1=1, axis2=2), 1e-300))
+    dof = np.maximum(weights[idx].sum(axis=1) - n_par, 1.0)
+    small = np.all((np.abs(step) * scale)[:, :judged]
+                   < rel_tol * np.sqrt(cost[idx] / dof)[:, None], axis=1)
+    p[idx[small]] += step[small]
+    converged[idx[small]] = True
 
 
 def _covariance(out: _LMOut, weights: np.ndarray, n_par: int) -> tuple[np.ndarray, np.ndarray]:
@@ -918,9 +959,10 @@ class _CornerChunk:
                 ok &= (minor > 0.05) & (major < self.window)
             return ok
 
+        # at the cap, a fit at a given blur is judged by its position, the result it gives
         self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
-                              rel_tol=_REL_TOL,
-                              valid=valid)
+                              rel_tol=_REL_TOL, valid=valid,
+                              judged_at_cap=2 if n_par == 6 else None)
         self.p = self.lm.p
         self.n_iter = self.n_iter + self.lm.n_iter
 
