@@ -225,7 +225,7 @@ def test_levenberg_marquardt_keeps_each_problems_iteration_budget(rng):
 
 
 def test_a_problem_that_runs_out_of_iterations_next_to_its_minimum_has_converged(rng):
-    # y = a exp(-b x) + noise 0.01, a few problems started at random distances from the
+    # y = a exp(-b x) + noise 0.01, problems started at growing distances from the
     # least-squares solution, one iteration each: after it, those whose undamped Gauss-Newton
     # step is below 5 % of each position parameter's sd (the corner fits' rel_tol) are
     # converged, at the minimum within that; the others still fall back. Without the rule
@@ -261,6 +261,16 @@ def test_a_problem_that_runs_out_of_iterations_next_to_its_minimum_has_converged
     sd = rms[:, None] / np.sqrt(np.einsum("kmp,kmp->kp", J, J))   # conditional sds
     moved = np.abs(once.p - best.p) / sd
     assert np.all(moved[once.converged] < 0.05), moved[once.converged]
+    # crawl_iter: a problem that ends its iteration with an undamped step within 1 sd gets 20
+    # more (once), and converges at the minimum; one farther off is left where it is
+    crawl = _batched_lm(fun, start, data, weights, max_iter=1, tol=0.0, rel_tol=0.05,
+                        judged_at_cap=2, crawl_iter=20)
+    extra = crawl.converged & ~once.converged
+    assert extra.any() and np.all(crawl.n_iter[extra] > 1)
+    assert not crawl.converged[-1] and crawl.n_iter[-1] == 1
+    assert np.all(crawl.converged[once.converged])
+    moved = np.abs(crawl.p - best.p) / sd
+    assert np.all(moved[crawl.converged] < 0.05), moved[crawl.converged]
 
 
 def test_noisy_corners_unbiased_and_efficient(rng):

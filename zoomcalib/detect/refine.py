@@ -218,6 +218,7 @@ def _batched_lm(
     rel_tol: float = 0.0,
     valid: Callable[[np.ndarray], np.ndarray] | None = None,
     judged_at_cap: int | None = None,
+    crawl_iter: int = 0,
 ) -> _LMOut:
     """Levenberg-Marquardt on K independent least-squares problems at once.
 
@@ -236,7 +237,8 @@ def _batched_lm(
     steps cannot move the result by anything that matters against its own uncertainty; with
     it, a problem that used its iterations is converged where its undamped step from there
     passes that test for its first ``judged_at_cap`` parameters (None: all;
-    :func:`_stationary_at_cap`). A problem whose
+    :func:`_stationary_at_cap`), and one whose step is within :data:`_CRAWL_SD` of its sd gets
+    ``crawl_iter`` more iterations, once. A problem whose
     ``lambda`` exceeds 1e10 has stalled (not converged).
 
     Parameters
@@ -262,12 +264,23 @@ def _batched_lm(
     converged = np.zeros(p.shape[0], dtype=bool)
     n_iter = np.zeros(p.shape[0], dtype=int)
     n_par = p.shape[1]
-    budget = np.broadcast_to(np.asarray(max_iter, dtype=int), (p.shape[0],))
-    for _ in range(int(budget.max(initial=0))):
+    budget = np.broadcast_to(np.asarray(max_iter, dtype=int), (p.shape[0],)).copy()
+    extended = np.zeros(p.shape[0], dtype=bool)
+    while True:
         active &= n_iter < budget
         idx = np.flatnonzero(active)
         if idx.size == 0:
-            break
+            if rel_tol <= 0:
+                break
+            at_cap = ~converged & ~stalled & np.isfinite(cost) & (n_iter >= budget)
+            crawling = _stationary_at_cap(p, jac, resid, cost, weights, converged, at_cap,
+                                          rel_tol, judged_at_cap) & ~extended
+            if not crawl_iter or not crawling.any():
+                break
+            budget[crawling] += crawl_iter  # close to its minimum, but crawling there
+            extended |= crawling
+            active |= crawling
+            continue
         jw = jac[idx] * weights[idx, :, None]
         A = np.einsum("kmp,kmq->kpq", jw, jac[idx])
         g = np.einsum("kmp,km->kp", jw, resid[idx])
@@ -309,16 +322,12 @@ def _batched_lm(
         lam[idx[~ok]] *= 8.0
         stalled[idx[lam[idx] > 1e10]] = True
         active &= ~stalled
-    if rel_tol > 0:
-        _stationary_at_cap(p, jac, resid, cost, weights, converged,
-                           ~converged & ~stalled & np.isfinite(cost) & (n_iter >= budget),
-                           rel_tol, judged_at_cap)
     return _LMOut(p, jac, resid, cost, converged, n_iter)
 
 
 def _stationary_at_cap(p: np.ndarray, jac: np.ndarray, resid: np.ndarray, cost: np.ndarray,
                        weights: np.ndarray, converged: np.ndarray, at_cap: np.ndarray,
-                       rel_tol: float, judged: int | None = None) -> None:
+                       rel_tol: float, judged: int | None = None) -> np.ndarray:
     """Problems that used their iterations while still taking steps (``at_cap``): converged
     after all, in place, where the undamped Gauss-Newton step from where they stopped moves
     each of the first ``judged`` parameters (None: all) by less than ``rel_tol`` of its
@@ -326,10 +335,12 @@ def _stationary_at_cap(p: np.ndarray, jac: np.ndarray, resid: np.ndarray, cost: 
     misses the image (a sharpened, compressed frame) crawls there under damping: its last
     steps cannot move the corner by anything that matters against its own sd. A fit whose
     result includes its blur judges every parameter: a blur still running to its bound (steep
-    edges) keeps it unconverged."""
+    edges) keeps it unconverged. Returns the problems left whose step is within
+    :data:`_CRAWL_SD` of their sd: close to their minimum, crawling there."""
+    crawling = np.zeros(len(p), dtype=bool)
     idx = np.flatnonzero(at_cap)
     if idx.size == 0:
-        return
+        return crawling
     n_par = p.shape[1]
     jw = jac[idx] * weights[idx, :, None]
     A = np.einsum("kmp,kmq->kpq", jw, jac[idx])
@@ -337,14 +348,17 @@ def _stationary_at_cap(p: np.ndarray, jac: np.ndarray, resid: np.ndarray, cost: 
     solvable = np.linalg.cond(A) < 1e14
     idx, A, g = idx[solvable], A[solvable], g[solvable]
     if idx.size == 0:
-        return
+        return crawling
     step = np.linalg.solve(A, g[..., None])[..., 0]
     scale = np.sqrt(np.maximum(np.diagonal(A, axis1=1, axis2=2), 1e-300))
     dof = np.maximum(weights[idx].sum(axis=1) - n_par, 1.0)
-    small = np.all((np.abs(step) * scale)[:, :judged]
-                   < rel_tol * np.sqrt(cost[idx] / dof)[:, None], axis=1)
+    in_sd = ((np.abs(step) * scale)[:, :judged]
+             / np.sqrt(cost[idx] / dof)[:, None]).max(axis=1)
+    small = in_sd < rel_tol
     p[idx[small]] += step[small]
     converged[idx[small]] = True
+    crawling[idx[~small & (in_sd < _CRAWL_SD)]] = True
+    return crawling
 
 
 def _covariance(out: _LMOut, weights: np.ndarray, n_par: int) -> tuple[np.ndarray, np.ndarray]:
@@ -701,6 +715,11 @@ def _fit_chunk(whole: _CornerChunk, blur: Blur | None, out: RefineResult,
 
 
 _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corners
+# A corner fit at a given blur that ends its iterations with an undamped step below this many
+# of its sds is close to its minimum but crawling there under damping (a model that misses a
+# sharpened frame's edges): it gets _CRAWL_ITER more iterations (_batched_lm).
+_CRAWL_SD = 1.0
+_CRAWL_ITER = 70
 _REL_TOL = 0.05  # a corner fit stops on steps below this fraction of each parameter's sd
 _FINAL_FRACTION = 0.05  # of a corner's position sd: a bias or a step below it does not matter
 # Largest position error of the Gaussian pixel model on noise-free corners against the blur
@@ -962,7 +981,8 @@ class _CornerChunk:
         # at the cap, a fit at a given blur is judged by its position, the result it gives
         self.lm = _batched_lm(fun, p, self.data, self.weights, max_iter=max_iter, tol=tol,
                               rel_tol=_REL_TOL, valid=valid,
-                              judged_at_cap=2 if n_par == 6 else None)
+                              judged_at_cap=2 if n_par == 6 else None,
+                              crawl_iter=_CRAWL_ITER if n_par == 6 else 0)
         self.p = self.lm.p
         self.n_iter = self.n_iter + self.lm.n_iter
 
