@@ -10,7 +10,9 @@ every step, each detector runs in this one process on the same decoded image, so
 CPU seconds on one core and the ratios compare the detectors in the same run:
 
 - ``model``, the default (OpenCV finds the corners, :func:`~zoomcalib.detect.refine.refine_corners`
-  places them), with its fallbacks (corners whose fit failed and kept OpenCV's position);
+  places them), with its fallbacks (corners whose fit failed and kept OpenCV's position) and
+  its time on the frames where it found the board (``found s``: a frame without a whole board
+  costs the OpenCV searches that fail, SB's the longest);
 - ``sb``, ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` (the peer);
 - ``classic``, ``findChessboardCorners`` and ``cornerSubPix``.
 
@@ -93,14 +95,16 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, one process; "
           f"{args.frames} frames per step")
     print(f"{'step':>9} " + " ".join(f"{m + ' s':>9}" for m in METHODS)
-          + f" {'model/sb':>8} {'fallback':>9} {'resid DN':>8} {'blur px':>7}"
+          + f" {'model/sb':>8} {'found s':>8} {'fallback':>9} {'resid DN':>8} {'blur px':>7}"
           f" {'edge':>5} {'flat':>5} {'edge mean':>9} {'sharp':>5} {'gain':>5}")
     total = {m: 0.0 for m in METHODS}
+    found_times: list[float] = []
     counts = {"frames": 0, "corners": 0, "fallback": 0}
     residuals, at_cap = [], []
     for step in steps:
         files = image_files(step)[:args.frames or None]
         times = {m: [] for m in METHODS}
+        found_time = []
         detections = {m: [] for m in METHODS}
         fallback = corners = 0
         resid, blur, split, sharp, gain = [], [], [], [], []
@@ -117,6 +121,7 @@ def main() -> None:
             det = found["model"]
             if not det.ok:
                 continue
+            found_time.append(times["model"][-1])
             corners += len(det.points)
             fallback += det.n_fallback
             fit = refine_corners(grey.astype(float), det.points, sigma="shared",
@@ -135,11 +140,13 @@ def main() -> None:
         for m in METHODS:
             total[m] += float(np.sum(times[m]))
         counts["frames"] += len(times["model"])
+        found_times += found_time
         counts["corners"] += corners
         counts["fallback"] += fallback
         residuals += resid
         print(f"{step.name:>9} " + " ".join(f"{mean[m]:9.3f}" for m in METHODS)
-              + f" {mean['model'] / mean['sb']:8.2f} {100 * fallback / corners:8.2f}% "
+              + f" {mean['model'] / mean['sb']:8.2f} {np.mean(found_time):8.3f} "
+              f"{100 * fallback / corners:8.2f}% "
               f"{np.median(resid):8.1f} {np.median(blur):7.2f} "
               + " ".join(f"{v:5.1f}" for v in np.median(split, axis=0)[:2])
               + f" {np.median(split, axis=0)[2]:9.1f} {np.mean(sharp):5.2f} "
@@ -148,7 +155,7 @@ def main() -> None:
             calibrations += [_calibrated(step.name, m, detections[m], target) for m in METHODS]
     n = max(counts["frames"], 1)
     print(f"{'all':>9} " + " ".join(f"{total[m] / n:9.3f}" for m in METHODS)
-          + f" {total['model'] / total['sb']:8.2f} "
+          + f" {total['model'] / total['sb']:8.2f} {np.mean(found_times):8.3f} "
           f"{100 * counts['fallback'] / max(counts['corners'], 1):8.2f}% "
           f"{np.median(residuals):8.1f}")
     if args.at_cap:

@@ -238,7 +238,8 @@ def _batched_lm(
     it, a problem that used its iterations is converged where its undamped step from there
     passes that test for its first ``judged_at_cap`` parameters (None: all;
     :func:`_stationary_at_cap`), and one whose step is within :data:`_CRAWL_SD` of its sd gets
-    ``crawl_iter`` more iterations, once. A problem whose
+    up to ``crawl_iter`` more iterations, in runs of :data:`_CRAWL_RUN` each judged so. A
+    problem whose
     ``lambda`` exceeds 1e10 has stalled (not converged).
 
     Parameters
@@ -265,7 +266,7 @@ def _batched_lm(
     n_iter = np.zeros(p.shape[0], dtype=int)
     n_par = p.shape[1]
     budget = np.broadcast_to(np.asarray(max_iter, dtype=int), (p.shape[0],)).copy()
-    extended = np.zeros(p.shape[0], dtype=bool)
+    granted = np.zeros(p.shape[0], dtype=int)  # iterations added for crawling
     while True:
         active &= n_iter < budget
         idx = np.flatnonzero(active)
@@ -274,11 +275,13 @@ def _batched_lm(
                 break
             at_cap = ~converged & ~stalled & np.isfinite(cost) & (n_iter >= budget)
             crawling = _stationary_at_cap(p, jac, resid, cost, weights, converged, at_cap,
-                                          rel_tol, judged_at_cap) & ~extended
-            if not crawl_iter or not crawling.any():
+                                          rel_tol, judged_at_cap) & (granted < crawl_iter)
+            if not crawling.any():
                 break
-            budget[crawling] += crawl_iter  # close to its minimum, but crawling there
-            extended |= crawling
+            # close to its minimum, but crawling there: on, and judged again, in short runs
+            more = np.minimum(_CRAWL_RUN, crawl_iter - granted[crawling])
+            budget[crawling] += more
+            granted[crawling] += more
             active |= crawling
             continue
         jw = jac[idx] * weights[idx, :, None]
@@ -720,6 +723,7 @@ _POLISH_ITER = 8  # iteration cap of the final (quadrature) stage of refine_corn
 # sharpened frame's edges): it gets _CRAWL_ITER more iterations (_batched_lm).
 _CRAWL_SD = 1.0
 _CRAWL_ITER = 70
+_CRAWL_RUN = 10
 _REL_TOL = 0.05  # a corner fit stops on steps below this fraction of each parameter's sd
 _FINAL_FRACTION = 0.05  # of a corner's position sd: a bias or a step below it does not matter
 # Largest position error of the Gaussian pixel model on noise-free corners against the blur
