@@ -636,8 +636,9 @@ def test_a_board_retaped_between_sessions_gets_a_shape_per_session():
     obs, truth, (wave_a, wave_b) = sweep_observations(rng, steps=7, views=10, wave_mm=0.4,
                                                       retaped_at=cut)
     labels = {n: "a" if i < cut else "b" for i, n in enumerate(obs)}
-    apart = calibrate_zoom_wide(obs, sessions=labels)
-    one = calibrate_zoom_wide(obs)
+    starts = zoom_wide_starts(obs)  # the steps' own fits, for both adjustments
+    apart = calibrate_zoom_wide(obs, sessions=labels, starts=starts)
+    one = calibrate_zoom_wide(obs, starts=starts)
     assert apart.board_sessions == ["a", "b"] and one.board_sessions == [""]
     z_apart, z_one = [], []
     for name, t in truth.items():
@@ -671,8 +672,9 @@ def test_point_heights_follow_ripples_the_modes_cannot(ripple_mm):
     noise = 0.02
     obs, truth, wave = sweep_observations(rng, steps=4, views=10, noise=noise, wave_mm=0.3,
                                           ripple_mm=ripple_mm)
-    points = calibrate_zoom_wide(obs)
-    modes = calibrate_zoom_wide(obs, board_points=False, print_shape=False)
+    starts = zoom_wide_starts(obs)  # the steps' own fits, for both adjustments
+    points = calibrate_zoom_wide(obs, starts=starts)
+    modes = calibrate_zoom_wide(obs, board_points=False, print_shape=False, starts=starts)
     assert points.board_heights.shape == (1, len(wave))
     z = [(getattr(points.results[n], q) - t[q]) / points.results[n].sd[q]
          for n, t in truth.items() for q in ("fx", "cx", "cy")]
@@ -873,8 +875,9 @@ def test_the_print_shape_is_found_and_keeps_the_principal_point_honest():
     bow = rng.uniform(-0.3, 0.3)
     obs, truth, _ = sweep_observations(rng, steps=5, views=10, fx_range=(2300.0, 6000.0),
                                        print_mm=(trapezoid, bow))
-    found = calibrate_zoom_wide(obs, print_shape=True)
-    exact = calibrate_zoom_wide(obs)
+    starts = zoom_wide_starts(obs)  # the steps' own fits, for both adjustments
+    found = calibrate_zoom_wide(obs, print_shape=True, starts=starts)
+    exact = calibrate_zoom_wide(obs, starts=starts)
     assert found.print_test.kept and exact.print_test is None
     # the xy mode of x is the trapezoid itself (P1(x) P1(y)); x^2 = (2 P2(x) + 1) / 3, its
     # constant a shift (a pose)
