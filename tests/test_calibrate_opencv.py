@@ -184,6 +184,17 @@ def test_a_camera_only_fit_is_the_same_camera_without_the_checks(zc_obs, zc_resu
     assert light.sd == pytest.approx(zc_result.info["sd_noise_model"], rel=1e-12)
 
 
+def test_a_fit_without_the_keystone_response_keeps_everything_else(zc_obs, zc_result):
+    # the starts and the basins' fits read the camera, its sigmas and the poses, never the
+    # response to a keystone that only the per-step table's diagnosis reads
+    plain = calibrate_opencv(zc_obs, keystone=False)
+    assert "keystone_response" in zc_result.info and "keystone_response" not in plain.info
+    np.testing.assert_array_equal(plain.K, zc_result.K)
+    np.testing.assert_array_equal(plain.rvecs, zc_result.rvecs)
+    assert plain.sd == zc_result.sd
+    assert plain.info["view_scatter"] == zc_result.info["view_scatter"]
+
+
 def test_the_camera_alone_is_the_full_fits_camera(zc_obs, zc_result):
     # the held-out folds need the camera matrix and distortion only: the same solve to the bit,
     # from OpenCV's start and from a guess, with the same refusals

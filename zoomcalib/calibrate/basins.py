@@ -193,7 +193,8 @@ def _fit(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
     """OpenCV from ``K`` and ``dist`` (aspect ratio held), or None when that is no camera."""
     try:
         with pose_sigmas_unused():  # a pose's sigma is not used here
-            fit = calibrate_opencv(obs, flags=flags, fix_aspect=True, K_guess=K, dist_guess=dist)
+            fit = calibrate_opencv(obs, flags=flags, fix_aspect=True, K_guess=K, dist_guess=dist,
+                                   keystone=False)
     except (ValueError, RuntimeError, cv2.error):
         return None
     return None if not_a_camera(fit, obs.image_size) is not None else fit
@@ -285,14 +286,16 @@ def _profile(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
     """The cost held at :data:`GRID`'s rows (cx at ``K``'s), then at its columns (at the best
     row): per grid value ``(axis, value px, cost px^2)`` and the camera matrix and distortion
     its fit ended at. A row is fitted from no decentring and from the decentring of ``dist``
-    negated (each basin's decentring has its own sign), the lower kept; a column from no
-    decentring."""
+    negated (each basin's decentring has its own sign; once where ``dist`` has none), the
+    lower kept; a column from no decentring."""
     none, flipped = dist.copy(), dist.copy()
     none[2:4] = 0.0
     flipped[2:4] *= -1.0
+    # without decentring the two row starts are one: fitted once
+    row_starts = (none, flipped) if np.any(dist[2:4]) else (none,)
     profile, ends, best = [], [], (np.inf, K)
     w, h = obs.image_size
-    for axis, size, starts in (("cy", h, (none, flipped)), ("cx", w, (none,))):
+    for axis, size, starts in (("cy", h, row_starts), ("cx", w, (none,))):
         column = (1, 2) if axis == "cy" else (0, 2)
         for fraction in GRID:
             trial = best[1].copy()

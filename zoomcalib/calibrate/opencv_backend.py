@@ -680,11 +680,11 @@ class _Output:
 
 
 def _finish(fit: _Fit, out: _Output, groups: np.ndarray | None = None,
-            point_ids: np.ndarray | None = None, camera_only: bool = False
-            ) -> tuple[CalibrationResult, list[str]]:
+            point_ids: np.ndarray | None = None, camera_only: bool = False,
+            keystone: bool = True) -> tuple[CalibrationResult, list[str]]:
     """The result of one OpenCV calibration, and the names of its invalid 1-sigmas;
-    ``groups`` and ``point_ids`` as in :func:`_view_scatter`; ``camera_only`` as in
-    :func:`calibrate_opencv`."""
+    ``groups`` and ``point_ids`` as in :func:`_view_scatter`; ``camera_only`` and
+    ``keystone`` as in :func:`calibrate_opencv`."""
     backend, obj, img, flags, n_dist = fit.backend, fit.obj, fit.img, fit.flags, fit.n_dist
     model, names, criteria = fit.model, fit.names, fit.criteria
     out_K, out_dist, rvecs, tvecs, sdi, sde = (out.K, out.dist, out.rvecs, out.tvecs,
@@ -739,7 +739,7 @@ def _finish(fit: _Fit, out: _Output, groups: np.ndarray | None = None,
         info["notes"] = notes
     if camera_only:
         info["camera_only"] = True
-    elif backend == "opencv":  # the object-releasing fit moves the target too: not modelled
+    elif backend == "opencv" and keystone:  # the object-releasing fit moves the target too
         response = keystone_response(obj, K, dist, rv, tv, flags, n_dist)
         if response is not None:
             info["keystone_response"] = {k: v.tolist() for k, v in response.items()}
@@ -753,7 +753,8 @@ def _finish(fit: _Fit, out: _Output, groups: np.ndarray | None = None,
 def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
                      fix_aspect: bool = False, *, K_guess: np.ndarray | None = None,
                      dist_guess: Sequence[float] | None = None, criteria=None,
-                     min_views: int = 3, camera_only: bool = False) -> CalibrationResult:
+                     min_views: int = 3, camera_only: bool = False,
+                     keystone: bool = True) -> CalibrationResult:
     """Calibrate with ``cv2.calibrateCameraExtended`` (target points taken as exact).
 
     Parameters
@@ -784,6 +785,9 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
         For a caller that uses the camera and the poses alone (a held-out fold, a start): the
         view-scatter check and the keystone response are not computed, so the 1-sigmas are
         the noise model's (still checked), and ``info["camera_only"]`` is True.
+    keystone : bool
+        False: ``info["keystone_response"]`` is not computed, for a caller that reads the
+        camera, its 1-sigmas and the poses alone (a start, a basin's fit).
 
     Returns
     -------
@@ -818,7 +822,7 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
                                 _criteria(criteria)), _Output(*out),
                            None if camera_only else view_groups(obs.views, obs.image_size),
                            np.concatenate([np.asarray(ids) for ids, _ in obs.views]),
-                           camera_only)
+                           camera_only, keystone)
     _check_sd(res, invalid, 4 + n_dist)
     return res
 

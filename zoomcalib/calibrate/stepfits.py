@@ -401,7 +401,7 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
         guesses = [{}] + ([] if seed is None else [_guess(seed, attempt)])
         for guess in guesses:
             try:
-                result = calibrate_opencv(obs, flags=flags, **guess)
+                result = calibrate_opencv(obs, flags=flags, keystone=False, **guess)
                 reason = not_a_camera(result, obs.image_size)
             except (ValueError, RuntimeError) as exc:
                 result, reason = None, str(exc)
