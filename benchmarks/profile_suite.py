@@ -45,6 +45,8 @@ STAGES = (
     ("bundle adjustment", "calibrate/bundle.py", "calibrate_bundle"),
     ("projection with Jacobians", "calibrate/geometry.py", "project_jacobian"),
     ("rendering a sweep", "render/sweep.py", "render_zoom_sweep"),
+    ("rendering an image (all callers)", "render/image.py", "render_image"),
+    ("figures (matplotlib's savefig)", "matplotlib/figure.py", "savefig"),
     ("corner detection", "detect/opencv.py", "detect_image"),
     ("diagnosis", "diagnose/discrepancy.py", "diagnose_table"),
 )
