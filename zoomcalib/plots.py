@@ -144,7 +144,7 @@ def plot_residuals(points: list[np.ndarray], residuals: list[np.ndarray],
     """
     plt = _pyplot()
     w, h = image_size
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.6), dpi=110, layout="constrained")
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.6), dpi=110)
     p = np.concatenate(points)
     r = np.concatenate(residuals)
     view = np.concatenate([np.full(len(q), i + 1) for i, q in enumerate(points)])
@@ -157,15 +157,22 @@ def plot_residuals(points: list[np.ndarray], residuals: list[np.ndarray],
     arrows = ax1.quiver(p[:, 0], p[:, 1], r[:, 0] * scale, r[:, 1] * scale, norm, angles="xy",
                         scale_units="xy", scale=1, cmap="viridis", width=0.002)
     fig.colorbar(arrows, ax=ax1, label="residual length [px]", shrink=0.8)
-    ax1.set_title(wrap_title(f"residuals (projected - observed), drawn x{scale:.0f}; 95th "
-                             f"percentile {p95:.3f} px", 4.5), fontsize=9)
+    panel_title = wrap_title(f"residuals (projected - observed), drawn x{scale:.0f}; 95th "
+                             f"percentile {p95:.3f} px", 4.5)
+    ax1.set_title(panel_title, fontsize=9)
     for ax in (ax0, ax1):
         ax.set_xlim(0, w)
         ax.set_ylim(h, 0)
         ax.set_aspect("equal")
         ax.set_xlabel("x [px]")
         ax.set_ylabel("y [px]")
-    fig.suptitle(wrap_title(title, 11.0, 10.0), fontsize=10)
+    suptitle = wrap_title(title, 11.0, 10.0)
+    fig.suptitle(suptitle, fontsize=10)
+    # fixed margins (a layout engine would take as long as the drawing): room above the
+    # panels for the title's and the panel title's lines, 0.18 in each
+    lines = (suptitle.count("\n") + 1 if suptitle else 0) + panel_title.count("\n") + 1
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.1, wspace=0.25,
+                        top=1.0 - (0.2 + 0.18 * lines) / 4.6)
     path = Path(path)
     fig.savefig(path)
     plt.close(fig)
