@@ -88,3 +88,19 @@ def test_cli_refuses_an_unknown_psf(tmp_path):
     res = CliRunner().invoke(main, ["study", "--psf", "box", "--out", str(tmp_path / "s")])
     assert res.exit_code == 2
     assert "box" in res.output
+
+
+def test_a_binned_sensor_keeps_the_field_of_view_and_a_bad_binning_is_refused():
+    from zoomcalib.camera import DEFAULT_SENSOR
+    from zoomcalib.study.paper import DetectionSetting
+
+    setting = DetectionSetting("laikin-10x", 0.0, 2.0, 8, "chessboard:9x6:25", 0.7, ["model"],
+                               ["opencv"], binning=4)
+    binned = setting.sensor()
+    assert (binned.width_px, binned.height_px) == (320, 240)
+    assert binned.width_px * binned.pixel_pitch_mm == pytest.approx(
+        DEFAULT_SENSOR.width_px * DEFAULT_SENSOR.pixel_pitch_mm, rel=1e-12)
+    assert setting.__class__(**{**setting.__dict__, "binning": 1}).sensor() == DEFAULT_SENSOR
+    for bad in (0, 7, 2.0):
+        with pytest.raises(ValueError, match="binning must be a whole divisor"):
+            DetectionSetting(**{**setting.__dict__, "binning": bad}).sensor()

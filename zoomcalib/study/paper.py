@@ -29,6 +29,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy import stats
 
+from ..camera import DEFAULT_SENSOR, Sensor
+
 __all__ = ["StudyConfig", "DetectionSetting", "detection_task", "mechanics_table",
            "aggregate_detection", "compare", "check_claims"]
 
@@ -113,6 +115,10 @@ class DetectionSetting:
         The renderer's PSF shape (:class:`~zoomcalib.render.image.Optics`; shape parameters at
         their defaults): the ``model`` detector assumes a Gaussian, so any other shape is a PSF
         it does not model.
+    binning : int
+        The default sensor's pixels taken ``binning`` x ``binning`` at a time: the same field
+        of view on an image ``binning`` times smaller each way, pitch ``binning`` times larger
+        (``blur_px`` and the noise are per binned pixel).
     """
 
     lens: str
@@ -125,6 +131,16 @@ class DetectionSetting:
     backends: list[str]
     keep_errors: bool = False
     psf: str = "gaussian"
+    binning: int = 1
+
+    def sensor(self) -> Sensor:
+        """The sensor the set is rendered on (:attr:`binning` of the default one); ValueError
+        for a binning that is not a whole divisor of its width and height."""
+        b, full = self.binning, DEFAULT_SENSOR
+        if not isinstance(b, int) or b < 1 or full.width_px % b or full.height_px % b:
+            raise ValueError(f"binning must be a whole divisor of the default sensor's "
+                             f"{full.width_px} x {full.height_px} px, got {b!r}")
+        return Sensor(full.width_px // b, full.height_px // b, full.pixel_pitch_mm * b)
 
 
 def detection_task(seed: int, setting: DetectionSetting | None = None, **fields) -> dict:
@@ -144,12 +160,11 @@ def detection_task(seed: int, setting: DetectionSetting | None = None, **fields)
         view (for the paper's Fig. 6).
     """
     from ..calibrate.result import Observations
-    from ..camera import DEFAULT_SENSOR
     from ..detect import detect_image
 
     spec = DetectionSetting(**fields) if setting is None else replace(setting, **fields)
     rng = np.random.default_rng(seed)
-    sensor = DEFAULT_SENSOR
+    sensor = spec.sensor()
     t0 = time.perf_counter()
     mapping, target, rendered = _render_set(spec, sensor, rng)
     t1 = time.perf_counter()
@@ -221,7 +236,6 @@ def _calibrate_set(obs, backend: str) -> dict:
 
 def mechanics_table(lens, tolerances, zoom: np.ndarray, samples: int, seed: int) -> list[dict]:
     """Principal-point mean, scatter and systematic shift from the mechanics per zoom step."""
-    from ..camera import DEFAULT_SENSOR
     from ..optics.principal_point import principal_point_scatter
 
     res = principal_point_scatter(lens, tolerances, zoom, samples, seed, "exact")
