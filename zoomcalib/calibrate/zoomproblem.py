@@ -79,8 +79,9 @@ def _tied(free: np.ndarray, j: int) -> np.ndarray:
 @dataclass
 class _Step:
     """One zoom step's observations, flattened: ``view`` (N,) index into the step's views,
-    ``point`` (N,) board point ids, ``uv`` (N, 2) px; ``inlier`` (N,) bool; ``group``
-    (n_views,) views of nearly one pose (:func:`~zoomcalib.calibrate.scatter.view_groups`)."""
+    ascending (the corners come view after view), ``point`` (N,) board point ids, ``uv``
+    (N, 2) px; ``inlier`` (N,) bool; ``group`` (n_views,) views of nearly one pose
+    (:func:`~zoomcalib.calibrate.scatter.view_groups`)."""
 
     name: str
     view: np.ndarray
@@ -201,7 +202,6 @@ class _ZoomProblem:
         self.n_unknowns = self.n_glob + 6 * int(self.view_start[-1])
         self.prior_rows = self._prior_rows()
         self.covariance_ridge = 0.0  # set by the posterior covariance (_inverse_or_ridge)
-        self._view_sum_cache: dict[int, tuple[np.ndarray, scipy.sparse.csr_matrix]] = {}
 
     def _prior_rows(self) -> scipy.sparse.csr_matrix:
         rows = []
@@ -323,18 +323,6 @@ class _ZoomProblem:
             cols.append(np.repeat(col[:, None, :], 2, axis=1).ravel())
             vals.append((block * w).ravel())
 
-    def _view_sums(self, s: int, inlier: np.ndarray) -> scipy.sparse.csr_matrix:
-        """The sparse (views x inlier corners) matrix of ones that sums step ``s``'s per-corner
-        products by view; made once per set of inliers (they change only between solves)."""
-        cached = self._view_sum_cache.get(s)
-        if cached is not None and np.array_equal(cached[0], inlier):
-            return cached[1]
-        views = self.steps[s].view[inlier]
-        by_view = scipy.sparse.csr_matrix((np.ones(len(views)), (views, np.arange(len(views)))),
-                                          shape=(self.steps[s].n_views, len(views)))
-        self._view_sum_cache[s] = (inlier.copy(), by_view)
-        return by_view
-
     def linearise(self, state: _State) -> tuple[float, NormalBlocks]:
         """The cost ``|r|^2`` (prior rows included) and the normal blocks at ``state`` (the
         :class:`~zoomcalib.calibrate.solver.LeastSquaresProblem` protocol)."""
@@ -367,20 +355,20 @@ class _ZoomProblem:
             r = (uv - step.uv[sel]) * w                                       # (n, 2)
             res.append(r.ravel())
             G, cols = self._global_block(s, step, Jc, Jx, state, w)
-            P = Jp * w
-            views = step.view[sel]
-            n_local = step.n_views
-            by_view = self._view_sums(s, sel)
-            # the sums as matrix products (BLAS), the corners' two rows stacked
-            G2 = G.reshape(-1, G.shape[2])
+            # the sums as matrix products (BLAS), the corners' two rows stacked; a step's
+            # corners come view after view, so each view's are one slice of rows
+            G2, P2, r2 = G.reshape(-1, G.shape[2]), (Jp * w).reshape(-1, 6), r.ravel()
             U[np.ix_(cols, cols)] += G2.T @ G2
-            g_glob[cols] += G2.T @ r.ravel()
-            v0, v1 = self.view_start[s], self.view_start[s + 1]
-            Pt = P.transpose(0, 2, 1)
-            V[v0:v1] += (by_view @ (Pt @ P).reshape(len(views), 36)).reshape(n_local, 6, 6)
-            g_pose[v0:v1] += by_view @ (Pt @ r[:, :, None])[:, :, 0]
-            GP = by_view @ (G.transpose(0, 2, 1) @ P).reshape(len(views), -1)
-            W[cols, v0:v1] += GP.reshape(n_local, len(cols), 6).transpose(1, 0, 2)
+            g_glob[cols] += G2.T @ r2
+            v0 = self.view_start[s]
+            rows = 2 * np.searchsorted(step.view[sel], np.arange(step.n_views + 1))
+            coupling = np.empty((len(cols), step.n_views, 6))
+            for v, (a, b) in enumerate(zip(rows[:-1], rows[1:], strict=True)):
+                pose = P2[a:b]
+                V[v0 + v] += pose.T @ pose
+                g_pose[v0 + v] += pose.T @ r2[a:b]
+                coupling[:, v] = G2[a:b].T @ pose
+            W[cols, v0:v0 + step.n_views] += coupling
         r = np.concatenate(res)
         prior = self.prior_rows @ state.vector(self.free, self.aspect_col >= 0)
         glob = self.prior_rows[:, :self.n_glob]
