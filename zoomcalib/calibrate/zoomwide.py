@@ -486,6 +486,7 @@ def zoom_wide_starts(observations: Mapping[str, Observations],
                        workers, _held_terms(tuple(opts.fixed)), opts.model)
 
 
+@one_blas_thread
 def calibrate_zoom_wide(observations: Mapping[str, Observations],
                         options: ZoomWideOptions | None = None, *, workers: int = 1,
                         starts: StepStarts | None = None, **fields) -> ZoomWideResult:
