@@ -21,6 +21,9 @@ import pytest
 from zoomcalib.calibrate.checks import conditioning_flags
 from zoomcalib.calibrate.io import read_calibration, write_calibration, yaml_prefix
 from zoomcalib.calibrate.opencv_backend import (
+    CRITERIA,
+    START_CRITERIA,
+    STATIONARY_SIGMA,
     _camera_covariance,
     _normal_matrix_at_solution,
     _stationarity,
@@ -315,7 +318,7 @@ def test_full_inverse_matches_opencv_where_well_conditioned(zc_obs, zc_result):
 
 
 def _long_end_draws(draws: int):
-    """Per-step OpenCV on one set of 10 views within 3 degrees of fronto-parallel at fx 23000
+    """The observations of one set of 10 views within 3 degrees of fronto-parallel at fx 23000
     px through a 1.5 % pincushion (k1 14.4), exact image points from the renderer's camera
     model, each draw with fresh noise of 0.01 px."""
     from zoomcalib.camera import CameraModel
@@ -330,16 +333,16 @@ def _long_end_draws(draws: int):
     for d in range(draws):
         rng = np.random.default_rng(100 + d)
         views = [(np.arange(len(uv)), uv + rng.normal(0, 0.01, uv.shape)) for uv in clean]
-        obs = Observations(target.object_points, views, (1280, 720),
+        yield Observations(target.object_points, views, (1280, 720),
                            [f"v{i}" for i in range(10)])
-        yield calibrate_opencv_robust(obs, fronto_parallel_deg=15.0)
 
 
 def test_truncated_opencv_sd_at_the_long_end_is_found_and_replaced():
     """At the long end OpenCV's pseudo-inverse drops fx's direction: its 1-sigma is far below
     the scatter over noise draws. The reported one (the full inverse) is of that scatter's size,
     and the step is flagged."""
-    results = list(_long_end_draws(12))
+    results = [calibrate_opencv_robust(obs, fronto_parallel_deg=15.0)
+               for obs in _long_end_draws(12)]
     fx = np.array([r.fx for r in results])
     spread = fx.std(ddof=1)
     own = np.median([r.info["sd_check"]["opencv_sd"]["fx"] for r in results])
@@ -565,3 +568,20 @@ def test_only_the_pose_sigma_warning_is_silenced_where_poses_are_unused():
     assert seen == []
     with pytest.warns(RuntimeWarning, match="overflow"), pose_sigmas_unused():
         warnings.warn("overflow in exp", RuntimeWarning, stacklevel=1)
+
+
+def test_a_start_at_the_looser_stop_is_the_reported_fit_within_its_sigma(zc_obs, zc_result):
+    """A fit that only starts another solve stops at ``START_CRITERIA`` (a relative step of
+    1e-6 instead of 1e-12). Its camera stays within a tenth of the stationarity threshold
+    (``STATIONARY_SIGMA``) of the reported fit's, in the reported sigmas: on the OpenCV sample
+    and on the long end's ridge, where OpenCV's own steps are smallest."""
+    def apart(a, b) -> float:
+        return max(abs(getattr(a, q) - getattr(b, q)) / a.sd[q] for q in ("fx", "cx", "cy"))
+
+    start = calibrate_opencv(zc_obs, criteria=START_CRITERIA)
+    assert apart(zc_result, start) < 0.1 * STATIONARY_SIGMA
+    assert START_CRITERIA[2] > CRITERIA[2]
+    for obs in _long_end_draws(2):
+        reported = calibrate_opencv_robust(obs, fronto_parallel_deg=15.0)
+        start = calibrate_opencv_robust(obs, fronto_parallel_deg=15.0, criteria=START_CRITERIA)
+        assert apart(reported, start) < 0.1 * STATIONARY_SIGMA

@@ -55,7 +55,12 @@ import cv2
 import numpy as np
 import scipy.stats
 
-from .opencv_backend import calibrate_opencv, not_a_camera, pose_sigmas_unused
+from .opencv_backend import (
+    START_CRITERIA,
+    calibrate_opencv,
+    not_a_camera,
+    pose_sigmas_unused,
+)
 from .result import CalibrationResult, Observations, one_opencv_thread
 
 #: OpenCV's distortion terms, in its order.
@@ -194,7 +199,7 @@ def _fit(obs: Observations, K: np.ndarray, dist: np.ndarray, flags: int
     try:
         with pose_sigmas_unused():  # a pose's sigma is not used here
             fit = calibrate_opencv(obs, flags=flags, fix_aspect=True, K_guess=K, dist_guess=dist,
-                                   keystone=False)
+                                   keystone=False, criteria=START_CRITERIA)
     except (ValueError, RuntimeError, cv2.error):
         return None
     return None if not_a_camera(fit, obs.image_size) is not None else fit

@@ -594,10 +594,19 @@ def _convergence(at_solution, criteria) -> dict:
                          f"({int(count)}) or its step tolerance ({float(eps):g}) ended it")}}
 
 
+#: OpenCV's stop rule for a calibration that is reported: at most 100 iterations, or a relative
+#: step below 1e-12.
+CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+#: OpenCV's stop rule for a fit that only starts another solve or scores a term set on held-out
+#: views (the zoom-wide adjustment's starts, its basins' fits and its held-out folds), as for
+#: the basins' grid (``basins.GRID_CRITERIA``): such a fit needs its basin, not its last digits.
+#: The solve it starts ends at its own criteria; a held-out error moves far below its standard
+#: error (``docs/performance.md``, "Starts at a looser stop").
+START_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-6)
+
+
 def _criteria(criteria):
-    if criteria is None:
-        return (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    return tuple(criteria)
+    return CRITERIA if criteria is None else tuple(criteria)
 
 
 def _run(fn, what: str, *args, **kwargs):
@@ -776,7 +785,8 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
     dist_guess : sequence of float, optional
         Initial distortion, OpenCV order (used with ``K_guess`` or ``CALIB_FIX_K*``).
     criteria : tuple, optional
-        OpenCV termination criteria; default ``(COUNT + EPS, 100, 1e-12)``.
+        OpenCV termination criteria; default :data:`CRITERIA` (``COUNT + EPS, 100, 1e-12``);
+        :data:`START_CRITERIA` for a fit that only starts another solve.
     min_views : int
         Fewest views accepted. Two views of a plane give exactly the four constraints that the
         four intrinsics of a zero-skew camera need, leaving nothing to check them by; 3 is the
@@ -829,14 +839,15 @@ def calibrate_opencv(obs: Observations, model: str = "standard", flags: int = 0,
 
 def calibrate_opencv_camera(obs: Observations, flags: int = 0, *,
                             K_guess: np.ndarray | None = None,
-                            dist_guess: Sequence[float] | None = None
+                            dist_guess: Sequence[float] | None = None, criteria=None
                             ) -> tuple[np.ndarray, np.ndarray]:
     """The camera matrix (3, 3) px and distortion (5,) or (8,) of :func:`calibrate_opencv`'s
     solve (``cv2.calibrateCamera``, the same inputs, criteria and result to the last bit) and
     nothing else: no sigmas, poses nor check that OpenCV reached its minimum. For fits whose
     camera alone is used and judged by its effect elsewhere (the held-out folds of the term
-    choice: a fold that stopped short only raises that set's held-out error). Raises as
-    :func:`calibrate_opencv` does, and RuntimeError for non-finite intrinsics."""
+    choice: a fold that stopped short only raises that set's held-out error). ``criteria``
+    as in :func:`calibrate_opencv`. Raises as :func:`calibrate_opencv` does, and RuntimeError
+    for non-finite intrinsics."""
     _, flags, n_dist = _check_model("standard", flags)
     _check_views(obs, _names(obs), n_dist, 3, 0, "calibrate_opencv_camera")
     K0, d0, flags = _initial(obs, flags, False, K_guess, dist_guess, n_dist)
@@ -844,7 +855,7 @@ def calibrate_opencv_camera(obs: Observations, flags: int = 0, *,
     img = [np.asarray(pts, np.float32).reshape(-1, 1, 2) for _, pts in obs.views]
     _, K, dist, _, _ = _run(cv2.calibrateCamera, "calibrate_opencv_camera", obj, img,
                             tuple(int(v) for v in obs.image_size), K0, d0, flags=flags,
-                            criteria=_criteria(None))
+                            criteria=_criteria(criteria))
     K, dist = np.asarray(K, np.float64).reshape(3, 3), np.asarray(dist, np.float64).ravel()
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
         raise RuntimeError("calibrate_opencv_camera: calibration diverged (non-finite "
@@ -906,12 +917,14 @@ def not_a_camera(result: CalibrationResult | np.ndarray, image_size: tuple[int, 
 
 def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flags: int = 0,
                                 focal_range: tuple[float, float] = (0.5, 32.0), starts: int = 4,
-                                camera_only: bool = False) -> CalibrationResult | None:
+                                camera_only: bool = False, criteria=None
+                                ) -> CalibrationResult | None:
     """:func:`calibrate_opencv` from ``starts`` focal lengths log-spaced over ``focal_range``
     times the image's larger side (principal point at the centre and square pixels held for a
     first solve, then freed); the result with the smallest RMS that is a camera
-    (:func:`not_a_camera`), or None; ``camera_only`` as in :func:`calibrate_opencv` (the
-    first solves, with the principal point held, are always camera only).
+    (:func:`not_a_camera`), or None; ``camera_only`` and ``criteria`` as in
+    :func:`calibrate_opencv` (the first solves, with the principal point held, are always
+    camera only).
 
     OpenCV's own start comes from the views' homographies (Zhang's closed form), which is
     ill-posed when the views are nearly fronto-parallel, as at the long end of a zoom: through
@@ -924,9 +937,10 @@ def calibrate_opencv_multistart(obs: Observations, model: str = "standard", flag
         K = np.array([[focal, 0.0, (w - 1) / 2.0], [0.0, focal, (h - 1) / 2.0], [0, 0, 1]])
         try:
             held = calibrate_opencv(obs, model, flags | cv2.CALIB_FIX_PRINCIPAL_POINT,
-                                    fix_aspect=True, K_guess=K, camera_only=True)
+                                    fix_aspect=True, K_guess=K, camera_only=True,
+                                    criteria=criteria)
             result = calibrate_opencv(obs, model, flags, K_guess=held.K, dist_guess=held.dist,
-                                      camera_only=camera_only)
+                                      camera_only=camera_only, criteria=criteria)
         except (ValueError, RuntimeError):
             continue
         if not_a_camera(result, obs.image_size) is None and (
@@ -964,28 +978,28 @@ FRONTO_PARALLEL_DEG = 15.0
 
 
 def calibrate_opencv_robust(obs: Observations, model: str = "standard", flags: int = 0,
-                            fronto_parallel_deg: float | None = None, camera_only: bool = False
-                            ) -> CalibrationResult:
+                            fronto_parallel_deg: float | None = None, camera_only: bool = False,
+                            criteria=None) -> CalibrationResult:
     """:func:`calibrate_opencv` from OpenCV's own start and also from
     :func:`calibrate_opencv_multistart`: always, or with ``fronto_parallel_deg`` only when the
     first is no camera (:func:`not_a_camera`) or all its views are tilted less than that
     (degrees) from fronto-parallel, where OpenCV's own start is ill-posed. Returns the camera
     with the smallest RMS (``info["start"]``: ``"opencv"`` or ``"multi-start"``); raises what
     OpenCV raised, or ValueError naming why its result is no camera, when no start gives one;
-    ``camera_only`` as in :func:`calibrate_opencv`.
+    ``camera_only`` and ``criteria`` as in :func:`calibrate_opencv`.
     """
     from .quality import view_geometry
 
     try:
-        own = calibrate_opencv(obs, model, flags, camera_only=camera_only)
+        own = calibrate_opencv(obs, model, flags, camera_only=camera_only, criteria=criteria)
         failure = not_a_camera(own, obs.image_size)
     except (ValueError, RuntimeError) as exc:
         own, failure, error = None, str(exc), exc
     candidates = [] if failure else [own]
     if (fronto_parallel_deg is None or failure
             or view_geometry(own, obs).tilt_deg.max() < fronto_parallel_deg):
-        candidates += [r for r in [calibrate_opencv_multistart(obs, model, flags,
-                                                               camera_only=camera_only)] if r]
+        candidates += [r for r in [calibrate_opencv_multistart(
+            obs, model, flags, camera_only=camera_only, criteria=criteria)] if r]
     if not candidates:
         if own is None:
             raise error

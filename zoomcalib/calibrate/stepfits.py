@@ -31,6 +31,7 @@ import scipy.stats
 from ..pool import map_in_processes
 from .opencv_backend import (
     FRONTO_PARALLEL_DEG,
+    START_CRITERIA,
     calibrate_opencv,
     calibrate_opencv_camera,
     calibrate_opencv_multistart,
@@ -132,7 +133,8 @@ def held_out_errors(obs: Observations, terms: tuple[str, ...],
     idx = np.arange(obs.n_views)
     squared, count = np.zeros(obs.n_views), np.zeros(obs.n_views)
     for train, test in ((idx[0::2], idx[1::2]), (idx[1::2], idx[0::2])):
-        K, dist = calibrate_opencv_camera(obs.subset(train), flags, **guess)
+        K, dist = calibrate_opencv_camera(obs.subset(train), flags, criteria=START_CRITERIA,
+                                          **guess)
         if (why := not_a_camera(K, obs.image_size)) is not None:
             raise RuntimeError(f"held-out fit of {'+'.join(terms) or 'no distortion'} "
                                f"diverged: {why}")
@@ -378,7 +380,7 @@ def _robust_start(obs: Observations, held_terms: tuple[str, ...] = ()
     try:
         return calibrate_opencv_robust(obs, flags=_distortion_flags(
             _without(("k1",), held_terms)), fronto_parallel_deg=FRONTO_PARALLEL_DEG,
-            camera_only=True), None
+            camera_only=True, criteria=START_CRITERIA), None
     except (ValueError, RuntimeError) as exc:
         return None, " ".join(str(exc).split()) or type(exc).__name__
 
@@ -401,13 +403,15 @@ def _opencv_start(name: str, obs: Observations, terms: dict,
         guesses = [{}] + ([] if seed is None else [_guess(seed, attempt)])
         for guess in guesses:
             try:
-                result = calibrate_opencv(obs, flags=flags, keystone=False, **guess)
+                result = calibrate_opencv(obs, flags=flags, keystone=False,
+                                          criteria=START_CRITERIA, **guess)
                 reason = not_a_camera(result, obs.image_size)
             except (ValueError, RuntimeError) as exc:
                 result, reason = None, str(exc)
             candidates += [result] if reason is None else []
         if not candidates:
-            candidates = [r for r in [calibrate_opencv_multistart(obs, flags=flags)] if r]
+            candidates = [r for r in [calibrate_opencv_multistart(
+                obs, flags=flags, criteria=START_CRITERIA)] if r]
         if candidates:
             terms[name] = attempt
             return min(candidates, key=lambda r: r.rms_px)
