@@ -66,6 +66,7 @@ def _calibrate(folder: Path, out: Path, **kw):
     log: list[str] = []
     kw.setdefault("backends", ("opencv",))
     kw.setdefault("zoom_wide", False)  # these cases concern the per-step job
+    kw.setdefault("report", False)  # and its files; the report's own cases: tests/test_report.py
     run = calibrate_folder(folder, SPEC, out, method="classic", log=log.append, **kw)
     return run, log
 
@@ -101,7 +102,7 @@ def test_second_camera_in_the_same_output_folder_is_not_given_the_first_ones_det
     assert meta["detections"]["."]["reused"] == 12 and meta["detections"]["."]["detected"] == 1
     # another detection method is another key
     log = []
-    calibrate_folder(cam_b, SPEC, out, ("opencv",), method="sb", log=log.append)
+    calibrate_folder(cam_b, SPEC, out, ("opencv",), method="sb", log=log.append, report=False)
     assert not any("reused" in m for m in log)
 
 
@@ -207,12 +208,13 @@ def test_rerun_into_a_used_folder_leaves_only_its_own_files(tmp_path):
     _camera_a(root / "zoom_1", 7)
     _camera_b(root / "zoom_2", 7)
     out = tmp_path / "out"
-    _calibrate(root, out)
+    _calibrate(root, out, report=True)  # the report too is a file of the run's own
     assert (out / "zoom_calibration.csv").exists() and (out / "residuals_zoom_2.png").exists()
     (out / "notes.txt").write_text("mine")
     flat = _camera_a(tmp_path / "flat", 7)
-    run, _ = _calibrate(flat, out)
+    run, _ = _calibrate(flat, out, report=True)
     manifest = json.loads((out / "manifest.json").read_text())
+    assert "report.html" in manifest["files"]
     present = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
     assert present == set(manifest["files"]) | {"manifest.json", "notes.txt"}
     for stale in ("zoom_calibration.csv", "residuals_zoom_1.png", "residuals_zoom_2.png",
@@ -315,6 +317,7 @@ def test_calibrate_exits_3_naming_the_dropped_step(tmp_path):
     assert res.exit_code == 3, res.output
     assert "partial" in res.output and "zoom_2" in res.output.splitlines()[-1]
     assert (out / "calibration.json").exists()
+    assert "zoom_2" in (out / "report.html").read_text()  # the report says it too
 
 
 def test_output_folder_inside_a_flat_image_folder_is_not_a_step(tmp_path):

@@ -69,10 +69,19 @@ def test_zero_tolerances_give_zero_mechanical_scatter(base, tmp_path):
 
 def test_study_on_local_dask_cluster_matches_in_process(base, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
-    _, res = base
+    out, res = base
+    # every other task from the in-process run's cache, the rest run on the cluster's workers
+    cached = sorted((out / "tasks").iterdir())
+    (tmp_path / "dask" / "tasks").mkdir(parents=True)
+    for path in cached[::2]:
+        shutil.copy(path, tmp_path / "dask" / "tasks" / path.name)
+    assert len(cached) >= 4
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
         dist = run_study(StudyConfig(**TINY), tmp_path / "dask", scheduler=client)
     assert [s["s_det_px"] for s in dist["scatter"]] == [s["s_det_px"] for s in res["scatter"]]
     assert [c["verdict"] for c in dist["comparison"]] == [c["verdict"] for c in res["comparison"]]
+    # the tasks not given were made on the cluster and stored beside the given ones
+    assert sorted(p.name for p in (tmp_path / "dask" / "tasks").iterdir()) == \
+        [p.name for p in cached]
