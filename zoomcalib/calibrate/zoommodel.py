@@ -221,8 +221,9 @@ def _restricted_loglik(chains: list[tuple], order: int
     # there (a smaller tau only makes the problem ill-conditioned)
     bottom = max(min(t[4] for t in terms) * 1e-2, top * 1e-6)
     grid = np.geomspace(bottom, max(top * 1e4, bottom * 1e2), 201)
-    loglik = np.array([sum(_gauss_loglik(y, g * g * shape + noise) for y, shape, noise, *_ in terms)
-                       for g in grid])
+    loglik = np.zeros(len(grid))
+    for y, shape, noise, *_ in terms:
+        loglik += _gauss_loglik(y, (grid * grid)[:, None, None] * shape + noise)
     return grid, loglik
 
 
@@ -244,11 +245,13 @@ def tau_posterior(chains: list[tuple], order: int = 2) -> tuple[np.ndarray, np.n
     return grid, weight / weight.sum()
 
 
-def path_posterior(chain: tuple, order: int, tau: float) -> tuple[np.ndarray, np.ndarray]:
+def path_posterior(chain: tuple, order: int, tau: float | np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Mean (n,) and covariance (n, n) of the true path of a chain ``(values, sd, u[,
     offset])`` given its estimates at a fixed ``tau``: with the restricted precision ``Q``
     (module docstring, "Held-out choice"), ``m = q_hat - S Q q_hat`` and ``P = S - S Q S``
-    (the fixed effects integrated out under their flat prior)."""
+    (the fixed effects integrated out under their flat prior). For ``tau`` of shape (T,), the
+    stacks (T, n) and (T, n, n), one per ``tau``."""
     values, sd, u, offset = _unpack(chain)
     S = _as_covariance(values, sd)
     Q = _restricted_precision(S, u, order, tau, offset)
@@ -288,8 +291,8 @@ def marginal_tau(model: PathPrior, chains: list[tuple]) -> list[np.ndarray]:
             continue
         m0, P0 = path_posterior(chain, model.order, model.tau)
         second_moment = np.zeros((n, n))
-        for t, w in zip(grid[keep], weight[keep], strict=True):
-            m, P = path_posterior(chain, model.order, t)
+        means, covs = path_posterior(chain, model.order, grid[keep])
+        for m, P, w in zip(means, covs, weight[keep], strict=True):
             second_moment += w * (P + np.outer(m - m0, m - m0))
         extra = second_moment / weight[keep].sum() - P0
         vals, vecs = np.linalg.eigh(0.5 * (extra + extra.T))
@@ -316,24 +319,27 @@ def _restricted_terms(chain: tuple, order: int):
     return N.T @ values, NG @ NG.T, N.T @ S @ N, scale, noise_roughness(S, u, order)
 
 
-def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> float:
-    """Log density of ``y ~ N(0, cov)`` up to a constant (small matrices: plain NumPy)."""
+def _gauss_loglik(y: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Log density of ``y`` (k,) under ``N(0, cov)`` up to a constant, for each of a stack of
+    covariances ``cov`` (..., k, k): shape ``(...)`` (small matrices: batched NumPy)."""
     c = np.linalg.cholesky(cov)
-    z = np.linalg.solve(c, y)
-    return float(-np.sum(np.log(np.diag(c))) - 0.5 * z @ z)
+    z = np.linalg.solve(c, np.broadcast_to(y[:, None], c.shape[:-1] + (1,)))[..., 0]
+    return (-np.sum(np.log(np.diagonal(c, axis1=-2, axis2=-1)), axis=-1)
+            - 0.5 * (z[..., None, :] @ z[..., :, None])[..., 0, 0])
 
 
-def _restricted_precision(S: np.ndarray, u: np.ndarray, order: int, tau: float,
+def _restricted_precision(S: np.ndarray, u: np.ndarray, order: int, tau: float | np.ndarray,
                           offset: np.ndarray | None = None,
                           bases: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``Q = C^{-1} - C^{-1} A (A^T C^{-1} A)^{-1} A^T C^{-1}``, ``C = S + tau^2 G G^T``
-    (module docstring, "Held-out choice"); ``bases``: ``(A, G)`` at ``tau = 1`` of
+    (module docstring, "Held-out choice"), (n, n); for ``tau`` of shape (T,), the stack
+    (T, n, n), one per ``tau``. ``bases``: ``(A, G)`` at ``tau = 1`` of
     :func:`_precision_bases`, which do not depend on ``tau`` (given for many ``tau``)."""
     A, G = _precision_bases(u, order, offset) if bases is None else bases
-    G = G * tau
-    C_inv = np.linalg.inv(S + G @ G.T)
+    G = G * np.asarray(tau, float)[..., None, None]
+    C_inv = np.linalg.inv(S + G @ np.swapaxes(G, -1, -2))
     CA = C_inv @ A
-    return C_inv - CA @ np.linalg.solve(A.T @ CA, CA.T)
+    return C_inv - CA @ np.linalg.solve(A.T @ CA, np.swapaxes(CA, -1, -2))
 
 
 def _precision_bases(u: np.ndarray, order: int, offset: np.ndarray | None = None
@@ -414,10 +420,8 @@ def held_out_residuals(chain: tuple, order: int, tau: float, reml: bool,
                 taus, weights = taus[keep_t], weights[keep_t]
             else:  # the plug-in (also where the other steps give no posterior)
                 taus, weights = np.array([pooled_prior_strength(rest, order)[0]]), np.ones(1)
-        r_t, var_t = np.empty(len(taus)), np.empty(len(taus))
-        for k, t in enumerate(taus):
-            Q = _restricted_precision(S, u, order, t, offset, bases)
-            r_t[k], var_t[k] = (Q @ values)[i] / Q[i, i], 1.0 / Q[i, i]
+        Q = _restricted_precision(S, u, order, taus, offset, bases)  # (T, n, n)
+        r_t, var_t = (Q @ values)[:, i] / Q[:, i, i], 1.0 / Q[:, i, i]
         weights = weights / weights.sum()
         resid[i] = weights @ r_t
         spread[i] = np.sqrt(weights @ var_t + weights @ (r_t - resid[i]) ** 2)
