@@ -190,3 +190,26 @@ def test_a_chain_the_free_terms_take_whole_has_no_prior_strength(rng):
     fx = np.geomspace(2300.0, 9000.0, 4)
     q = 640.0 + rng.normal(0, 1.0, 4)
     assert np.isfinite(pooled_prior_strength([(q / fx, 0.5 / fx, np.log(fx), 1.0 / fx)], 2)[0])
+
+
+def test_a_stack_of_taus_gives_each_taus_own_precision_and_path(rng):
+    """The held-out predictions and the marginal covariance take the restricted precision and
+    the path posterior for many ``tau`` in one stacked call: each slice is that ``tau``'s own,
+    on a correlated chain too."""
+    from zoomcalib.calibrate.zoommodel import _restricted_precision, path_posterior
+
+    n = 9
+    u = np.sort(rng.uniform(0.0, 3.0, n))
+    values = np.cumsum(rng.normal(0.0, 1.0, n))
+    sd = rng.uniform(0.2, 1.0, n)
+    taus = np.geomspace(0.01, 10.0, 7)
+    for noise in (sd, np.outer(sd, sd) * (0.3 + 0.7 * np.eye(n))):
+        S = noise if noise.ndim == 2 else np.diag(noise**2)
+        stack = _restricted_precision(S, u, 2, taus)
+        means, covs = path_posterior((values, noise, u), 2, taus)
+        for k, tau in enumerate(taus):
+            np.testing.assert_allclose(stack[k], _restricted_precision(S, u, 2, tau),
+                                       rtol=1e-12, atol=1e-12)
+            m, P = path_posterior((values, noise, u), 2, tau)
+            np.testing.assert_allclose(means[k], m, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(covs[k], P, rtol=1e-12, atol=1e-12)
