@@ -335,14 +335,14 @@ class _Tried:
         return float(np.mean(self.loo_sq))
 
 
-def _try(c: _Candidate, data: _Data, kind: str, lo: float, hi: float, n_points: int) -> _Tried:
-    """Fit one candidate and its exact leave-one-out errors, ``r_i / (1 - h_ii)`` in the
-    transformed space, taken back to the parameter's units."""
+def _try(c: _Candidate, data: _Data, kind: str, A: np.ndarray) -> _Tried:
+    """Fit one candidate, on its design matrix ``A`` at the data's zooms (:func:`_basis`), and
+    its exact leave-one-out errors, ``r_i / (1 - h_ii)`` in the transformed space, taken back
+    to the parameter's units."""
     z, v = data.z, data.v
     w_px = _weights_px(data.sd, len(z))
     degree = int(c.setting) if kind == "poly" else None
     lam_rel = float(c.setting) if kind == "spline" else None
-    A = _basis(z, kind, lo, hi, degree, n_points, c.abscissa)
     y = _forward(v, c.transform)
     w = w_px * v**2 if c.transform == "log" else w_px
     coef, cov, h, r = _smoother(A, y, w, lam_rel)
@@ -395,7 +395,13 @@ def _fit_param(name: str, data: _Data, kind: str, lo: float, hi: float, n_points
                candidates: list[_Candidate]) -> ParamFit:
     """Every candidate fitted, one chosen (:func:`_choose`), its covariance scaled by the
     reduced chi-square where the scatter exceeds the stated sds (module notes)."""
-    tried = [_try(c, data, kind, lo, hi, n_points) for c in candidates]
+    bases: dict[tuple[str, int | None], np.ndarray] = {}  # one per abscissa (and degree)
+    tried = []
+    for c in candidates:
+        key = (c.abscissa, int(c.setting) if kind == "poly" else None)
+        if key not in bases:
+            bases[key] = _basis(data.z, kind, lo, hi, key[1], n_points, c.abscissa)
+        tried.append(_try(c, data, kind, bases[key]))
     chosen = _choose(tried)
     c = chosen.candidate
     degree, lam = _degree_lam(c, kind)
