@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["plot_principal_point_spiral", "plot_focal_length", "plot_residuals",
-           "plot_cross_validation", "wrap_title"]
+           "plot_cross_validation", "wrap_title", "limit_ticks", "save_figure"]
 
 
 LENS_ZOOM_LABEL = "lens zoom state (0 = shortest focal length, 1 = longest)"
@@ -21,6 +21,26 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def limit_ticks(fig, n: int = 4) -> None:
+    """At most ``n`` value ticks on each axis of ``fig`` that matplotlib places itself (tick
+    labels are most of a figure's drawing time); axes with ticks of their own are left."""
+    from matplotlib.ticker import MaxNLocator
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if isinstance(axis.get_major_locator(), MaxNLocator):  # the Auto locators
+                axis.set_major_locator(MaxNLocator(n))
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Write ``fig`` as PNG to ``path`` and close it, as every figure of the package is:
+    :func:`limit_ticks`, and PNG's fastest compression."""
+    limit_ticks(fig)
+    fig.savefig(path, format="png", pil_kwargs={"compress_level": 1})
+    _pyplot().close(fig)
+    return Path(path)
 
 
 def wrap_title(text: str, fig_width_in: float, fontsize: float = 9.0) -> str:
@@ -103,8 +123,7 @@ def plot_principal_point_spiral(zoom: np.ndarray, mean_px: np.ndarray, std_px: n
                             5.0), fontsize=9)
     fig.colorbar(sc, ax=ax, label=zoom_label, shrink=0.8)
     path = Path(path)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -126,8 +145,7 @@ def plot_focal_length(zoom: np.ndarray, fx: np.ndarray, sd_fx: np.ndarray, path:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     path = Path(path)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -174,8 +192,7 @@ def plot_residuals(points: list[np.ndarray], residuals: list[np.ndarray],
     fig.subplots_adjust(left=0.06, right=0.98, bottom=0.1, wspace=0.25,
                         top=1.0 - (0.2 + 0.18 * lines) / 4.6)
     path = Path(path)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -207,6 +224,5 @@ def plot_cross_validation(steps: list[str], z: np.ndarray, names: tuple[str, ...
     ax.set_title(wrap_title(title or "Cross-validation: even vs odd images per step", width,
                             10.0), fontsize=10)
     ax.legend(loc="best", fontsize=8)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return Path(path)

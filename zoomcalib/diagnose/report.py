@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json
-from ..plots import _pyplot, wrap_title
+from ..plots import _pyplot, save_figure, wrap_title
 from .discrepancy import Diagnosis, LinearFit
 from .model import Context, design_matrix
 from .table import ZoomTable
@@ -84,8 +84,7 @@ def plot_path(diag: Diagnosis, path: str | Path) -> Path:
                else "a smooth path in log f (no lens model: nothing simulated)")
     ax.set_title(wrap_title(f"Principal point: measured vs {against} ({diag.table.source})",
                             5.0), fontsize=9)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return Path(path)
 
 
@@ -136,8 +135,7 @@ def plot_residuals(diag: Diagnosis, path: str | Path) -> Path:
             a.xaxis.set_minor_formatter(NullFormatter())
     axes[0, 0].set_title("by direction of the last zoom move (o cx, square cy)", fontsize=8)
     axes[0, 1].set_title(f"by {colour_name} (o cx, x cy)", fontsize=8)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return Path(path)
 
 

@@ -58,7 +58,7 @@ def plot_fig7(scatter: list[dict], zoom: np.ndarray, path: Path) -> Path:
     level, against the zoom step instead (colour: detector)."""
     from matplotlib.colors import Normalize
 
-    from ..plots import LENS_ZOOM_LABEL, _pyplot
+    from ..plots import LENS_ZOOM_LABEL, _pyplot, save_figure
 
     plt = _pyplot()
     noises = sorted({s["noise_dn"] for s in scatter})
@@ -93,8 +93,7 @@ def plot_fig7(scatter: list[dict], zoom: np.ndarray, path: Path) -> Path:
     ax.set_title(_wrap(title, 6.4), fontsize=9)
     _style_legend(ax, scatter, coloured=len(noises) <= 1)
     ax.grid(alpha=0.3, which="both")
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -109,7 +108,7 @@ def plot_scatter_vs_focal_length(mech: list[dict], scatter: list[dict], path: Pa
     against focal length."""
     from matplotlib.lines import Line2D
 
-    from ..plots import _pyplot
+    from ..plots import _pyplot, save_figure
 
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=120, layout="constrained")
@@ -139,14 +138,13 @@ def plot_scatter_vs_focal_length(mech: list[dict], scatter: list[dict], path: Pa
     noise = f"noise {ref:g} DN" if ref is not None else "no detection runs"
     ax.set_title(_wrap("Mechanical against detection-induced principal-point error (detection "
                        f"at {noise})", 6.4), fontsize=9)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
 def plot_fig6(fig6: dict, width_px: int, height_px: int, path: Path) -> Path:
     """Fig. 6: the detection errors of one calibration view, per detector, as arrows."""
-    from ..plots import _pyplot
+    from ..plots import _pyplot, save_figure
 
     plt = _pyplot()
     fig, axes = plt.subplots(1, len(fig6), figsize=(5.5 * len(fig6), 4.6), dpi=110,
@@ -166,8 +164,7 @@ def plot_fig6(fig6: dict, width_px: int, height_px: int, path: Path) -> Path:
                            f"x{scale:.0f})", 5.5), fontsize=9)
     fig.suptitle("Fig. 6: detection errors (detected - true) of one calibration view",
                  fontsize=10)
-    fig.savefig(path)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
