@@ -264,7 +264,6 @@ def _batched_lm(
     stalled = np.zeros(p.shape[0], dtype=bool)
     converged = np.zeros(p.shape[0], dtype=bool)
     n_iter = np.zeros(p.shape[0], dtype=int)
-    n_par = p.shape[1]
     budget = np.broadcast_to(np.asarray(max_iter, dtype=int), (p.shape[0],)).copy()
     granted = np.zeros(p.shape[0], dtype=int)  # iterations added for crawling
     while True:
@@ -284,26 +283,8 @@ def _batched_lm(
             granted[crawling] += more
             active |= crawling
             continue
-        jw = jac[idx] * weights[idx, :, None]
-        A = np.einsum("kmp,kmq->kpq", jw, jac[idx])
-        g = np.einsum("kmp,km->kp", jw, resid[idx])
-        dg = np.diagonal(A, axis1=1, axis2=2)
-        damp = lam[idx, None] * (dg + 1e-9 * dg.max(axis=1, keepdims=True) + 1e-300)
-        M = A + damp[:, :, None] * np.eye(n_par)
-        try:
-            step = np.linalg.solve(M, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.einsum("kpq,kq->kp", np.linalg.pinv(M), g)  # a singular problem
-        # a step this small cannot change the cost materially: take it without re-evaluating
-        scale = np.sqrt(np.maximum(dg, 1e-300))  # parameter scale for the stopping test
-        # |delta_j| sqrt(A_jj) / s is the step in units of the parameter's conditional sd
-        dof = np.maximum(weights[idx].sum(axis=1) - n_par, 1.0)
-        small = np.abs(step) * scale < rel_tol * np.sqrt(cost[idx] / dof)[:, None]
-        small[:, :2] |= np.abs(step[:, :2]) < tol
-        small[:, 2:] |= np.abs(step[:, 2:]) * scale[:, 2:] < \
-            tol * np.max(scale[:, :2], axis=1, keepdims=True)
-        # a near Gauss-Newton step, not one shrunk by damping
-        tiny = np.all(small, axis=1) & (lam[idx] <= 1e-2)
+        step, tiny = _damped_step(jac[idx], weights[idx], resid[idx], cost[idx], lam[idx],
+                                  tol, rel_tol)
         n_iter[idx] += 1
         done = idx[tiny]
         p[done] += step[tiny]
@@ -326,6 +307,36 @@ def _batched_lm(
         stalled[idx[lam[idx] > 1e10]] = True
         active &= ~stalled
     return _LMOut(p, jac, resid, cost, converged, n_iter)
+
+
+def _damped_step(jac: np.ndarray, weights: np.ndarray, resid: np.ndarray, cost: np.ndarray,
+                 lam: np.ndarray, tol: float, rel_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """One Marquardt step per problem, and whether it is small enough to end the problem.
+
+    ``jac`` (k, M, P), ``weights``, ``resid`` (k, M), ``cost``, ``lam`` (k,). Returns the step
+    (k, P) solving ``(A + lambda diag(A)) delta = J^T W r`` and ``tiny`` (k,): every parameter's
+    step passes :func:`_batched_lm`'s stopping test while ``lambda <= 0.01`` (a near
+    Gauss-Newton step, not one shrunk by damping), so it is taken without re-evaluating.
+    """
+    n_par = jac.shape[2]
+    jw = jac * weights[:, :, None]
+    normal = np.einsum("kmp,kmq->kpq", jw, jac)
+    grad = np.einsum("kmp,km->kp", jw, resid)
+    diag = np.diagonal(normal, axis1=1, axis2=2)
+    damp = lam[:, None] * (diag + 1e-9 * diag.max(axis=1, keepdims=True) + 1e-300)
+    damped = normal + damp[:, :, None] * np.eye(n_par)
+    try:
+        step = np.linalg.solve(damped, grad[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        step = np.einsum("kpq,kq->kp", np.linalg.pinv(damped), grad)  # a singular problem
+    scale = np.sqrt(np.maximum(diag, 1e-300))  # parameter scale for the stopping test
+    # |delta_j| sqrt(A_jj) / s is the step in units of the parameter's conditional sd
+    dof = np.maximum(weights.sum(axis=1) - n_par, 1.0)
+    small = np.abs(step) * scale < rel_tol * np.sqrt(cost / dof)[:, None]
+    small[:, :2] |= np.abs(step[:, :2]) < tol
+    small[:, 2:] |= np.abs(step[:, 2:]) * scale[:, 2:] < \
+        tol * np.max(scale[:, :2], axis=1, keepdims=True)
+    return step, np.all(small, axis=1) & (lam <= 1e-2)
 
 
 def _stationary_at_cap(p: np.ndarray, jac: np.ndarray, resid: np.ndarray, cost: np.ndarray,
