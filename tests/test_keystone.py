@@ -114,6 +114,13 @@ def test_keystone_columns_round_trip_through_the_zoom_table(tmp_path):
 def _tilted_lens_table(theta_mrad: np.ndarray, noise_px: float, seed: int) -> list[dict]:
     """Per-setting OpenCV calibrations of points projected through the exact ``laikin-10x``
     on a sensor tilted by ``theta_mrad`` (keystone included), with Gaussian detection noise."""
+    return [dict(r) for r in _tilted_lens_rows(tuple(theta_mrad), noise_px, seed)]
+
+
+@functools.cache
+def _tilted_lens_rows(theta_mrad: tuple[float, float], noise_px: float, seed: int
+                      ) -> tuple[dict, ...]:
+    theta_mrad = np.asarray(theta_mrad, dtype=float)
     lens = load_prescription("laikin-10x")
     sensor = Sensor(*SIZE, 0.0129)
     still = Misalignment(np.zeros((len(lens.groups), 2)), np.zeros((len(lens.groups), 2)))
@@ -129,7 +136,7 @@ def _tilted_lens_table(theta_mrad: np.ndarray, noise_px: float, seed: int) -> li
                   + rng.normal(0.0, noise_px, (len(pts), 2))) for R, t in poses]
         res = calibrate_opencv(Observations(pts, views, SIZE), flags=cv2.CALIB_FIX_K3)
         rows.append(_table_row(f"z{i}", float(z), {}, res))
-    return rows
+    return tuple(rows)
 
 
 @functools.cache
@@ -170,6 +177,46 @@ def test_no_axis_tilt_is_named_on_an_aligned_lens():
     diag = _diagnose(rows)
     assert "axis_tilt" not in {s.cause for s in diag.causes}
     assert diag.distortion is None or diag.distortion["required"] is None
+
+
+@pytest.mark.parametrize("tilt_bic, decentre_bic, required, ambiguous", [
+    (-40.0, -32.0, "axis_tilt", ["static_decenter"]),  # both supported, 8 apart: not told apart
+    (-40.0, -28.0, "axis_tilt", []),  # 12 apart: the decentre is behind by the margin
+    (-40.0, -5.0, "axis_tilt", []),  # 35 apart, the decentre not supported
+    (-9.0, 3.0, None, []),  # the tilt not supported
+])
+def test_a_tilt_the_distortion_puts_in_names_a_decentre_it_cannot_part_from_it(
+        monkeypatch, tilt_bic, decentre_bic, required, ambiguous):
+    # The rule of the keystone route, on scores set here: the tilt is required where it
+    # lowers the BIC of the principal points and p1, p2 by more than BIC_MARGIN and leads the
+    # static decentre; a decentre that lowers it by as much too and trails by less than the
+    # margin is not told apart, and said so.
+    from zoomcalib.diagnose import tangential
+
+    scored = tangential.distortion_evidence
+
+    def fixed_scores(diag, p, sd_p, causes=tangential.EVIDENCE_CAUSES):
+        ev = scored(diag, p, sd_p, causes)
+        ev["causes"]["axis_tilt"]["delta_bic"] = tilt_bic
+        ev["causes"]["static_decenter"]["delta_bic"] = decentre_bic
+        ev["best"] = "axis_tilt"
+        ev["pair_delta_bic"] = tilt_bic - 20.0  # both together pay: neither is dropped for it
+        return ev
+
+    monkeypatch.setattr(tangential, "distortion_evidence", fixed_scores)
+    diag = _diagnose(_tilted_lens_table(np.zeros(2), 0.02, seed=12))
+    assert diag.distortion["required"] == required
+    assert diag.distortion["margin"] == pytest.approx(decentre_bic - tilt_bic)
+    assert ("axis_tilt" in {s.cause for s in diag.causes}) == (required is not None)
+    assert diag.ambiguous_with == ambiguous
+    assert diag.distortion["ambiguous"] == (ambiguous[0] if ambiguous else None)
+    doc = diag.to_dict()
+    assert doc["ambiguous_with"] == ambiguous
+    if ambiguous:
+        from zoomcalib.diagnose.report import report_markdown
+
+        assert ("Not told apart from: static_decenter (static_decenter: within 10 of the tilt "
+                "on the principal points and p1, p2)") in report_markdown(diag, doc)
 
 
 def _decentred_lens_table(decenter_um: np.ndarray, noise_px: float, seed: int):

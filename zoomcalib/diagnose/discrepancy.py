@@ -661,14 +661,18 @@ class Diagnosis:
     def ambiguous_with(self) -> list[str]:
         """Causes not selected that fit, alone, almost as well as the strongest selected one
         (BIC within AMBIGUITY_BIC of it), less one the tangential distortion contradicts
-        (``distortion['excluded']``)."""
+        (``distortion['excluded']``), and the one it does not tell from a tilt it required
+        (``distortion['ambiguous']``)."""
         if not self.causes:
             return []
-        named = {s.cause for s in self.causes} | {(self.distortion or {}).get("excluded")}
+        evidence = self.distortion or {}
+        named = {s.cause for s in self.causes} | {evidence.get("excluded")}
         alone = {c.cause: c.delta_bic for c in self.candidates}
         top = alone[self.causes[0].cause]
-        return [c.cause for c in self.candidates if c.cause not in named
-                and c.delta_bic - top < AMBIGUITY_BIC and c.delta_bic < -BIC_MARGIN]
+        close = [c.cause for c in self.candidates if c.cause not in named
+                 and c.delta_bic - top < AMBIGUITY_BIC and c.delta_bic < -BIC_MARGIN]
+        other = evidence.get("ambiguous")
+        return close + ([other] if other and other not in named | set(close) else [])
 
     @property
     def data_advice(self) -> list[str]:

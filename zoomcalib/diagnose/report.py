@@ -163,11 +163,17 @@ def report_markdown(diag: Diagnosis, doc: dict) -> str:
     t = diag.table
     lines = [f"# Diagnosis of {t.source}", ""]
     lines += [_verdict(diag, doc), ""]
-    if doc["ambiguous_with"]:
-        lines += [f"Not told apart from: {', '.join(doc['ambiguous_with'])} (BIC within "
-                  f"{doc['selection']['ambiguity_bic']:g}); their signatures are nearly the same "
-                  f"on this lens at this noise.", ""]
     ev = doc["distortion_evidence"]
+    if doc["ambiguous_with"]:
+        by_p = (ev or {}).get("ambiguous")
+        close = [c for c in doc["ambiguous_with"] if c != by_p]
+        why = ([f"{', '.join(close)}: BIC within {doc['selection']['ambiguity_bic']:g}"]
+               if close else [])
+        if by_p in doc["ambiguous_with"]:
+            why.append(f"{by_p}: within {doc['selection']['bic_margin']:g} of the tilt on the "
+                       "principal points and p1, p2")
+        lines += [f"Not told apart from: {', '.join(doc['ambiguous_with'])} ({'; '.join(why)});"
+                  " their signatures are nearly the same on this lens at this noise.", ""]
     if ev:
         lines += ["With the tangential distortion p1, p2 fitted beside the principal points: "
                   + ", ".join(f"{c} delta BIC {v['delta_bic']:.1f}"

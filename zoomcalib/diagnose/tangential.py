@@ -222,8 +222,10 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
       response (:attr:`ZoomTable.keystone`): a calibration takes most of a tilted sensor's
       keystone into its poses, which leaves the tilt a faint trace in the principal points
       and a clear one in ``p1``, ``p2``. When the tilt lowers the BIC of the principal points
-      and ``p1``, ``p2`` together by more than ``BIC_MARGIN`` and leads the static decentre by
-      as much, the diagnosis is made again with it required (``require``).
+      and ``p1``, ``p2`` together by more than ``BIC_MARGIN`` and fits them better than the
+      static decentre, the diagnosis is made again with it required (``require``); a static
+      decentre that lowers that BIC by more than ``BIC_MARGIN`` too, and trails the tilt by
+      less than it, is not told apart (``ambiguous``, listed in ``ambiguous_with``).
 
     Either way, a selected one of the two that does not lower the BIC of the two together by
     more than ``BIC_MARGIN`` is left out (``exclude``): its trace in the principal points is
@@ -234,7 +236,8 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     ``refit(exclude=..., require=..., restrict=...)`` makes the diagnosis again. The scores
     are attached as ``distortion`` either way, with ``margin``, ``excluded`` (the contradicted
     cause, None when the margin is not passed), which ``ambiguous_with`` then leaves out,
-    ``required`` (the cause the scores put in, or None), ``unsupported`` (the causes left out
+    ``required`` (the cause the scores put in, or None), ``ambiguous`` (the other of the two
+    when the required tilt leads it by at most ``BIC_MARGIN``), ``unsupported`` (the causes left out
     for want of support) and ``restricted`` (cause: variant).
     """
     named = {s.cause for s in diag.causes} | set(diag.ambiguous_with)
@@ -248,7 +251,8 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
     winner = ev["best"]
     loser = next(c for c in EVIDENCE_CAUSES if c != winner)
     margin = ev["causes"][loser]["delta_bic"] - ev["causes"][winner]["delta_bic"]
-    ev |= {"margin": margin, "excluded": None, "required": None, "restricted": {}}
+    ev |= {"margin": margin, "excluded": None, "required": None, "ambiguous": None,
+           "restricted": {}}
     changes: dict[str, dict[str, str]] = {"exclude": {}, "require": {}, "restrict": {}}
     if settle:
         ev["excluded"] = loser if margin > BIC_MARGIN else None
@@ -256,10 +260,11 @@ def resolve_with_distortion(diag: Diagnosis, rows: list[dict],
             changes["exclude"][loser] = (
                 f"contradicted by the tangential distortion p1, p2: {winner} fits them and the "
                 f"principal points better by {margin:.1f} in BIC (distortion_evidence)")
-    elif (winner == "axis_tilt" and margin > BIC_MARGIN
-          and ev["causes"][winner]["delta_bic"] < -BIC_MARGIN):
+    elif winner == "axis_tilt" and ev["causes"][winner]["delta_bic"] < -BIC_MARGIN:
         ev["required"] = winner
         changes["require"][winner] = _tilt_evidence(ev, margin, loser)
+        if margin <= BIC_MARGIN and ev["causes"][loser]["delta_bic"] < -BIC_MARGIN:
+            ev["ambiguous"] = loser  # supported too, and not contradicted: not told apart
     ev["unsupported"] = [c for c in EVIDENCE_CAUSES if c in selected
                          and c not in changes["exclude"]
                          and ev["causes"][c]["delta_bic"] > -BIC_MARGIN]
