@@ -23,8 +23,8 @@ import pytest
 
 from zoomcalib.calibrate.io import KEYSTONE_COLUMNS, read_zoom_table, write_zoom_table
 from zoomcalib.calibrate.opencv_backend import calibrate_opencv, keystone_response
+from zoomcalib.calibrate.outputs import table_row
 from zoomcalib.calibrate.result import Observations
-from zoomcalib.calibrate.run import _table_row
 from zoomcalib.camera import Sensor
 from zoomcalib.diagnose.discrepancy import Fitter, diagnose_table, noise_shape
 from zoomcalib.diagnose.model import Context, LensResponse, group_term, offset_term
@@ -136,7 +136,7 @@ def _tilted_lens_rows(theta_mrad: tuple[float, float], noise_px: float, seed: in
         views = [(np.arange(len(pts)), project_points(pts, mapping, R, t)
                   + rng.normal(0.0, noise_px, (len(pts), 2))) for R, t in poses]
         res = calibrate_opencv(Observations(pts, views, SIZE), flags=cv2.CALIB_FIX_K3)
-        rows.append(_table_row(f"z{i}", float(z), {}, res))
+        rows.append(table_row(f"z{i}", float(z), {}, res))
     return tuple(rows)
 
 
@@ -258,7 +258,7 @@ def _decentred_lens_table(decenter_um: np.ndarray, noise_px: float, seed: int):
                                   + rng.normal(0.0, noise_px, (len(pts), 2)))
                                  for R, t in poses], SIZE)
         res = calibrate_opencv(obs, flags=cv2.CALIB_FIX_K3)
-        rows.append(_table_row(f"z{i}", float(z), {}, res))
+        rows.append(table_row(f"z{i}", float(z), {}, res))
         cals.append(RowCalibration(res, obs))
     return rows, cals
 

@@ -245,11 +245,12 @@ def test_a_path_the_steps_cannot_resolve_widens_the_sigma_and_is_flagged(rng):
 
 
 def test_a_flagged_curve_reaches_the_files_and_the_report(tmp_path):
-    # The calibrate run's zoom model (run._zoom_model) on table rows whose cx wiggles more
+    # The calibrate run's zoom model (outputs.fit_zoom_model) on table rows whose cx wiggles more
     # than 7 steps can follow (the path of the test above, no noise): zoom_model.json lists
     # the flag and the report's zoom-range text shows it.
+    from zoomcalib.calibrate.outputs import fit_zoom_model
     from zoomcalib.calibrate.report import _holdout_text
-    from zoomcalib.calibrate.run import CalibrateRun, _zoom_model
+    from zoomcalib.calibrate.run import CalibrateRun
 
     t = np.linspace(0.0, 1.0, 7)
     cx = 640.0 + 20.0 * t + 5.0 * np.sin(2.0 * np.pi * 2.3 * t)
@@ -257,7 +258,7 @@ def test_a_flagged_curve_reaches_the_files_and_the_report(tmp_path):
              "fy": 1000.0 * (1.0 + t[i]), "cx": cx[i], "cy": 360.0 + 2.0 * t[i],
              "sd_fx": 1.0, "sd_fy": 1.0, "sd_cx": 0.2, "sd_cy": 0.2} for i in range(7)]
     run = CalibrateRun()
-    _zoom_model(run, rows, tmp_path, lambda message: None)
+    fit_zoom_model(run, rows, tmp_path, lambda message: None)
     doc = json.loads((tmp_path / "zoom_model.json").read_text())
     assert [f.split(":")[0] for f in doc["flags"]] == ["cx"]
     assert doc["model"]["params"]["cx"]["misfit_flagged"] is True
@@ -372,7 +373,8 @@ def test_zoom_steps_from_steps_csv(tmp_path):
 
 def test_board_sessions_from_steps_csv_or_the_capture_dates_in_the_names():
     from zoomcalib.calibrate.result import Observations
-    from zoomcalib.calibrate.run import CalibrateRun, _board_sessions
+    from zoomcalib.calibrate.run import CalibrateRun
+    from zoomcalib.calibrate.zoomset import capture_sessions
 
     rng = np.random.default_rng(4)
     days = rng.choice(["20250805", "20250814", "20250819"], size=5)
@@ -383,14 +385,14 @@ def test_board_sessions_from_steps_csv_or_the_capture_dates_in_the_names():
             names += ["live_ch0_20250701120000.png", "1x_zoom_1.png"]
         run.observations[f"s{i}"] = Observations(np.zeros((1, 3)), [], (64, 48), names)
     logged = []
-    got = _board_sessions(run, {s: {} for s in run.observations}, logged.append)
+    got = capture_sessions(run, {s: {} for s in run.observations}, logged.append)
     assert got == {f"s{i}": f"{d[:4]}-{d[4:6]}-{d[6:]}" for i, d in enumerate(days)}
     assert "s2 2" in logged[0]
     # a session column overrides the names; given for some steps only, it is refused
     given = {s: {"session": "A" if i < 2 else "B"} for i, s in enumerate(run.observations)}
-    assert set(_board_sessions(run, given, logged.append).values()) == {"A", "B"}
+    assert set(capture_sessions(run, given, logged.append).values()) == {"A", "B"}
     given["s4"] = {}
-    assert _board_sessions(run, given, logged.append) == {}
+    assert capture_sessions(run, given, logged.append) == {}
     assert "some steps only" in logged[-1]
 
 
@@ -398,7 +400,8 @@ def test_a_step_taken_in_two_sittings_is_named():
     # frames of one step with a gap of more than an hour (drawn) between two runs of
     # minutes: the step and both sittings are logged; a step taken in one run is not
     from zoomcalib.calibrate.result import Observations
-    from zoomcalib.calibrate.run import CalibrateRun, _log_sittings
+    from zoomcalib.calibrate.run import CalibrateRun
+    from zoomcalib.calibrate.zoomset import log_sittings
 
     rng = np.random.default_rng(11)
     gap_min = int(rng.integers(75, 240))
@@ -411,7 +414,7 @@ def test_a_step_taken_in_two_sittings_is_named():
     run.observations["two"] = Observations(np.zeros((1, 3)), [], (64, 48), names + ["x.png"])
     run.observations["one"] = Observations(np.zeros((1, 3)), [], (64, 48), sorted(names)[:5])
     logged = []
-    _log_sittings(run, logged.append)
+    log_sittings(run, logged.append)
     assert len(logged) == 1 and logged[0].startswith("step two: ")
     assert "2 sittings" in logged[0] and "5 frames" in logged[0] and "7 frames" in logged[0]
     first = minutes[:5].min()

@@ -800,7 +800,7 @@ def test_a_term_choice_says_what_failed_and_why_it_chose_nothing(rng, monkeypatc
     assert choice.why is None and list(choice.failed) == ["rational"]
     assert "diverged" in choice.to_dict()["failed"]["rational"]
     assert not choice.rational
-    from zoomcalib.calibrate.run import zoom_wide_step_notes
+    from zoomcalib.calibrate.zoomset import zoom_wide_step_notes
 
     assert zoom_wide_step_notes({"distortion_choice": choice.to_dict()}) == [
         "term sets not fitted on held-out views, so not candidates: rational"]

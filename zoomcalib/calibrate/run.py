@@ -26,13 +26,16 @@ For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
   removes the files an earlier run left (listed in its manifest, or named as this job names
   its files), so the folder never mixes two runs.
 
+The table, ``meta``, the zoom model, the figures and the manifest are written by
+:mod:`zoomcalib.calibrate.outputs`; the capture sessions and the residual budget come from
+:mod:`zoomcalib.calibrate.zoomset`.
+
 A step whose detection or calibration fails is reported and skipped (:attr:`CalibrateRun.dropped`);
 the others are kept. An image of another size than most of its step is left out and named.
 """
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -42,7 +45,7 @@ import cv2
 import numpy as np
 
 from ..detect import detection_pool, image_files
-from ..pool import map_in_processes, stop_pool
+from ..pool import stop_pool
 from ..targets import Target, parse_pattern
 from ..zoom.model import ZoomModelLike
 from .advice import advise
@@ -54,17 +57,9 @@ from .guards import (
     detection_settings,
     keep_majority_size,
     step_file_stems,
-    write_manifest,
 )
 from .io import (
-    KEYSTONE_COLUMNS,
-    PP_CORRELATION_FILE,
-    capture_date,
-    capture_sittings,
     ignored_top_images,
-    write_calibration,
-    write_principal_point_correlation,
-    write_zoom_table,
     zoom_steps,
 )
 from .opencv_backend import (
@@ -73,9 +68,11 @@ from .opencv_backend import (
     fix_flags,
     observations_from_detections,
 )
-from .result import DIST_NAMES, CalibrationResult, Observations, residual_vectors
+from .outputs import run_meta, table_rows, write_figures, write_results, write_run_manifest
+from .result import CalibrationResult, Observations, residual_vectors
 from .scatter import pooled_over_steps
 from .status import StepStatus, sensor_aspect, step_status
+from .zoomset import capture_sessions, log_sittings, residual_budgets, zoom_wide_step_notes
 
 __all__ = ["CalibrateOptions", "CalibrateRun", "calibrate_folder", "residual_vectors",
            "step_file_stems", "BACKENDS"]
@@ -218,55 +215,6 @@ def _calibrate(backend: str, obs: Observations, model: str,
     return res
 
 
-#: Beside ``zoom_calibration.csv`` of a zoom-wide run: the rows of its solve without the
-#: smoothness prior (:func:`_unsmoothed_table`), which ``diagnose`` takes for that table.
-UNSMOOTHED_TABLE = "zoom_calibration_unsmoothed.csv"
-
-
-def _unsmoothed_table(run: CalibrateRun, rows: list[dict]) -> list[dict]:
-    """The zoom-wide rows of ``rows`` with fx, fy, cx, cy and their sigmas from the
-    adjustment's solve without the smoothness prior
-    (:attr:`~zoomcalib.calibrate.zoomwide.ZoomWideResult.unsmoothed`; mode ``zoom-wide, no
-    prior``): rows the prior does not tie together, for the diagnosis. The other columns
-    (distortion, status, flags) are the adjustment's. Empty without a zoom-wide adjustment
-    or when its solve without the prior had no covariance."""
-    free = getattr(run.zoom_wide, "unsmoothed", None) or {}
-    out = []
-    for row in rows:
-        own = free.get(row["step"])
-        if own is None or row.get("mode") != "zoom-wide":
-            continue
-        out.append(row | {k: own[k] for k in ("fx", "fy", "cx", "cy", "sd_fx", "sd_fy",
-                                              "sd_cx", "sd_cy")}
-                   | {"mode": "zoom-wide, no prior"})
-    return out
-
-
-def _table_row(step: str, zoom: float | None, extras: dict, res: CalibrationResult) -> dict:
-    """The ``zoom_calibration.csv`` row of one step: every distortion term the model has
-    (k1..k3 always, k4..k6 for the rational model) with its 1-sigma, and the backend."""
-    row = {"step": step, "zoom": np.nan if zoom is None else zoom, "fx": res.fx, "fy": res.fy,
-           "cx": res.cx, "cy": res.cy, "backend": res.backend,
-           "mode": res.info.get("mode", "per-step"),
-           "converged": res.converged}
-    for k in ("fx", "fy", "cx", "cy"):
-        row[f"sd_{k}"] = res.sd.get(k, np.nan)
-    n_terms = max(5, len(res.dist))
-    for i, name in enumerate(DIST_NAMES[:n_terms]):
-        row[name] = float(res.dist[i]) if i < len(res.dist) else 0.0
-        row[f"sd_{name}"] = res.sd.get(name, np.nan)
-    row["rms_px"] = res.rms_px
-    row["n_views"] = len(res.per_view_rms_px)
-    keystone = res.info.get("keystone_response")
-    if keystone:
-        values = np.vstack([keystone["absorption"], keystone["tangential"]]).ravel()
-        row.update(zip(KEYSTONE_COLUMNS, values.tolist(), strict=True))
-    for k in ("direction", "sequence", "focus", "temperature"):
-        if extras.get(k) not in (None, ""):
-            row[k] = extras[k]
-    return row
-
-
 @dataclass(frozen=True)
 class CalibrateOptions:
     """What the calibrate job does beyond detecting and calibrating each step
@@ -390,10 +338,10 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     how = _Detecting(out, target, settings, workers, progress, log, provenance)
     extras_of = _each_step(run, steps, step_files, how, backends, opts)
     _pool_view_scatter(run, backends)
-    _log_sittings(run, log)
+    log_sittings(run, log)
     # the capture sessions go to the table's session column either way; the zoom-wide
     # adjustment also gives each its own board shape
-    capture = _board_sessions(run, extras_of, log if opts.zoom_wide else (lambda message: None))
+    capture = capture_sessions(run, extras_of, log if opts.zoom_wide else (lambda message: None))
     sessions = capture if opts.zoom_wide else {}
     if opts.zoom_wide and len(run.observations) >= 2:
         directions = {s: e.get("direction") or "" for s, e in extras_of.items()}
@@ -408,21 +356,21 @@ def calibrate_folder(folder: str | Path, pattern: str, out: str | Path,
     run.status = _step_statuses(run)
     _log_unusable(run, log)
     if opts.residual_budget and run.results:
-        _residual_budget(run, sessions, workers, log)
-    rows = _table_rows(run, extras_of, capture)
+        residual_budgets(run, sessions, workers, log)
+    rows = table_rows(run, extras_of, capture)
 
     call = {"pattern": pattern, "backends": list(backends), "model": opts.model,
             "method": opts.method, "fixed": list(opts.fixed), "detection_settings": settings}
     zoom_set = not (len(steps) == 1 and steps[0][0] == ".")
-    _write_results(run, out, _meta(run, {"folder": str(folder)} | call, provenance),
-                   rows if zoom_set else [], log)
+    write_results(run, out, run_meta(run, {"folder": str(folder)} | call, provenance),
+                  rows if zoom_set else [], log)
     if run.results:
         run.files += write_exports(out, run, opts.camera_name or _camera_name(folder),
                                    opts.grid_points, log)
-        run.files += _figures(run, out, zoom_set, workers)
+        run.files += write_figures(run, out, zoom_set, workers)
     if opts.report and run.results:
         _report(run, out, opts.report_distance, opts.report_images, log)
-    run.files.append(_write_run_manifest(out, run, folder, steps, provenance, call))
+    run.files.append(write_run_manifest(out, run, folder, steps, provenance, call))
     return run
 
 
@@ -465,25 +413,6 @@ def _each_step(run: CalibrateRun, steps: list, step_files: dict[str, list[Path]]
     if pool is not None:
         pool.shutdown()
     return extras_of
-
-
-def _write_results(run: CalibrateRun, out: Path, meta: dict, rows: list[dict],
-                   log: Callable[[str], None]) -> None:
-    """``calibration.json`` and ``.yml``, and for a zoom set (``rows``: the zoom table's, else
-    empty) ``zoom_calibration.csv``, its unsmoothed twin with the correlation of that twin's
-    principal points, and the zoom model."""
-    if run.results:
-        run.files += list(write_calibration(out, run.results, meta))
-    if rows:
-        run.files.append(write_zoom_table(out / "zoom_calibration.csv", rows))
-        unsmoothed = _unsmoothed_table(run, rows)
-        if unsmoothed:
-            run.files.append(write_zoom_table(out / UNSMOOTHED_TABLE, unsmoothed))
-            correlation = getattr(run.zoom_wide, "unsmoothed_pp_correlation", None)
-            if correlation is not None:
-                run.files.append(write_principal_point_correlation(
-                    out / PP_CORRELATION_FILE, list(run.zoom_wide.unsmoothed), correlation))
-        _zoom_model(run, [r for r in rows if r["status"] != "unusable"], out, log)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -561,124 +490,9 @@ def _calibrate_step(step: str, obs: Observations, backends: Sequence[str], model
     return results
 
 
-def _meta(run: CalibrateRun, settings: dict, provenance: dict[str, dict]) -> dict:
-    """``calibration.json``'s ``meta``: the run's ``settings``, its failures, table backends,
-    flags, detections, cross-validation and zoom-wide adjustment."""
-    meta = settings | {
-        "failures": run.failures, "partial": run.partial_message(),
-        "detections": {s: {k: v for k, v in p.items() if k != "images"}
-                       for s, p in provenance.items()},
-        "left_out": run.left_out, "copies": run.copies, "ignored_images": run.ignored,
-        "table_backend": run.table_backend, "flags": run.flags,
-        "flag_records": {s: [f.to_dict() for f in fl] for s, fl in run.flag_records.items()},
-        "status": {s: st.to_dict() for s, st in run.status.items()}}
-    if run.cross_validation is not None:
-        meta["cross_validation"] = run.cross_validation.to_dict()
-    if run.budget:
-        meta["residual_budget"] = {"steps": {s: b.to_dict() for s, b in run.budget.items()},
-                                   "sessions": run.budget_sessions}
-    if run.zoom_wide is not None:
-        zw = run.zoom_wide
-        meta["zoom_wide"] = {"converged": zw.converged, "stop_reason": zw.stop_reason,
-                             "aspect": zw.aspect, "aspect_sd": zw.aspect_sd,
-                             "iterations": zw.iterations, "tau": zw.tau,
-                             "tau_source": zw.tau_source, "zoom_model": zw.zoom_models,
-                             "unsmoothed": zw.unsmoothed,
-                             "board_modes_mm": zw.board_modes.tolist(),
-                             "board_sessions": zw.board_sessions,
-                             "board_modes_sd_mm": zw.board_modes_sd.tolist(),
-                             "board_point_heights_mm": (None if zw.board_heights is None
-                                                        else zw.board_heights.tolist()),
-                             "print_modes_mm": (None if zw.print_modes is None
-                                                else zw.print_modes.tolist()),
-                             "print_modes_sd_mm": (None if zw.print_modes_sd is None
-                                                   else zw.print_modes_sd.tolist()),
-                             "print_test": (None if zw.print_test is None
-                                            else zw.print_test.to_dict()),
-                             "distortion_terms": {k: list(v) for k, v in zw.terms.items()},
-                             "skipped": zw.skipped,
-                             "distortion_choice": {k: v.to_dict()
-                                                   for k, v in zw.held_out.items()}}
-    return meta
-
-
-def _residual_budget(run: CalibrateRun, sessions: dict[str, str], workers: int,
-                     log: Callable[[str], None]) -> None:
-    """The residual budget of every usable step's table result and of each capture session
-    (:mod:`zoomcalib.calibrate.budget`); a step whose budget fails is logged, the others kept."""
-    from .budget import session_budgets, step_budgets
-
-    usable = {s: run.results[s][run.table_backend[s]] for s in run.results
-              if s in run.observations and (s not in run.status or run.status[s].usable)}
-    log(f"residual budget of {len(usable)} steps (each cause judged on held-out corners)")
-    run.budget, failed = step_budgets({s: run.observations[s] for s in usable}, usable,
-                                      workers)
-    for step, why in failed.items():
-        run.failures.append(f"step {step}: residual budget failed: {why}")
-        log(run.failures[-1])
-    run.budget_sessions = session_budgets(run.budget, sessions)
-    for budget in run.budget.values():
-        log(f"budget {budget.summary()}")
-    for label, d in run.budget_sessions.items():
-        shares = ", ".join(f"{k} {100 * v:.0f} %" for k, v in d["share"].items()
-                           if v is not None)
-        log(f"budget of session {label or '(one)'} ({', '.join(d['steps'])}): {shares}; "
-            f"unexplained {100 * d['unexplained']:.0f} %")
-
-
-def _zoom_model(run: CalibrateRun, rows: list[dict], out: Path,
-                log: Callable[[str], None]) -> None:
-    """``zoom_model.json`` from the table rows of known zoom (4 or more), its held-out error in
-    ``run.holdout``; a fit that fails is logged and recorded."""
-    known = [_zoom_model_row(r) for r in rows if np.isfinite(r["zoom"])]
-    if len(known) < 4:
-        return
-    from ..zoom import ZoomModel
-    from .zoompath import PosteriorZoomModel
-
-    try:
-        if _posterior_zoom_model(run, known):
-            run.zoom_model = PosteriorZoomModel.from_zoom_wide(
-                run.zoom_wide, {r["step"]: r["zoom"] for r in known})
-            for note in run.zoom_model.notes:
-                log(f"zoom model: {note}")
-        else:
-            run.zoom_model = ZoomModel.from_table(known)
-        if "k1" not in run.zoom_model.names and any(r.get("k4") is not None for r in known):
-            log("zoom model: fx, fy, cx, cy only; steps "
-                + ", ".join(r["step"] for r in known if r.get("k4") is not None)
-                + " hold the rational model, the others five terms")
-        run.holdout = run.zoom_model.holdout_error()
-        doc = {"model": run.zoom_model.to_dict(),
-               "holdout_rms": {k: float(v) for k, v in run.holdout.items()},
-               "flags": run.zoom_model.flags()}
-        path = out / "zoom_model.json"
-        path.write_text(json.dumps(doc, indent=1))
-        run.files.append(path)
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        run.failures.append(f"zoom model: {exc}")
-        log(run.failures[-1])
-
-
-def _posterior_zoom_model(run: CalibrateRun, rows: list[dict]) -> bool:
-    """Whether the zoom model comes from the zoom-wide adjustment's posterior
-    (:mod:`zoomcalib.calibrate.zoompath`): its rows make the table and it has one chain (the
-    steps reached zooming in and out are two paths; their table rows are fitted instead)."""
-    return (run.zoom_wide is not None and bool(getattr(run.zoom_wide, "u", None))
-            and all(run.table_backend.get(r["step"]) == "zoom-wide" for r in rows)
-            and len({r.get("direction") or "" for r in rows}) == 1)
-
-
 def _camera_name(folder: str | Path) -> str:
     """The image folder's name made a ROS camera name (``[A-Za-z0-9_]``)."""
     return re.sub(r"[^A-Za-z0-9_]", "_", Path(folder).resolve().name) or "camera"
-
-
-def _zoom_model_row(row: dict) -> dict:
-    """A table row as the zoom model is fitted from: without the distortion terms' 1-sigma
-    columns, so the distortion curves are fitted with equal weights as before those columns
-    were written (fx, fy, cx, cy stay weighted by theirs)."""
-    return {k: v for k, v in row.items() if not k.startswith(("sd_k", "sd_p"))}
 
 
 def _drop(run: CalibrateRun, step: str, why: str, log: Callable[[str], None]) -> None:
@@ -786,79 +600,6 @@ def _pool_view_scatter(run: CalibrateRun, backends: Sequence[str]) -> None:
                                     if backend in r})
         for step, res in pooled.items():
             run.results[step][backend] = res
-
-
-#: Frames of one step more than this apart (hours) are taken as two sittings (logged).
-SITTING_GAP_H = 1.0
-
-
-def _log_sittings(run: CalibrateRun, log: Callable[[str], None]) -> None:
-    """Name the steps whose frames were taken in several sittings (capture times in the
-    image names more than :data:`SITTING_GAP_H` apart, :func:`capture_sittings`): a board
-    re-taped or moved between them is not one shape, and the board model's sessions are whole
-    steps (on the real PTZ set one step's two sittings saw two board shapes:
-    ``docs/notes/real-camera-table.md``)."""
-    for step, obs in run.observations.items():
-        sittings = capture_sittings(list(obs.names), SITTING_GAP_H)
-        if len(sittings) < 2:
-            continue
-        spans = "; ".join(f"{a:%Y-%m-%d %H:%M}-{b:%H:%M}, {n} frame{'s' if n > 1 else ''}"
-                          for a, b, n in sittings)
-        log(f"step {step}: its frames were taken in {len(sittings)} sittings more than "
-            f"{SITTING_GAP_H:g} h apart ({spans}); the board model gives them one shape: if "
-            "the board was re-taped or moved between them, recapture the step in one sitting")
-
-
-def _board_sessions(run: CalibrateRun, extras_of: dict[str, dict],
-                    log: Callable[[str], None]) -> dict[str, str]:
-    """Each step's capture session for the zoom-wide board shape: the ``session`` column of
-    steps.csv where given, else the capture date most of the step's image names carry
-    (:func:`~zoomcalib.calibrate.io.capture_date`); one session when neither tells. Logged
-    when there is more than one."""
-    given = {s: str(e["session"]) for s, e in extras_of.items() if e.get("session")}
-    if given:
-        if len(given) < len(extras_of):
-            log("steps.csv gives a session to some steps only: one board shape for all")
-            return {}
-        source = "steps.csv"
-        sessions = given
-    else:
-        source = "the capture dates in the image names"
-        sessions, odd = {}, {}
-        for step in extras_of:
-            date, others = capture_date(list(run.observations[step].names))
-            if date is None:
-                return {}
-            sessions[step] = date
-            if others:
-                odd[step] = others
-        if odd:
-            log("images of another capture date than most of their step's (modelled with "
-                "their step's board shape): " + ", ".join(f"{s} {n}" for s, n in odd.items()))
-    if len(set(sessions.values())) > 1:
-        log(f"zoom-wide: one board shape per capture session, from {source}: "
-            + "; ".join(f"{lab} ({', '.join(s for s in sessions if sessions[s] == lab)})"
-                        for lab in dict.fromkeys(sessions.values())))
-    return sessions
-
-
-def zoom_wide_step_notes(info: dict) -> list[str]:
-    """What the log says of one step of the zoom-wide adjustment, from its result's ``info``:
-    a basin it moved to, why its distortion terms were not chosen, the term sets that could
-    not be fitted on held-out views, and the held-out views a term set could not place."""
-    notes = []
-    if info.get("basin", {}).get("moved"):
-        notes.append(info["basin"]["summary"])
-    choice = info.get("distortion_choice") or {}
-    if choice.get("why"):
-        notes.append(f"distortion terms not chosen ({choice['why']})")
-    elif choice.get("failed"):
-        notes.append("term sets not fitted on held-out views, so not candidates: "
-                     + ", ".join(choice["failed"]))
-    if choice.get("unplaced"):
-        notes.append("held-out views a term set could not place, left out of every set's "
-                     "comparison: " + ", ".join(f"{k} {n}" for k, n in choice["unplaced"].items()))
-    return notes
 
 
 def _zoom_wide(run: CalibrateRun, model: str, target: Target, log: Callable[[str], None],
@@ -1025,17 +766,6 @@ def _report(run: CalibrateRun, out: Path, distance: float | None, images: tuple[
         log(f"{out / 'report.html'}: not written: {' '.join(str(exc).split())}")
 
 
-def _write_run_manifest(out: Path, run: CalibrateRun, folder, steps, provenance: dict,
-                        call: dict) -> Path:
-    caches = [out / p["file"] for p in provenance.values() if (out / p["file"]).is_file()]
-    inputs = {"folder": str(folder), "ignored_images": run.ignored,
-              "steps": {step: {"folder": str(step_dir), "zoom": zoom,
-                               "images": provenance.get(step, {}).get("images", [])}
-                        for step, step_dir, zoom, _ in steps}}
-    return write_manifest(out, [*run.files, *caches], inputs, call)
-
-
-
 def _drop_uncalibrated(run: CalibrateRun) -> None:
     """Steps that neither a backend nor the zoom-wide adjustment calibrated leave the results
     and are listed as dropped."""
@@ -1052,58 +782,4 @@ def _log_unusable(run: CalibrateRun, log: Callable[[str], None]) -> None:
                 "calibration.json with its status, not exported and not in the zoom model")
 
 
-def _table_rows(run: CalibrateRun, extras_of: dict[str, dict],
-                sessions: dict[str, str]) -> list[dict]:
-    """The zoom table's rows: each step's table backend's result, its flags and status, and
-    its capture session where the steps were captured in more than one."""
-    several = len(set(sessions.values())) > 1
-    return [_table_row(step, run.zoom[step], extras_of[step],
-                       run.results[step][run.table_backend[step]]) | {
-                           "flags": "; ".join(run.flags.get(step, [])),
-                           "status": run.status[step].status,
-                           "status_reasons": "; ".join(run.status[step].reasons)}
-            | ({"session": sessions.get(step)} if several else {})
-            for step in run.results]
 
-def _figures(run: CalibrateRun, out: Path, zoom_set: bool, workers: int = 1) -> list[Path]:
-    """The run's figures; the steps' residual plots in ``workers`` processes (matplotlib's
-    drawing of their thousands of arrows is most of the time)."""
-    from ..plots import (
-        plot_focal_length,
-        plot_principal_point_spiral,
-        plot_residuals,
-    )
-
-    files = []
-    steps = list(run.results)
-    best = {s: run.results[s][run.table_backend[s]] for s in steps}
-    if zoom_set and len(steps) > 1:
-        known = all(run.zoom[s] is not None for s in steps)
-        zoom = np.array([run.zoom[s] if known else i for i, s in enumerate(steps)], dtype=float)
-        label = ("zoom (the table's zoom column)" if known
-                 else "step index (zoom unknown: no steps.csv or zoom in the step names)")
-        mean = np.array([[best[s].cx, best[s].cy] for s in steps])
-        sd = np.array([[best[s].sd.get("cx", 0.0), best[s].sd.get("cy", 0.0)] for s in steps])
-        files.append(plot_principal_point_spiral(
-            zoom, mean, sd, out / "principal_point_path.png",
-            title="Calibrated principal point across zoom (1-sigma ellipses)",
-            zoom_label=label, image_size=run.observations[steps[0]].image_size))
-        f = np.array([[best[s].fx, best[s].sd.get("fx", 0.0)] for s in steps])
-        files.append(plot_focal_length(zoom, f[:, 0], f[:, 1], out / "focal_length.png",
-                                       run.zoom_model if known else None, zoom_label=label))
-    cv = run.cross_validation
-    if cv is not None and cv.z:
-        from ..plots import plot_cross_validation
-        from .checks import CROSS_VALIDATED
-
-        names = [s for s in steps if s in cv.z]
-        z = np.array([[cv.z[s][q] for q in CROSS_VALIDATED] for s in names])
-        files.append(plot_cross_validation(names, z, CROSS_VALIDATED,
-                                           out / "cross_validation.png",
-                                           title=f"Cross-validation ({cv.backend}): even vs "
-                                                 "odd images"))
-    plots = [([p for _, p in run.observations[s].views],
-              residual_vectors(best[s], run.observations[s]), run.observations[s].image_size,
-              out / f"residuals_{run.stems[s]}.png",
-              f"step {s}: {best[s].backend}, rms {best[s].rms_px:.3f} px") for s in steps]
-    return files + map_in_processes(plot_residuals, plots, workers)

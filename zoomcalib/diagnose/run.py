@@ -176,7 +176,7 @@ def _calibrations_beside(table: ZoomTable, table_path: Path
 
 
 #: Beside a zoom-wide ``zoom_calibration.csv``: its solve without the smoothness prior
-#: (``zoomcalib.calibrate.run.UNSMOOTHED_TABLE``).
+#: (``zoomcalib.calibrate.outputs.UNSMOOTHED_TABLE``).
 UNSMOOTHED_TABLE = "zoom_calibration_unsmoothed.csv"
 
 
