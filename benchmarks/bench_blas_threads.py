@@ -36,8 +36,8 @@ from threadpoolctl import threadpool_info, threadpool_limits  # noqa: E402
 import zoomcalib.calibrate.solver as solver  # noqa: E402
 import zoomcalib.calibrate.zoomwide as zoomwide  # noqa: E402
 import zoomcalib.pool as pool  # noqa: E402
-from zoomcalib.calibrate.io import capture_date  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.stepfolders import capture_date  # noqa: E402
 
 
 def _timed_schur():

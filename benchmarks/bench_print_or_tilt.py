@@ -32,8 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
-from zoomcalib.calibrate.io import capture_date  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.stepfolders import capture_date  # noqa: E402
 from zoomcalib.calibrate.zoomwide import board_options, calibrate_zoom_wide  # noqa: E402
 
 CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)

@@ -31,9 +31,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # benchmark this checkout
 
-from zoomcalib.calibrate.io import capture_date  # noqa: E402
 from zoomcalib.calibrate.result import Observations  # noqa: E402
 from zoomcalib.calibrate.run import calibrate_folder  # noqa: E402
+from zoomcalib.calibrate.stepfolders import capture_date  # noqa: E402
 from zoomcalib.calibrate.zoomwide import calibrate_zoom_wide  # noqa: E402
 
 STAMP = re.compile(r"(\d{14})")

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from zoomcalib.calibrate.io import read_zoom_table, zoom_steps
+from zoomcalib.calibrate.io import read_zoom_table
 from zoomcalib.calibrate.run import calibrate_folder, step_file_stems
+from zoomcalib.calibrate.stepfolders import zoom_steps
 from zoomcalib.cli import main
 from zoomcalib.diagnose.run import load_zoom_table
 from zoomcalib.diagnose.table import ZoomTable

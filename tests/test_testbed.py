@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 from scipy.special import j0, j1
 
-from zoomcalib.calibrate.io import zoom_steps
+from zoomcalib.calibrate.stepfolders import zoom_steps
 from zoomcalib.camera import CameraModel, Sensor
 from zoomcalib.cli import main
 from zoomcalib.detect import detect_image

@@ -15,8 +15,8 @@ from zoomcalib.calibrate.io import (
     ZOOM_TABLE_COLUMNS,
     read_zoom_table,
     write_zoom_table,
-    zoom_steps,
 )
+from zoomcalib.calibrate.stepfolders import zoom_steps
 from zoomcalib.camera import CameraModel
 from zoomcalib.zoom import ZoomModel
 

@@ -711,7 +711,7 @@ def calibrate(folder, pattern, backend, per_step, pp_model, cross_validate, resi
     from .detect import image_files
 
     _parse_target(pattern)
-    from .calibrate.io import zoom_steps
+    from .calibrate.stepfolders import zoom_steps
 
     try:
         steps = zoom_steps(folder)
@@ -988,7 +988,7 @@ def diagnose(input_path, lens, pixel_pitch, tolerances, pattern, backend, worker
     backends = ("opencv", "bundle") if backend == "both" else (backend,)
     n_images = 0
     if os.path.isdir(input_path):
-        from .calibrate.io import zoom_steps
+        from .calibrate.stepfolders import zoom_steps
         from .detect import image_files
 
         try:

@@ -1,7 +1,7 @@
 """The ``calibrate`` job: detect, calibrate every zoom step with every backend, model the zoom.
 
 For ``DIR`` (a flat image folder, or one subfolder per zoom step, see
-:func:`zoomcalib.calibrate.io.zoom_steps`) it writes to ``OUT``:
+:func:`zoomcalib.calibrate.stepfolders.zoom_steps`) it writes to ``OUT``:
 
 - ``detections/<stem>.json`` — the detections of each step (the detections contract), with
   the images' sizes and BLAKE2b hashes and the detection settings; a rerun reuses the
@@ -58,10 +58,6 @@ from .guards import (
     keep_majority_size,
     step_file_stems,
 )
-from .io import (
-    ignored_top_images,
-    zoom_steps,
-)
 from .opencv_backend import (
     FRONTO_PARALLEL_DEG,
     calibrate_opencv_robust,
@@ -72,6 +68,7 @@ from .outputs import run_meta, table_rows, write_figures, write_results, write_r
 from .result import CalibrationResult, Observations, residual_vectors
 from .scatter import pooled_over_steps
 from .status import StepStatus, sensor_aspect, step_status
+from .stepfolders import ignored_top_images, zoom_steps
 from .zoomset import capture_sessions, log_sittings, residual_budgets, zoom_wide_step_notes
 
 __all__ = ["CalibrateOptions", "CalibrateRun", "calibrate_folder", "residual_vectors",

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from .io import capture_date, capture_sittings
+from .stepfolders import capture_date, capture_sittings
 
 if TYPE_CHECKING:
     from .run import CalibrateRun
@@ -64,7 +64,7 @@ def capture_sessions(run: CalibrateRun, extras_of: dict[str, dict],
                      log: Callable[[str], None]) -> dict[str, str]:
     """Each step's capture session for the zoom-wide board shape: the ``session`` column of
     steps.csv where given, else the capture date most of the step's image names carry
-    (:func:`~zoomcalib.calibrate.io.capture_date`); one session when neither tells. Logged
+    (:func:`~zoomcalib.calibrate.stepfolders.capture_date`); one session when neither tells. Logged
     when there is more than one."""
     given = {s: str(e["session"]) for s, e in extras_of.items() if e.get("session")}
     if given:

@@ -235,8 +235,8 @@ def diagnose_input(source: str | Path, out: str | Path, lens: Prescription | Non
     if source.is_dir():
         if not pattern:
             raise ValueError(f"{source}: an image folder needs --pattern to be calibrated first")
-        from ..calibrate.io import zoom_steps
         from ..calibrate.run import calibrate_folder
+        from ..calibrate.stepfolders import zoom_steps
 
         steps = zoom_steps(source)
         # one row per step; an unknown zoom counts as a setting of its own until refused below

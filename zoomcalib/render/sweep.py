@@ -52,8 +52,8 @@ mid-readout ones). Their draws come from seeds
 of their own, so a render without them is the same as before they existed.
 
 The folder names hold one number each (the rounded fx), so
-:func:`zoomcalib.calibrate.io.zoom_steps` reads the zoom from ``steps.csv`` (exact fx) or, without
-it, from the names.
+:func:`zoomcalib.calibrate.stepfolders.zoom_steps` reads the zoom from ``steps.csv`` (exact fx)
+or, without it, from the names.
 """
 
 from __future__ import annotations
